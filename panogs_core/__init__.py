@@ -1,0 +1,10 @@
+"""panogs_core: the PanoGS algorithm library (open-vocabulary 3D panoptic segmentation).
+
+Pure functions and small frozen dataclasses, arrays in and arrays out. Importing the package is cheap and
+imports neither torch nor open3d: each stage module imports what it needs. The entry points are
+``panogs_core.bundle.open_bundle``, ``panogs_core.pipeline.run_pipeline`` and ``panogs_core.query.query_instances``.
+"""
+
+__version__ = "0.1.0"
+
+__all__ = ["__version__"]

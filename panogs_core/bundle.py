@@ -1,0 +1,744 @@
+"""Scene bundles (``panogs-scene/1``, SCENE_FORMAT.md): open, validate, and read frames lazily.
+
+``open_bundle(path)`` accepts a folder or a ``.zip`` / ``.tar`` / ``.tar.gz`` archive (safely extracted to a
+temporary folder first), validates every rule of the format at once and raises :class:`BundleError` with one
+line per problem. The returned :class:`Scene` reads frames one at a time: nothing large is held in memory.
+
+Validation decodes every image once (a truncated file is only found by decoding it), one file at a time, and
+reads only the headers of feature maps. Each check appends problem lines of the form
+``<file>: <what was found>, expected <what>`` to one list, so that a broken bundle is reported in one go.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+import tempfile
+import weakref
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+
+from panogs_core.errors import BundleError, InputError
+from panogs_core.io.archive import DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES, extract_archive, is_archive
+from panogs_core.io.ply import read_ply_vertices
+from panogs_core.io.writer import FORMAT_ID
+from panogs_core.types import Camera, ClassKind, Frame, Geometry, GroundTruth, Vocabulary
+
+__all__ = ["FORMAT_ID", "Scene", "open_bundle"]
+
+logger = logging.getLogger(__name__)
+
+ROTATION_TOL = 1e-3  # SCENE_FORMAT.md: orthonormal rotation, det 1, tolerance 1e-3
+_LAST_ROW_TOL = 1e-6  # the last pose row is exact in any sane writer; allow float printing noise only
+_FEATURE_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
+_MAX_GT_POINTS = 500_000_000  # refuse absurd declared gt shapes before allocating them
+_FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
+    "depth": (".png",),
+    "color": (".png", ".jpg", ".jpeg"),
+    "features": (".npy",),
+    "masks": (".png",),
+}
+_FRAME_KEYS = frozenset({"id", "pose", *_FRAME_FILES})
+_TOP_KEYS = frozenset({"format", "name", "camera", "depth_scale", "features", "frames"})
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated bundle. Frame data is read on demand by the ``read_*`` methods.
+
+    Attributes:
+        root: Bundle folder (extracted when the input was an archive).
+        name: ``scene.json`` name.
+        camera: Pinhole model of the depth image.
+        depth_scale: Depth PNG value per metre.
+        feature_dim: ``features.dim`` (D).
+        feature_space: ``features.space`` id, e.g. ``clip-vit-b32`` or ``minilm-l6``.
+        frames: Every frame of the manifest, in manifest order.
+        vocabulary: From ``vocabulary.json`` (+ ``.npy``), or None.
+        has_geometry: ``geometry.ply`` is present.
+        has_ground_truth: ``gt/labels.npz`` is present.
+    """
+
+    root: Path
+    name: str
+    camera: Camera
+    depth_scale: float
+    feature_dim: int
+    feature_space: str
+    frames: tuple[Frame, ...]
+    vocabulary: Vocabulary | None
+    has_geometry: bool
+    has_ground_truth: bool
+
+    @property
+    def feature_frames(self) -> tuple[Frame, ...]:
+        """Frames with a feature map (key frames of the language stages)."""
+        return tuple(f for f in self.frames if f.features is not None)
+
+    @property
+    def mask_frames(self) -> tuple[Frame, ...]:
+        """Frames with an instance mask (key frames of the instance stages)."""
+        return tuple(f for f in self.frames if f.masks is not None)
+
+    def read_depth(self, frame: Frame) -> np.ndarray:  # (H, W) float32 metres, 0 = no depth
+        """Depth in metres at the camera resolution."""
+        raw = _imread(self.root, frame.depth)
+        return raw.astype(np.float32) / np.float32(self.depth_scale)
+
+    def read_color(self, frame: Frame) -> np.ndarray | None:  # (H, W, 3) uint8 RGB, or None
+        """Colour resampled to the camera size, or None when the frame has none."""
+        if frame.color is None:
+            return None
+        rgb = cv2.cvtColor(_imread(self.root, frame.color), cv2.COLOR_BGR2RGB)
+        size = (self.camera.width, self.camera.height)
+        if (rgb.shape[1], rgb.shape[0]) != size:
+            # Same field of view at another resolution (SCENE_FORMAT.md): resample, do not crop.
+            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR)
+        return rgb
+
+    def read_features(self, frame: Frame) -> np.ndarray:  # (Hf, Wf, D) float16 or float32, as stored
+        """The frame's 2D language feature map (memory-mapped where possible).
+
+        Raises:
+            InputError: if the frame has no feature map.
+        """
+        if frame.features is None:
+            raise InputError(f"frame {frame.id}: has no feature map")
+        return np.load(self.root / frame.features, mmap_mode="r", allow_pickle=False)
+
+    def read_masks(self, frame: Frame) -> np.ndarray:  # (Hm, Wm) int32, 0 = no mask
+        """The frame's 2D instance id map.
+
+        Raises:
+            InputError: if the frame has no masks.
+        """
+        if frame.masks is None:
+            raise InputError(f"frame {frame.id}: has no masks")
+        return _imread(self.root, frame.masks).astype(np.int32)
+
+    def read_geometry(self) -> Geometry | None:
+        """Vertices of ``geometry.ply`` in file order, or None."""
+        if not self.has_geometry:
+            return None
+        return geometry_from_vertices(read_ply_vertices(self.root / "geometry.ply"))
+
+    def read_ground_truth(self) -> GroundTruth | None:
+        """``gt/labels.npz``, or None."""
+        if not self.has_ground_truth:
+            return None
+        with np.load(self.root / "gt" / "labels.npz", allow_pickle=False) as npz:
+            points = npz["points"].astype(np.float32) if "points" in npz.files else None
+            return GroundTruth(
+                semantic=npz["semantic"].astype(np.int64),
+                instance=npz["instance"].astype(np.int64),
+                points=points,
+            )
+
+
+def geometry_from_vertices(vertices: dict[str, np.ndarray]) -> Geometry:
+    """Build a :class:`Geometry` from PLY vertex properties (x/y/z, optional red/green/blue and nx/ny/nz).
+
+    Integer colours are scaled to ``[0, 1]`` by their type's maximum (uchar 255, ushort 65535).
+
+    Raises:
+        InputError: if x, y or z is missing.
+    """
+    if not {"x", "y", "z"} <= vertices.keys():
+        raise InputError(f"geometry: vertices need x, y, z properties, found {sorted(vertices)}")
+    points = np.stack([vertices[k] for k in "xyz"], axis=1).astype(np.float32)
+    colors = None
+    if {"red", "green", "blue"} <= vertices.keys():
+        rgb = np.stack([vertices[k] for k in ("red", "green", "blue")], axis=1)
+        scale = float(np.iinfo(rgb.dtype).max) if np.issubdtype(rgb.dtype, np.integer) else 1.0
+        colors = np.clip(rgb.astype(np.float32) / np.float32(scale), 0.0, 1.0)
+    normals = None
+    if {"nx", "ny", "nz"} <= vertices.keys():
+        normals = np.stack([vertices[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+    return Geometry(points=points, colors=colors, normals=normals)
+
+
+def open_bundle(
+    path: str | Path,
+    *,
+    workdir: str | Path | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    max_files: int = DEFAULT_MAX_FILES,
+) -> Scene:
+    """Open and validate a bundle folder or archive.
+
+    Args:
+        path: Bundle folder, or ``.zip`` / ``.tar`` / ``.tar.gz`` / ``.tgz``.
+        workdir: Parent folder for the extraction of an archive; a fresh subfolder is made in it and kept (the
+            caller owns ``workdir``). Without it, a temporary folder is used and removed when the returned
+            ``Scene`` is garbage collected (or at once when validation fails).
+        max_bytes: Most uncompressed bytes an archive may expand to.
+        max_files: Most members an archive may hold.
+
+    Returns:
+        The validated scene.
+
+    Raises:
+        BundleError: listing every problem found.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return _validate(path)
+    if not path.exists():
+        raise BundleError([f"{path}: does not exist"], source=path.name)
+    if not is_archive(path):
+        raise BundleError([f"{path.name}: not a folder or a .zip/.tar/.tar.gz archive"], source=path.name)
+    if workdir is not None:
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+    dest = Path(tempfile.mkdtemp(prefix="bundle-", dir=workdir))
+    try:
+        root = extract_archive(path, dest, max_bytes=max_bytes, max_files=max_files)
+        scene = _validate(root, source=path.name)
+    except BaseException:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise
+    if workdir is None:
+        weakref.finalize(scene, shutil.rmtree, str(dest), True)
+    return scene
+
+
+# -- validation ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Header:
+    """What validation learnt from ``scene.json`` that file checks need (None where the field was invalid)."""
+
+    camera: Camera | None
+    size: tuple[int, int] | None  # (height, width) of the camera, valid even when the intrinsics are not
+    depth_scale: float | None
+    feature_dim: int | None
+    feature_space: str | None
+
+
+def _validate(root: Path, source: str | None = None) -> Scene:
+    """Check every rule of SCENE_FORMAT.md; return the Scene or raise one BundleError listing all problems."""
+    problems: list[str] = []
+    manifest = _load_manifest(root, problems)
+    header = (
+        _check_header(manifest, problems) if manifest is not None else _Header(None, None, None, None, None)
+    )
+    frames = _check_frames(root, manifest, header, problems) if manifest is not None else []
+    num_vertices = _check_geometry(root, problems)
+    vocabulary = _check_vocabulary(root, header.feature_dim, problems)
+    has_gt = _check_ground_truth(root, vocabulary, num_vertices, problems)
+    if problems:
+        raise BundleError(problems, source=source or root.name)
+    # No problem implies every header field parsed; the asserts only narrow the types.
+    assert manifest is not None
+    assert header.camera is not None
+    assert header.depth_scale is not None
+    assert header.feature_dim is not None
+    assert header.feature_space is not None
+    name = manifest.get("name")
+    return Scene(
+        root=root,
+        name=name if isinstance(name, str) and name else root.name,
+        camera=header.camera,
+        depth_scale=header.depth_scale,
+        feature_dim=header.feature_dim,
+        feature_space=header.feature_space,
+        frames=tuple(frames),
+        vocabulary=vocabulary,
+        has_geometry=num_vertices is not None,
+        has_ground_truth=has_gt,
+    )
+
+
+def _load_manifest(root: Path, problems: list[str]) -> dict[str, Any] | None:
+    path = root / "scene.json"
+    if path.is_symlink():
+        problems.append("scene.json: is a symbolic link, expected a regular file")
+        return None
+    if not path.is_file():
+        problems.append("scene.json: missing, expected the manifest at the bundle root")
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        problems.append(f"scene.json: not valid JSON ({exc})")
+        return None
+    if not isinstance(doc, dict):
+        problems.append(f"scene.json: top level is {type(doc).__name__}, expected an object")
+        return None
+    unknown = sorted(set(doc) - _TOP_KEYS)
+    if unknown:
+        logger.warning("scene.json: ignoring unknown keys %s", unknown)
+    return doc
+
+
+def _check_header(doc: dict[str, Any], problems: list[str]) -> _Header:
+    if doc.get("format") != FORMAT_ID:
+        problems.append(f"scene.json: format {doc.get('format')!r}, expected {FORMAT_ID!r}")
+    if "name" in doc and not isinstance(doc["name"], str):
+        problems.append(f"scene.json: name {doc['name']!r}, expected a string")
+    camera, size = _check_camera(doc.get("camera"), problems)
+    depth_scale = _number(doc.get("depth_scale"))
+    if depth_scale is None or depth_scale <= 0:
+        problems.append(f"scene.json: depth_scale {doc.get('depth_scale')!r}, expected a finite number > 0")
+        depth_scale = None
+    features = doc.get("features")
+    dim: int | None = None
+    space: str | None = None
+    if not isinstance(features, dict):
+        problems.append(f"scene.json: features {features!r}, expected an object with dim and space")
+    else:
+        dim = _integer(features.get("dim"))
+        if dim is None or dim <= 0:
+            problems.append(f"scene.json: features.dim {features.get('dim')!r}, expected an integer > 0")
+            dim = None
+        space = features.get("space")
+        if not isinstance(space, str) or not space:
+            problems.append(f"scene.json: features.space {space!r}, expected a non-empty string")
+            space = None
+    return _Header(camera, size, depth_scale, dim, space)
+
+
+def _check_camera(cam: Any, problems: list[str]) -> tuple[Camera | None, tuple[int, int] | None]:
+    """The camera, and its (height, width) on its own so that depth sizes are checked even if fx is bad."""
+    if not isinstance(cam, dict):
+        problems.append(
+            f"scene.json: camera {_short(cam)}, expected an object with width, height, fx, fy, cx, cy"
+        )
+        return None, None
+    width, height = _integer(cam.get("width")), _integer(cam.get("height"))
+    fx, fy, cx, cy = (_number(cam.get(k)) for k in ("fx", "fy", "cx", "cy"))
+    checks = [
+        ("width", width, True, "an integer > 0"),
+        ("height", height, True, "an integer > 0"),
+        ("fx", fx, True, "a finite number > 0"),
+        ("fy", fy, True, "a finite number > 0"),
+        ("cx", cx, False, "a finite number"),
+        ("cy", cy, False, "a finite number"),
+    ]
+    for key, value, positive, want in checks:
+        if value is None or (positive and value <= 0):
+            problems.append(f"scene.json: camera.{key} {_short(cam.get(key))}, expected {want}")
+    size = (height, width) if height is not None and width is not None and height > 0 and width > 0 else None
+    if size is None or fx is None or fy is None or cx is None or cy is None or fx <= 0 or fy <= 0:
+        return None, size
+    return Camera(width=size[1], height=size[0], fx=fx, fy=fy, cx=cx, cy=cy), size
+
+
+def _check_frames(root: Path, doc: dict[str, Any], header: _Header, problems: list[str]) -> list[Frame]:
+    entries = doc.get("frames")
+    if not isinstance(entries, list) or not entries:
+        problems.append(f"scene.json: frames {_short(entries)}, expected a non-empty list")
+        return []
+    frames: list[Frame] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(entries):
+        frame = _check_frame_entry(root, i, entry, seen, problems)
+        if frame is None:
+            continue
+        frames.append(frame)
+        _check_frame_files(root, frame, header, problems)
+    if not any(f.features is not None for f in frames):
+        problems.append("scene.json: no frame has features, expected at least one")
+    if not any(f.masks is not None for f in frames):
+        problems.append("scene.json: no frame has masks, expected at least one")
+    return frames
+
+
+def _check_frame_entry(root: Path, i: int, entry: Any, seen: set[str], problems: list[str]) -> Frame | None:
+    """Manifest-level checks of one frame (id, pose, paths); the files are checked by the caller."""
+    where = f"scene.json: frames[{i}]"
+    if not isinstance(entry, dict):
+        problems.append(f"{where}: {_short(entry)}, expected an object")
+        return None
+    unknown = sorted(set(entry) - _FRAME_KEYS)
+    if unknown:
+        logger.warning("%s: ignoring unknown keys %s", where, unknown)
+    frame_id = entry.get("id")
+    if not isinstance(frame_id, str) or not frame_id:
+        problems.append(f"{where}.id: {frame_id!r}, expected a non-empty string")
+        frame_id = f"#{i}"
+    elif frame_id in seen:
+        problems.append(f"{where}.id: {frame_id!r} used by an earlier frame, expected unique ids")
+    seen.add(frame_id)
+    pose = _check_pose(entry.get("pose"), f"{where}.pose", problems)
+    paths: dict[str, str | None] = {}
+    for key, exts in _FRAME_FILES.items():
+        value = entry.get(key)
+        if value is None and key != "depth":
+            paths[key] = None
+            continue
+        paths[key] = _check_rel_path(root, value, f"{where}.{key}", exts, problems)
+    if pose is None or paths["depth"] is None:
+        return None
+    return Frame(frame_id, pose, paths["depth"], paths["color"], paths["features"], paths["masks"])  # type: ignore[arg-type]
+
+
+def _check_pose(value: Any, where: str, problems: list[str]) -> np.ndarray | None:  # (4, 4) float64
+    try:
+        pose = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        pose = None
+    if pose is None or pose.shape != (4, 4):
+        problems.append(f"{where}: {_short(value)}, expected a 4x4 list of numbers")
+        return None
+    if not np.all(np.isfinite(pose)):
+        problems.append(f"{where}: contains NaN or infinite values, expected finite numbers")
+        return None
+    if np.max(np.abs(pose[3] - [0.0, 0.0, 0.0, 1.0])) > _LAST_ROW_TOL:
+        problems.append(f"{where}: last row {pose[3].tolist()}, expected [0, 0, 0, 1]")
+    rot = pose[:3, :3]
+    ortho_err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
+    det = float(np.linalg.det(rot))
+    if ortho_err > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
+        problems.append(
+            f"{where}: rotation not orthonormal with det 1 (max |R^T R - I| = {ortho_err:.3g}, "
+            f"det = {det:.4f}), expected within {ROTATION_TOL}"
+        )
+    return pose
+
+
+def _check_rel_path(
+    root: Path, value: Any, where: str, exts: tuple[str, ...], problems: list[str]
+) -> str | None:
+    """A referenced path must be relative, stay in the root, avoid links, exist and be a regular file."""
+    if not isinstance(value, str) or not value:
+        problems.append(f"{where}: {value!r}, expected a relative path")
+        return None
+    if value.startswith("/") or "\\" in value or (len(value) > 1 and value[1] == ":"):
+        problems.append(
+            f"{value}: absolute or non-posix path ({where}), expected a path relative to the root"
+        )
+        return None
+    parts = value.split("/")
+    if ".." in parts or "" in parts:
+        problems.append(f"{value}: leaves the bundle root or has empty parts ({where})")
+        return None
+    if not value.lower().endswith(exts):
+        problems.append(f"{value}: extension not allowed ({where}), expected {' or '.join(exts)}")
+        return None
+    current = root
+    for part in parts:
+        current = current / part
+        if current.is_symlink():
+            problems.append(f"{value}: {current.relative_to(root)} is a symbolic link ({where}), not allowed")
+            return None
+    if not current.exists():
+        problems.append(f"{value}: missing ({where})")
+        return None
+    if not current.is_file():
+        problems.append(f"{value}: not a regular file ({where})")
+        return None
+    if not current.resolve().is_relative_to(root.resolve()):  # belt and braces after the symlink walk
+        problems.append(f"{value}: resolves outside the bundle root ({where})")
+        return None
+    return value
+
+
+def _check_frame_files(root: Path, frame: Frame, header: _Header, problems: list[str]) -> None:
+    """Decode each file of one frame, one at a time, and check its format."""
+    depth = _decode(root, frame.depth, problems)
+    if depth is not None:
+        if depth.dtype != np.uint16 or depth.ndim != 2:
+            problems.append(f"{frame.depth}: {_describe(depth)}, expected 16-bit single channel")
+        size = header.size
+        if size is not None and depth.shape[:2] != size:
+            problems.append(
+                f"{frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {size[1]}x{size[0]} (camera)"
+            )
+    if frame.color is not None:
+        color = _decode(root, frame.color, problems)
+        if color is not None and (color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] != 3):
+            problems.append(f"{frame.color}: {_describe(color)}, expected 8-bit 3 channels")
+    if frame.masks is not None:
+        masks = _decode(root, frame.masks, problems)
+        if masks is not None and (masks.dtype not in (np.uint8, np.uint16) or masks.ndim != 2):
+            problems.append(f"{frame.masks}: {_describe(masks)}, expected 8- or 16-bit single channel")
+    if frame.features is not None:
+        _check_features(root, frame.features, header.feature_dim, problems)
+
+
+def _decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
+    """Fully decode an image (only decoding finds truncated data); None and a problem when it fails."""
+    data = (root / rel).read_bytes()
+    if rel.lower().endswith((".jpg", ".jpeg")) and not _jpeg_complete(data):
+        # libjpeg decodes a truncated JPEG with only a warning and grey fill: look for the end marker instead.
+        problems.append(f"{rel}: truncated JPEG (no end-of-image marker after the image data)")
+        return None
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        problems.append(f"{rel}: does not decode as an image (corrupt, truncated or not an image)")
+    return image
+
+
+def _jpeg_complete(data: bytes) -> bool:
+    """True unless a JPEG's main image data lacks its end-of-image marker (EOI, ``FF D9``).
+
+    The header segments are skipped by their lengths up to the first start-of-scan, so that the EOI of an EXIF
+    thumbnail does not count; entropy-coded data never holds ``FF D9``. Data after the EOI (phones append
+    trailers) is allowed. A file that is not a JPEG at all is left to the decoder to refuse.
+    """
+    if not data.startswith(b"\xff\xd8"):
+        return True
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker == 0xDA:  # start of scan: the image data follows
+            return data.find(b"\xff\xd9", pos) != -1
+        if marker == 0xFF:  # fill byte
+            pos += 1
+        elif 0xD0 <= marker <= 0xD8 or marker == 0x01:  # markers without a length
+            pos += 2
+        else:
+            pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
+    return False
+
+
+def _check_features(root: Path, rel: str, dim: int | None, problems: list[str]) -> None:
+    header = _npy_header(root / rel, rel, problems)
+    if header is None:
+        return
+    shape, fortran, dtype, complete = header
+    if dtype.hasobject:
+        problems.append(f"{rel}: holds pickled Python objects, expected a plain float16/float32 array")
+        return
+    if dtype not in _FEATURE_DTYPES:
+        problems.append(f"{rel}: dtype {dtype}, expected float16 or float32")
+    if len(shape) != 3 or min(shape, default=0) < 1:
+        problems.append(f"{rel}: shape {shape}, expected (Hf, Wf, D) with every size >= 1")
+    elif dim is not None and shape[2] != dim:
+        problems.append(f"{rel}: last dimension {shape[2]}, expected {dim} (features.dim)")
+    if fortran:
+        problems.append(f"{rel}: Fortran order, expected C order")
+    if not complete:
+        problems.append(f"{rel}: file size does not match its header {shape} {dtype} (truncated?)")
+
+
+def _npy_header(
+    path: Path, rel: str, problems: list[str]
+) -> tuple[tuple[int, ...], bool, np.dtype[Any], bool] | None:
+    """(shape, fortran order, dtype, data size matches the file) of a .npy, without reading the data."""
+    try:
+        with path.open("rb") as fh:
+            shape, fortran, dtype = _read_npy_header(fh)
+            offset = fh.tell()
+            fh.seek(0, 2)
+            data_size = fh.tell() - offset
+    except (ValueError, OSError, SyntaxError) as exc:
+        problems.append(f"{rel}: not a valid .npy file ({exc})")
+        return None
+    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize if not dtype.hasobject else data_size
+    return tuple(int(s) for s in shape), bool(fortran), dtype, data_size == expected
+
+
+def _check_geometry(root: Path, problems: list[str]) -> int | None:
+    """Vertex count of ``geometry.ply``, None when absent or invalid."""
+    path = root / "geometry.ply"
+    if path.is_symlink():
+        problems.append("geometry.ply: is a symbolic link, not allowed")
+        return None
+    if not path.exists():
+        return None
+    try:
+        geometry = geometry_from_vertices(read_ply_vertices(path))
+    except InputError as exc:
+        problems.append(f"geometry.ply: {_strip_prefix(str(exc), 'geometry.ply: ')}")
+        return None
+    if len(geometry.points) == 0:
+        problems.append("geometry.ply: 0 vertices, expected at least one")
+        return None
+    if not np.all(np.isfinite(geometry.points)):
+        problems.append("geometry.ply: vertex positions contain NaN or infinite values")
+    return len(geometry.points)
+
+
+def _check_vocabulary(root: Path, dim: int | None, problems: list[str]) -> Vocabulary | None:
+    path = root / "vocabulary.json"
+    if path.is_symlink():
+        problems.append("vocabulary.json: is a symbolic link, not allowed")
+        return None
+    if not path.exists():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        problems.append(f"vocabulary.json: not valid JSON ({exc})")
+        return None
+    classes = doc.get("classes") if isinstance(doc, dict) else None
+    if not isinstance(classes, list) or not classes:
+        problems.append(f"vocabulary.json: classes {_short(classes)}, expected a non-empty list")
+        return None
+    n_before = len(problems)
+    names: list[str] = []
+    kinds: list[ClassKind] = []
+    for i, item in enumerate(classes):
+        name = item.get("name") if isinstance(item, dict) else None
+        kind = item.get("kind") if isinstance(item, dict) else None
+        if not isinstance(name, str) or not name:
+            problems.append(f"vocabulary.json: classes[{i}].name {name!r}, expected a non-empty string")
+        elif name in names:
+            problems.append(f"vocabulary.json: classes[{i}].name {name!r} repeated, expected unique names")
+        if kind not in ("thing", "stuff"):
+            problems.append(f"vocabulary.json: classes[{i}].kind {kind!r}, expected 'thing' or 'stuff'")
+        names.append(name if isinstance(name, str) else "")
+        kinds.append(kind if kind in ("thing", "stuff") else "thing")
+    embeddings = None
+    if isinstance(doc, dict) and doc.get("embeddings") is not None:
+        embeddings = _load_embeddings(root, doc["embeddings"], len(names), dim, problems)
+    if len(problems) > n_before:
+        return None
+    return Vocabulary(names=tuple(names), kinds=tuple(kinds), embeddings=embeddings)
+
+
+def _load_embeddings(
+    root: Path, value: Any, num_classes: int, dim: int | None, problems: list[str]
+) -> np.ndarray | None:  # (L, D) float32 unit rows
+    rel = _check_rel_path(root, value, "vocabulary.json: embeddings", (".npy",), problems)
+    if rel is None:
+        return None
+    header = _npy_header(root / rel, rel, problems)
+    if header is None:
+        return None
+    shape, _, dtype, complete = header
+    if dtype.hasobject or dtype.kind != "f" or not complete:
+        problems.append(f"{rel}: dtype {dtype}, expected a complete plain float array")
+        return None
+    expected = (num_classes, dim if dim is not None else shape[-1] if shape else 0)
+    if shape != expected:
+        problems.append(f"{rel}: shape {shape}, expected {expected} (classes, features.dim)")
+        return None
+    emb = np.load(root / rel, allow_pickle=False).astype(np.float32)
+    norms = np.linalg.norm(emb, axis=1, keepdims=True)
+    if not np.all(np.isfinite(emb)) or np.any(norms == 0):
+        problems.append(
+            f"{rel}: contains NaN, infinite or all-zero rows, expected finite non-zero embeddings"
+        )
+        return None
+    return emb / norms
+
+
+def _check_ground_truth(
+    root: Path, vocabulary: Vocabulary | None, num_vertices: int | None, problems: list[str]
+) -> bool:
+    """True when ``gt/labels.npz`` is present and valid."""
+    rel = "gt/labels.npz"
+    path = root / rel
+    if path.is_symlink() or (root / "gt").is_symlink():
+        problems.append(f"{rel}: is or lies in a symbolic link, not allowed")
+        return False
+    if not path.exists():
+        return False
+    n_before = len(problems)
+    arrays = _load_npz(path, rel, problems)
+    if arrays is None:
+        return False
+    sem, ins, pts = arrays.get("semantic"), arrays.get("instance"), arrays.get("points")
+    for key, arr in (("semantic", sem), ("instance", ins)):
+        if arr is None:
+            problems.append(f"{rel}: key {key!r} missing, expected (G,) int64")
+        elif arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+            problems.append(f"{rel}: {key} {arr.dtype} {arr.shape}, expected (G,) integers")
+    if len(problems) > n_before or sem is None or ins is None:
+        return False
+    g = len(sem)
+    if len(ins) != g:
+        problems.append(f"{rel}: instance has {len(ins)} values, expected {g} (as semantic)")
+    if np.any(ins < -1):
+        problems.append(f"{rel}: instance has values below -1, expected ids >= -1")
+    if vocabulary is None:
+        problems.append(f"{rel}: semantic labels need vocabulary.json, which is missing or invalid")
+    elif g and (sem.min() < -1 or sem.max() >= len(vocabulary.names)):
+        problems.append(
+            f"{rel}: semantic in [{sem.min()}, {sem.max()}], expected [-1, {len(vocabulary.names)})"
+        )
+    if pts is not None:
+        if pts.shape != (g, 3) or pts.dtype.kind != "f" or not np.all(np.isfinite(pts)):
+            problems.append(f"{rel}: points {pts.dtype} {pts.shape}, expected ({g}, 3) finite floats")
+    elif num_vertices is None:
+        problems.append(f"{rel}: no points and no valid geometry.ply, expected one of them")
+    elif g != num_vertices:
+        problems.append(f"{rel}: {g} labels, expected {num_vertices} (geometry.ply vertices)")
+    return len(problems) == n_before
+
+
+def _load_npz(path: Path, rel: str, problems: list[str]) -> dict[str, np.ndarray] | None:
+    """The arrays of an .npz, refusing pickles and absurd declared shapes before allocating anything."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for name in zf.namelist():
+                with zf.open(name) as fh:
+                    shape, _, dtype = _read_npy_header(fh)
+                if dtype.hasobject:
+                    problems.append(f"{rel}: {name} holds pickled Python objects, expected plain arrays")
+                    return None
+                if int(np.prod(shape, dtype=np.int64)) > _MAX_GT_POINTS * 3:
+                    problems.append(f"{rel}: {name} declares shape {shape}, too large")
+                    return None
+        with np.load(path, allow_pickle=False) as npz:
+            return {key: npz[key] for key in npz.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, SyntaxError) as exc:
+        problems.append(f"{rel}: not a valid .npz file ({exc})")
+        return None
+
+
+# -- small helpers -------------------------------------------------------------------------------------------
+
+
+def _read_npy_header(fh: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype[Any]]:
+    """(shape, fortran_order, dtype) of a .npy stream, leaving ``fh`` at the first data byte.
+
+    Raises:
+        ValueError: if the magic string or the header is malformed.
+    """
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        return np.lib.format.read_array_header_1_0(fh)  # type: ignore[no-any-return]
+    if version in ((2, 0), (3, 0)):  # 3.0 only changes the header's text encoding
+        return np.lib.format.read_array_header_2_0(fh)  # type: ignore[no-any-return]
+    raise ValueError(f"unsupported .npy version {version}")
+
+
+def _imread(root: Path, rel: str) -> np.ndarray:  # as stored: (H, W) or (H, W, C) BGR
+    image = cv2.imread(str(root / rel), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{rel}: does not decode as an image")
+    return image
+
+
+def _number(value: Any) -> float | None:
+    """A finite JSON number as float, else None (booleans are not numbers here)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:  # JSON integers have no size limit
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _integer(value: Any) -> int | None:
+    """A JSON integer (or an integral float such as 640.0), else None."""
+    number = _number(value)
+    if number is None or number != int(number):
+        return None
+    return int(number)
+
+
+def _describe(image: np.ndarray) -> str:
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    return f"{image.dtype.itemsize * 8}-bit {channels} channel(s)"
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _strip_prefix(text: str, prefix: str) -> str:
+    return text[len(prefix) :] if text.startswith(prefix) else text

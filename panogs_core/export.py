@@ -1,0 +1,162 @@
+"""Write a run's outputs (DESIGN.md "Outputs") and compute metrics when the bundle has ground truth.
+
+Files, all in the run's folder:
+
+- ``panoptic.ply``: x, y, z, red, green, blue, semantic, instance per primitive. red/green/blue colour the panoptic
+  segmentation (one colour per instance, stuff by class) so it reads at a glance in any PLY viewer; the captured
+  colours are in ``gaussians.ply``.
+- ``labels.npz``: per primitive ``semantic``, ``instance``, ``superprimitive``, ``cluster`` (int64, -1 void) and
+  ``class_names``.
+- ``instances.json``: a list of instances (id, class_name, class_index, kind, score, num_points, centroid,
+  bbox_min, bbox_max).
+- ``instance_features.npy``: (I, D) float32 unit mean language feature per instance (row = instance id), for
+  vector and text queries without the pipeline.
+- ``vocabulary.json`` + ``vocabulary.npy``: the label set the run used, with the feature space.
+- ``gaussians.ply``: the standard 3D Gaussian splatting layout (x, y, z, nx, ny, nz, f_dc_0..2, opacity,
+  scale_0..2, rot_0..3) plus ``semantic`` and ``instance``.
+- ``metrics.json`` when the bundle has ``gt/labels.npz`` (standard and paper modes).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from panogs_core.bundle import Scene
+from panogs_core.io.ply import write_ply
+from panogs_core.types import Vocabulary
+
+SH_C0 = 0.28209479177387814  # zeroth spherical-harmonics band constant (3DGS colour <-> DC coefficient)
+
+
+def palette(ids: np.ndarray, salt: int = 0) -> np.ndarray:  # (M,) int64 -> (M, 3) uint8
+    """Distinct, stable colours for integer ids (golden-ratio hues); -1 is grey."""
+    import colorsys
+
+    ids = np.asarray(ids, dtype=np.int64)
+    uniq, inverse = np.unique(ids, return_inverse=True)
+    table = np.zeros((len(uniq), 3), dtype=np.uint8)
+    for row, value in enumerate(uniq):
+        if value < 0:
+            table[row] = (128, 128, 128)
+            continue
+        hue = ((int(value) + salt) * 0.61803398875) % 1.0
+        sat = 0.55 + 0.35 * ((int(value) * 7 + salt) % 3) / 2
+        table[row] = np.round(np.array(colorsys.hsv_to_rgb(hue, sat, 0.92)) * 255).astype(np.uint8)
+    return table[inverse]
+
+
+def panoptic_colors(semantic: np.ndarray, instance: np.ndarray, is_thing: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8: thing instances by instance id, stuff by class, void grey."""
+    colors = palette(instance, salt=17)
+    thing = (semantic >= 0) & (instance >= 0)
+    thing[thing] = is_thing[semantic[thing]]
+    stuff = (semantic >= 0) & ~thing
+    colors[stuff] = palette(semantic[stuff], salt=3)
+    colors[semantic < 0] = 128
+    return colors
+
+
+def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> None:
+    """``vocabulary.json`` (bundle format + ``space``) and ``vocabulary.npy``."""
+    classes = [{"name": n, "kind": k} for n, k in zip(vocab.names, vocab.kinds, strict=True)]
+    doc: dict[str, Any] = {"classes": classes, "space": feature_space}
+    if vocab.embeddings is not None:
+        np.save(out / "vocabulary.npy", np.asarray(vocab.embeddings, dtype=np.float32))
+        doc["embeddings"] = "vocabulary.npy"
+    (out / "vocabulary.json").write_text(json.dumps(doc, indent=1))
+
+
+def write_gaussians(path: Path, prims: Any, colors: np.ndarray, semantic: np.ndarray,
+                    instance: np.ndarray) -> None:
+    """The 3DGS PLY layout (SH degree 0, identity rotations) plus label fields."""
+    n = prims.points.shape[0]
+    dc = (colors.astype(np.float32) - 0.5) / SH_C0
+    fields: dict[str, np.ndarray] = {
+        "x": prims.points[:, 0], "y": prims.points[:, 1], "z": prims.points[:, 2],
+        "nx": prims.normals[:, 0], "ny": prims.normals[:, 1], "nz": prims.normals[:, 2],
+        "f_dc_0": dc[:, 0], "f_dc_1": dc[:, 1], "f_dc_2": dc[:, 2],
+        "opacity": prims.opacities,
+        "scale_0": prims.scales[:, 0], "scale_1": prims.scales[:, 1], "scale_2": prims.scales[:, 2],
+        "rot_0": np.ones(n, np.float32), "rot_1": np.zeros(n, np.float32),
+        "rot_2": np.zeros(n, np.float32), "rot_3": np.zeros(n, np.float32),
+        "semantic": semantic.astype(np.int32), "instance": instance.astype(np.int32),
+    }
+    write_ply(path, {k: np.ascontiguousarray(v, dtype=v.dtype if v.dtype == np.int32 else np.float32)
+                     for k, v in fields.items()})
+
+
+def primitive_colors(prims: Any, fused: Any) -> np.ndarray:  # (N, 3) float32 in [0, 1]
+    """Colours of the geometry, else those fused from the colour frames, else mid grey."""
+    if prims.colors is not None:
+        return np.asarray(prims.colors, dtype=np.float32)
+    if getattr(fused, "colors", None) is not None:
+        return np.asarray(fused.colors, dtype=np.float32)
+    return np.full((prims.points.shape[0], 3), 0.5, np.float32)
+
+
+def write_outputs(out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, clusters: Any, labels: Any,
+                  vocab: Vocabulary) -> tuple[dict[str, Path], dict[str, Any] | None]:
+    """Write every output file; returns their paths and the metrics (None without ground truth)."""
+    files: dict[str, Path] = {}
+    semantic = np.asarray(labels.semantic, dtype=np.int64)
+    instance = np.asarray(labels.instance, dtype=np.int64)
+    pts = np.asarray(prims.points, dtype=np.float32)
+
+    rgb = panoptic_colors(semantic, instance, vocab.is_thing)
+    files["panoptic.ply"] = out / "panoptic.ply"
+    write_ply(files["panoptic.ply"], {
+        "x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+        "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
+        "semantic": semantic.astype(np.int32), "instance": instance.astype(np.int32),
+    })
+    files["labels.npz"] = out / "labels.npz"
+    np.savez_compressed(files["labels.npz"], semantic=semantic, instance=instance,
+                        superprimitive=np.asarray(graph.superprimitives.labels, dtype=np.int64),
+                        cluster=np.asarray(clusters.labels, dtype=np.int64),
+                        class_names=np.array(vocab.names))
+    instances = [i.to_json() for i in labels.instances]
+    files["instances.json"] = out / "instances.json"
+    files["instances.json"].write_text(json.dumps(instances, indent=1))
+    dim = vocab.embeddings.shape[1] if vocab.embeddings is not None else 0
+    feats = np.stack([np.asarray(i.feature, np.float32) for i in labels.instances]) if instances else \
+        np.zeros((0, dim), np.float32)
+    files["instance_features.npy"] = out / "instance_features.npy"
+    np.save(files["instance_features.npy"], feats)
+    write_vocabulary(out, vocab, scene.feature_space)
+    files["vocabulary.json"] = out / "vocabulary.json"
+    files["gaussians.ply"] = out / "gaussians.ply"
+    write_gaussians(files["gaussians.ply"], prims, primitive_colors(prims, fused), semantic, instance)
+
+    metrics = compute_metrics(scene, pts, semantic, instance, vocab)
+    if metrics is not None:
+        files["metrics.json"] = out / "metrics.json"
+        files["metrics.json"].write_text(json.dumps(metrics, indent=2))
+    return files, metrics
+
+
+def compute_metrics(scene: Scene, points: np.ndarray, semantic: np.ndarray, instance: np.ndarray,
+                    vocab: Vocabulary) -> dict[str, Any] | None:
+    """Standard and paper metrics against ``gt/labels.npz``; None when there is no usable ground truth.
+
+    Ground truth indexes the bundle's own vocabulary, so a run with another vocabulary is not scored.
+    Ground truth on other points than the primitives takes the prediction of the nearest primitive.
+    """
+    from panogs_core.evaluation import evaluate, transfer_to_points
+
+    gt = scene.read_ground_truth() if scene.has_ground_truth else None
+    if gt is None or scene.vocabulary is None or tuple(scene.vocabulary.names) != tuple(vocab.names):
+        return None
+    pred_sem, pred_ins = semantic, instance
+    if gt.points is not None:
+        pred_sem, pred_ins = transfer_to_points(points, gt.points, semantic, instance)
+    elif gt.semantic.shape[0] != semantic.shape[0]:
+        return None  # per-vertex ground truth but the primitives are not the geometry's vertices
+    result: dict[str, Any] = {}
+    for mode in ("standard", "paper"):
+        m = evaluate(pred_sem, pred_ins, gt.semantic, gt.instance, vocab, mode=mode)
+        result[mode] = m.to_json()
+    return result

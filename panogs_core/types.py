@@ -1,0 +1,83 @@
+"""Small frozen dataclasses shared by the loader and the stages: camera, frames, vocabulary, ground truth.
+
+Conventions (see docs/conventions.md): world frame in metres; poses are camera-to-world ``T_world_cam`` (4, 4)
+with OpenCV camera axes (x right, y down, z forward); labels are int64 and -1 means void everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+ClassKind = Literal["thing", "stuff"]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole model of the depth image; shared by every frame of a scene."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:  # (3, 3) float64
+        """The 3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame of the manifest. Paths are relative to the bundle root; ``None`` means absent."""
+
+    id: str
+    T_world_cam: np.ndarray  # (4, 4) float64, camera-to-world
+    depth: str
+    color: str | None = None
+    features: str | None = None
+    masks: str | None = None
+
+
+@dataclass(frozen=True)
+class Vocabulary:
+    """The label set: class names, thing/stuff kinds, and optionally their text embeddings."""
+
+    names: tuple[str, ...]
+    kinds: tuple[ClassKind, ...]
+    embeddings: np.ndarray | None = None  # (L, D) float32, rows L2-normalised
+
+    def __post_init__(self) -> None:
+        if len(self.names) != len(self.kinds):
+            raise ValueError(f"vocabulary: {len(self.names)} names but {len(self.kinds)} kinds")
+        if self.embeddings is not None and self.embeddings.shape[0] != len(self.names):
+            raise ValueError(
+                f"vocabulary: {len(self.names)} names but embeddings of shape {self.embeddings.shape}"
+            )
+
+    @property
+    def is_thing(self) -> np.ndarray:  # (L,) bool
+        """Per class: True for things (countable objects), False for stuff."""
+        return np.array([k == "thing" for k in self.kinds], dtype=bool)
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Per-point ground truth of ``gt/labels.npz``."""
+
+    semantic: np.ndarray  # (G,) int64, index into the vocabulary, -1 = unannotated
+    instance: np.ndarray  # (G,) int64, unique within the scene, -1 = none
+    points: np.ndarray | None = None  # (G, 3) float32; None = per vertex of geometry.ply, in order
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Vertices of ``geometry.ply`` (mesh or point cloud), in file order."""
+
+    points: np.ndarray  # (N, 3) float32, world frame, metres
+    colors: np.ndarray | None = None  # (N, 3) float32 in [0, 1]
+    normals: np.ndarray | None = None  # (N, 3) float32 (from the file, if it had them)

@@ -1,0 +1,1 @@
+"""The panogs batch service: FastAPI app, database models and settings. Never imports torch."""

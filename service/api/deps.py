@@ -1,0 +1,92 @@
+"""Dependencies as ``Annotated`` aliases: settings, session, storage, the calling tenant, get-or-404
+lookups."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.auth import KeyVerifier, Tenant
+from service.db import crud
+from service.db.models import Job, Scene, Upload
+from service.db.session import session_scope
+from service.errors import NotFound, Unauthorized
+from service.settings import Settings
+from service.storage import Storage
+
+
+def _settings(request: Request) -> Settings:
+    return request.app.state.settings  # type: ignore[no-any-return]
+
+
+def _factory(request: Request) -> sessionmaker[Session]:
+    return request.app.state.session_factory  # type: ignore[no-any-return]
+
+
+def _storage(request: Request) -> Storage:
+    return request.app.state.storage  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+FactoryDep = Annotated[sessionmaker[Session], Depends(_factory)]
+StorageDep = Annotated[Storage, Depends(_storage)]
+
+
+def _session(factory: FactoryDep) -> Iterator[Session]:
+    with session_scope(factory) as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(_session)]
+
+_bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer pgs_...`")
+
+
+def _tenant(
+    request: Request,
+    factory: FactoryDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Tenant:
+    # Its own short session: streaming upload routes must not hold a connection for the whole body.
+    if credentials is None:
+        raise Unauthorized("missing API key: send Authorization: Bearer <key>")
+    verifier: KeyVerifier = request.app.state.key_verifier
+    with session_scope(factory) as session:
+        tenant = verifier.verify(session, credentials.credentials)
+    if tenant is None:
+        raise Unauthorized("invalid or revoked API key")
+    return tenant
+
+
+TenantDep = Annotated[Tenant, Depends(_tenant)]
+
+
+def _job(job_id: uuid.UUID, session: SessionDep, tenant: TenantDep) -> Job:
+    job = crud.get_owned(session, Job, job_id, tenant.id)
+    if job is None:
+        raise NotFound("job", job_id)
+    return job
+
+
+def _scene(scene_id: uuid.UUID, session: SessionDep, tenant: TenantDep) -> Scene:
+    scene = crud.get_owned(session, Scene, scene_id, tenant.id)
+    if scene is None:
+        raise NotFound("scene", scene_id)
+    return scene
+
+
+def _upload(upload_id: uuid.UUID, session: SessionDep, tenant: TenantDep) -> Upload:
+    upload = crud.get_owned(session, Upload, upload_id, tenant.id)
+    if upload is None:
+        raise NotFound("upload", upload_id)
+    return upload
+
+
+JobDep = Annotated[Job, Depends(_job)]
+SceneDep = Annotated[Scene, Depends(_scene)]
+UploadDep = Annotated[Upload, Depends(_upload)]

@@ -1,0 +1,81 @@
+"""``/v1/jobs``: create (202, idempotent), list, get, cancel."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request, Response, status
+
+from service import jobs
+from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, TenantDep
+from service.db import crud
+from service.db.models import Job, JobState
+from service.errors import Conflict
+from service.queue import dispatch
+from service.schemas import MAX_OFFSET, JobCreate, JobPublic, JobsPublic, Page, error_responses
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+_ERRORS = error_responses(404, 409)
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic, responses=_ERRORS)
+def create_job(
+    body: JobCreate,
+    request: Request,
+    response: Response,
+    session: SessionDep,
+    factory: FactoryDep,
+    tenant: TenantDep,
+    settings: SettingsDep,
+    idempotency_key: Annotated[
+        str | None,
+        Header(
+            alias="Idempotency-Key", min_length=1, max_length=255, description="a retry returns the same job"
+        ),
+    ] = None,
+) -> JobPublic:
+    """Queue a pipeline run on a scene. Poll ``GET /v1/jobs/{id}`` for its progress."""
+    job, created = jobs.create_job(session, settings, tenant.id, body, idempotency_key)
+    if created:  # enqueue only after the commit, by task name
+        dispatch(factory, request.app.state.sender, job.id, job.queue)
+        session.refresh(job)
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return jobs.to_public(job)
+
+
+@router.get("", response_model=JobsPublic, responses=_ERRORS)
+def list_jobs(
+    session: SessionDep,
+    tenant: TenantDep,
+    state: JobState | None = None,
+    scene_id: uuid.UUID | None = None,
+    limit: Annotated[int, Query(ge=1, le=200)] = 50,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+) -> JobsPublic:
+    """The caller's jobs, newest first, optionally only those in ``state`` or on ``scene_id``."""
+    filters = []
+    if state is not None:
+        filters.append(Job.state == state)
+    if scene_id is not None:
+        filters.append(Job.scene_id == scene_id)
+    rows, count = crud.list_owned(session, Job, tenant.id, filters=filters, limit=limit, offset=offset)
+    return JobsPublic(
+        data=[jobs.to_public(r) for r in rows], count=count, page=Page(limit=limit, offset=offset)
+    )
+
+
+@router.get("/{job_id}", response_model=JobPublic, responses=_ERRORS)
+def get_job(job: JobDep) -> JobPublic:
+    """A job's state, stage, progress, per-stage timings and error."""
+    return jobs.to_public(job)
+
+
+@router.post(
+    "/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic, responses=_ERRORS
+)
+def cancel_job(job: JobDep, session: SessionDep) -> JobPublic:
+    """Cancel a job: a queued one at once, a running one at its next progress step (``cancel_requested``)."""
+    if job.state in (JobState.SUCCEEDED, JobState.FAILED):
+        raise Conflict(f"job {job.id} already {job.state.value}")
+    return jobs.to_public(crud.request_cancel(session, job))

@@ -1,0 +1,203 @@
+"""``panogs serve``, ``panogs worker`` and ``panogs keys``; added to the ``panogs`` CLI by
+``add_service_commands``.
+
+``panogs serve`` with no configuration is the embedded deployment: it upgrades the SQLite database under
+``./panogs-data`` (or ``PANOGS_DATA_DIR``), starts one Celery worker as a child process on the filesystem
+broker, and serves the API with uvicorn in this process. Ctrl-C stops both: the worker hands a running job
+back to the queue at its next progress step (it resumes from its last finished stage on the next start).
+
+Also runnable as ``python -m service.cli ...`` (what docker-compose and the tests run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+from typing import Any
+
+WORKER_STOP_GRACE_S = 20.0  # after Ctrl-C, how long the worker may take to hand its job back
+
+logger = logging.getLogger("panogs.serve")
+
+
+def add_service_commands(subparsers: Any) -> None:
+    """Add ``serve``, ``worker`` and ``keys`` to an argparse subparsers object."""
+    p = subparsers.add_parser("serve", help="run the API (and, embedded, a worker): the batch service")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR; default ./panogs-data)")
+    p.add_argument(
+        "--no-worker", action="store_true", help="API only (the scaled deployment runs workers apart)"
+    )
+    p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes")
+    p.set_defaults(func=cmd_serve)
+
+    p = subparsers.add_parser("worker", help="run a Celery worker for jobs")
+    p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR)")
+    p.add_argument("--queues", help="comma-separated queues (PANOGS_WORKER_QUEUES; default cpu)")
+    p.add_argument("--loglevel", default="INFO")
+    p.set_defaults(func=cmd_worker)
+
+    p = subparsers.add_parser("keys", help="administer API keys (each key is a tenant)")
+    p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR)")
+    keys = p.add_subparsers(dest="keys_command", required=True)
+    k = keys.add_parser("create", help="create a key and print it (it is shown only once)")
+    k.add_argument("--name", required=True, help="who the key is for")
+    k.set_defaults(func=cmd_keys_create)
+    k = keys.add_parser("list", help="list keys (never their secrets)")
+    k.set_defaults(func=cmd_keys_list)
+    k = keys.add_parser("revoke", help="revoke a key by id or prefix")
+    k.add_argument("key", help="key id or prefix")
+    k.set_defaults(func=cmd_keys_revoke)
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    from service.settings import get_settings
+
+    if getattr(args, "data_dir", None):
+        os.environ["PANOGS_DATA_DIR"] = args.data_dir  # children (worker, uvicorn) read the same
+        get_settings.cache_clear()
+    return get_settings()
+
+
+def _prepare_database(settings: Any) -> None:
+    from service.db.migrate import upgrade
+
+    settings.ensure_dirs()
+    if settings.auto_migrate:
+        upgrade(settings.database)
+
+
+def _out(line: str) -> None:
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Migrate, start the worker child (unless --no-worker), serve the API until Ctrl-C."""
+    import uvicorn
+
+    settings = _settings(args)
+    logging.basicConfig(level=settings.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    _prepare_database(settings)
+    worker = None
+    if not args.no_worker:
+        command = [sys.executable, "-m", "service.cli", "worker"]
+        # Its own session: the terminal's Ctrl-C reaches only us, and we stop the worker in order.
+        worker = subprocess.Popen(command, start_new_session=True)
+        logger.info("worker started (pid %d)", worker.pid)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # docker stop: same clean path as Ctrl-C
+    try:
+        uvicorn.run(
+            "service.main:create_app",
+            factory=True,
+            host=args.host,
+            port=args.port,
+            workers=args.api_processes if args.api_processes > 1 else None,
+            log_level=settings.log_level.lower(),
+        )
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if worker is not None:
+            _stop_worker(worker)
+    return 0
+
+
+def _stop_worker(worker: subprocess.Popen[bytes]) -> None:
+    if worker.poll() is not None:
+        return
+    worker.send_signal(signal.SIGTERM)  # warm shutdown: the running job is handed back at its next step
+    try:
+        worker.wait(timeout=WORKER_STOP_GRACE_S)
+    except subprocess.TimeoutExpired:
+        logger.warning("worker did not stop within %.0f s; killing it", WORKER_STOP_GRACE_S)
+        worker.kill()
+        worker.wait()
+
+
+def worker_argv(settings: Any, queues: str | None, loglevel: str) -> list[str]:
+    """The Celery worker command line for ``settings``."""
+    return [
+        "worker",
+        f"--loglevel={loglevel}",
+        f"--queues={queues or settings.worker_queues}",
+        f"--pool={settings.worker_pool}",
+        f"--concurrency={settings.worker_concurrency}",
+        "--prefetch-multiplier=1",
+        f"--hostname=panogs-{os.getpid()}@%h",
+        "--without-gossip",
+        "--without-mingle",
+    ]
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Run a Celery worker in this process until stopped."""
+    settings = _settings(args)
+    settings.ensure_dirs()
+    from worker.celery_app import app
+
+    app.worker_main(worker_argv(settings, args.queues, args.loglevel))
+    return 0
+
+
+def cmd_keys_create(args: argparse.Namespace) -> int:
+    """Print a new key; only its hash is stored."""
+    from service.auth import create_api_key
+    from service.db.session import get_session_factory, session_scope
+
+    settings = _settings(args)
+    _prepare_database(settings)
+    with session_scope(get_session_factory(settings.database)) as session:
+        row, key = create_api_key(session, args.name)
+    sys.stderr.write(f"created key {row.id} (prefix {row.prefix}) for {row.name!r}; it is shown only once:\n")
+    _out(key)
+    return 0
+
+
+def cmd_keys_list(args: argparse.Namespace) -> int:
+    """A table of keys: id, prefix, name, created, revoked."""
+    from service.auth import list_api_keys
+    from service.db.session import get_session_factory, session_scope
+
+    settings = _settings(args)
+    _prepare_database(settings)
+    with session_scope(get_session_factory(settings.database)) as session:
+        rows = list_api_keys(session)
+        _out(f"{'id':<36}  {'prefix':<12}  {'created':<20}  {'revoked':<20}  name")
+        for r in rows:
+            revoked = r.revoked_at.strftime("%Y-%m-%d %H:%M:%S") if r.revoked_at else "-"
+            _out(f"{r.id!s:<36}  {r.prefix:<12}  {r.created_at:%Y-%m-%d %H:%M:%S}  {revoked:<20}  {r.name}")
+    return 0
+
+
+def cmd_keys_revoke(args: argparse.Namespace) -> int:
+    """Revoke a key (API processes stop accepting it within ``api_key_cache_s``)."""
+    from service.auth import revoke_api_key
+    from service.db.session import get_session_factory, session_scope
+
+    settings = _settings(args)
+    _prepare_database(settings)
+    with session_scope(get_session_factory(settings.database)) as session:
+        row = revoke_api_key(session, args.key)
+    if row is None:
+        sys.stderr.write(f"no key with id or prefix {args.key!r}\n")
+        return 1
+    _out(f"revoked {row.id} ({row.prefix}, {row.name})")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m service.cli``: the service commands on their own."""
+    parser = argparse.ArgumentParser(prog="panogs", description="panogs batch service")
+    add_service_commands(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

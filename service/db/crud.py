@@ -1,0 +1,304 @@
+"""Queries and guarded state transitions, shared by the API, the reaper and the worker.
+
+Every read the API makes is scoped to a tenant (another tenant's rows are simply not found). Every write a
+worker makes to a running job is guarded by the job's ``lease`` (the claiming task's id), so a worker that
+lost its job (presumed dead and replaced) can no longer change it.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Sequence
+from datetime import datetime, timedelta
+from typing import Any, TypeVar
+
+from sqlalchemy import ColumnElement, delete, func, or_, select, update
+from sqlalchemy.orm import Session
+
+from service.db.base import Base, utcnow
+from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
+
+M = TypeVar("M", bound=Base)
+
+
+def get_owned(session: Session, model: type[M], ident: uuid.UUID, tenant_id: uuid.UUID) -> M | None:
+    """A row of ``model`` by id, only if it belongs to ``tenant_id``."""
+    row = session.get(model, ident)
+    if row is None or getattr(row, "api_key_id", None) != tenant_id:
+        return None
+    return row
+
+
+def list_owned(
+    session: Session,
+    model: type[M],
+    tenant_id: uuid.UUID,
+    *,
+    filters: Sequence[ColumnElement[bool]] = (),
+    limit: int,
+    offset: int,
+) -> tuple[list[M], int]:
+    """A page of a tenant's rows, newest first, and the total count."""
+    where = [model.api_key_id == tenant_id, *filters]  # type: ignore[attr-defined]
+    count = session.scalar(select(func.count()).select_from(model).where(*where)) or 0
+    stmt = select(model).where(*where).order_by(model.created_at.desc(), model.id)  # type: ignore[attr-defined]
+    rows = list(session.scalars(stmt.limit(limit).offset(offset)))
+    return rows, count
+
+
+# Uploads ---------------------------------------------------------------------------------------------------
+
+
+def advance_upload(session: Session, upload_id: uuid.UUID, old_offset: int, new_offset: int) -> bool:
+    """Move an upload's offset forward, only if nobody else moved it meanwhile."""
+    result = session.execute(
+        update(Upload)
+        .where(Upload.id == upload_id, Upload.offset == old_offset)
+        .values(offset=new_offset, updated_at=utcnow())
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def stale_uploads(session: Session, older_than: datetime) -> list[Upload]:
+    """Uploads not made into a scene and untouched since ``older_than``."""
+    live = [UploadState.RECEIVING, UploadState.COMPLETE]
+    stmt = select(Upload).where(Upload.state.in_(live), Upload.updated_at < older_than)
+    return list(session.scalars(stmt.limit(100)))
+
+
+def set_upload_state(session: Session, upload_id: uuid.UUID, old: UploadState, new: UploadState) -> bool:
+    """Move an upload from ``old`` to ``new``; False when it was not in ``old`` (someone else moved it)."""
+    result = session.execute(
+        update(Upload)
+        .where(Upload.id == upload_id, Upload.state == old)
+        .values(state=new, updated_at=utcnow())
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def delete_upload(session: Session, upload_id: uuid.UUID) -> None:
+    """Delete an upload's row (its bytes are the caller's to remove)."""
+    session.execute(delete(Upload).where(Upload.id == upload_id))
+    session.commit()
+
+
+# Jobs: API side --------------------------------------------------------------------------------------------
+
+
+def find_idempotent_job(session: Session, tenant_id: uuid.UUID, key: str) -> Job | None:
+    """The tenant's job created with Idempotency-Key ``key``."""
+    return session.scalar(select(Job).where(Job.api_key_id == tenant_id, Job.idempotency_key == key))
+
+
+def mark_enqueued(session: Session, job_id: uuid.UUID) -> bool:
+    """Record that the job's message reached the broker; False if another process already did."""
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.state == JobState.QUEUED, Job.enqueued_at.is_(None))
+        .values(enqueued_at=utcnow())
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def request_cancel(session: Session, job: Job) -> Job:
+    """Cancel a queued job at once; ask a running one to stop (the worker checks between progress steps)."""
+    now = utcnow()
+    if job.state == JobState.QUEUED:
+        session.execute(
+            update(Job)
+            .where(Job.id == job.id, Job.state == JobState.QUEUED)
+            .values(state=JobState.CANCELED, cancel_requested=True, finished_at=now, updated_at=now)
+        )
+    elif job.state == JobState.RUNNING:
+        session.execute(update(Job).where(Job.id == job.id).values(cancel_requested=True, updated_at=now))
+    session.commit()
+    session.refresh(job)
+    return job
+
+
+def undispatched_jobs(session: Session, older_than: datetime) -> list[Job]:
+    """Queued jobs whose message never reached the broker (it was away when they were created)."""
+    stmt = select(Job).where(
+        Job.state == JobState.QUEUED, Job.enqueued_at.is_(None), Job.created_at < older_than
+    )
+    return list(session.scalars(stmt.limit(100)))
+
+
+def lost_jobs(session: Session, silent_since: datetime) -> list[Job]:
+    """Running jobs whose worker has not sent a heartbeat since ``silent_since``."""
+    stmt = select(Job).where(Job.state == JobState.RUNNING, Job.heartbeat_at < silent_since)
+    return list(session.scalars(stmt.limit(100)))
+
+
+def requeue_lost(session: Session, job: Job, silent_since: datetime) -> bool:
+    """Put a lost running job back in the queue (to be resumed); False if it moved meanwhile."""
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job.id, Job.state == JobState.RUNNING, Job.heartbeat_at < silent_since)
+        .values(state=JobState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: str, message: str) -> bool:
+    """Fail a lost running job for good; False if it moved meanwhile."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job.id, Job.state == JobState.RUNNING, Job.heartbeat_at < silent_since)
+        .values(
+            state=JobState.FAILED,
+            error_type=error_type,
+            error_message=message,
+            finished_at=now,
+            updated_at=now,
+        )
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+# Jobs: worker side -----------------------------------------------------------------------------------------
+
+
+def claim_job(
+    session: Session, job_id: uuid.UUID, lease: str, worker: str, stale_before: datetime
+) -> Job | None:
+    """Take a job for this task: a queued job, a re-delivery of our own task, or a running job gone silent.
+
+    Returns the job (now ``running`` under ``lease``), or None when it is not ours to run: finished, canceled,
+    or running under a live worker.
+    """
+    now = utcnow()
+    claimable = or_(
+        Job.state == JobState.QUEUED,
+        (Job.state == JobState.RUNNING) & or_(Job.lease == lease, Job.heartbeat_at < stale_before),
+    )
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, claimable, Job.cancel_requested.is_(False))
+        .values(
+            state=JobState.RUNNING,
+            lease=lease,
+            worker=worker,
+            attempts=Job.attempts + 1,
+            heartbeat_at=now,
+            started_at=func.coalesce(Job.started_at, now),
+            updated_at=now,
+        )
+    )
+    session.commit()
+    if result.rowcount != 1:  # type: ignore[attr-defined]
+        return None
+    return session.get(Job, job_id, populate_existing=True)
+
+
+def update_running(session: Session, job_id: uuid.UUID, lease: str, **values: Any) -> bool:
+    """Write progress fields of a running job we hold; False once the lease is lost or the job left
+    running."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
+        .values(heartbeat_at=now, updated_at=now, **values)
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def release_job(session: Session, job_id: uuid.UUID, lease: str, **values: Any) -> bool:
+    """Hand a running job we hold back to the queue (worker shutdown); this claim does not count as an
+    attempt."""
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
+        .values(
+            state=JobState.QUEUED,
+            lease=None,
+            enqueued_at=None,
+            attempts=Job.attempts - 1,
+            updated_at=utcnow(),
+            **values,
+        )
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def cancel_requested(session: Session, job_id: uuid.UUID) -> bool:
+    """True when the job's owner asked it to stop."""
+    return bool(session.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+
+
+def finish_job(
+    session: Session,
+    job_id: uuid.UUID,
+    lease: str,
+    state: JobState,
+    *,
+    artifacts: Sequence[Artifact] = (),
+    **values: Any,
+) -> bool:
+    """Move a running job we hold to a terminal state (with its artifacts), in one transaction."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
+        .values(state=state, finished_at=now, heartbeat_at=now, updated_at=now, **values)
+    )
+    if result.rowcount != 1:  # type: ignore[attr-defined]
+        session.rollback()
+        return False
+    for old in session.scalars(select(Artifact).where(Artifact.job_id == job_id)):
+        session.delete(old)  # a re-run overwrites
+    session.flush()
+    session.add_all(artifacts)
+    session.commit()
+    return True
+
+
+def fail_unclaimed(session: Session, job_id: uuid.UUID, error_type: str, message: str) -> bool:
+    """Fail a queued job that cannot be run at all (e.g. claimed too many times)."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.state.in_([JobState.QUEUED, JobState.RUNNING]))
+        .values(
+            state=JobState.FAILED,
+            error_type=error_type,
+            error_message=message,
+            finished_at=now,
+            updated_at=now,
+        )
+    )
+    session.commit()
+    return result.rowcount == 1  # type: ignore[attr-defined]
+
+
+def cancel_unclaimed(session: Session, job_id: uuid.UUID) -> None:
+    """Mark a job whose owner asked to cancel it before a worker started it."""
+    now = utcnow()
+    session.execute(
+        update(Job)
+        .where(
+            Job.id == job_id,
+            Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
+            Job.cancel_requested.is_(True),
+        )
+        .values(state=JobState.CANCELED, finished_at=now, updated_at=now)
+    )
+    session.commit()
+
+
+def get_scene(session: Session, scene_id: uuid.UUID) -> Scene | None:
+    """A scene by id (worker side; no tenant scope)."""
+    return session.get(Scene, scene_id)
+
+
+def stale_cutoff(seconds: float) -> datetime:
+    """``now - seconds``."""
+    return utcnow() - timedelta(seconds=seconds)

@@ -1,0 +1,151 @@
+"""The tables: API keys (tenants), uploads, scenes, jobs and their artifacts.
+
+Every upload, scene and job belongs to the API key that created it; every query filters by it. Paths are
+stored relative to ``Settings.storage`` so that a shared volume may be mounted anywhere.
+"""
+
+from __future__ import annotations
+
+import enum
+import uuid
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, Integer, String, Text
+from sqlalchemy import UniqueConstraint as Unique
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from service.db.base import Base, IdMixin, TimestampedMixin, UTCDateTime
+
+
+def _str_enum(cls: type[enum.Enum]) -> Enum:
+    # Stored as plain strings (no native enum type, no CHECK): adding a state needs no migration.
+    return Enum(
+        cls,
+        native_enum=False,
+        create_constraint=False,
+        length=16,
+        values_callable=lambda e: [m.value for m in e],
+    )
+
+
+class UploadState(enum.StrEnum):
+    """Lifecycle of an upload."""
+
+    RECEIVING = "receiving"  # bytes still arriving (resumable)
+    COMPLETE = "complete"  # every byte arrived and the checksum matched
+    CONSUMED = "consumed"  # a scene was made from it; the archive is gone
+
+
+class JobState(enum.StrEnum):
+    """Lifecycle of a job: queued -> running -> succeeded | failed | canceled."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELED = "canceled"
+
+    @property
+    def is_terminal(self) -> bool:
+        """True for the states a job never leaves."""
+        return self in TERMINAL_STATES
+
+
+TERMINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELED})
+
+
+class ApiKey(IdMixin, TimestampedMixin, Base):
+    """A tenant. Only the SHA-256 of the secret is stored; the prefix finds the row."""
+
+    __tablename__ = "api_key"
+
+    name: Mapped[str] = mapped_column(String(100))
+    prefix: Mapped[str] = mapped_column(String(16), unique=True)
+    key_hash: Mapped[str] = mapped_column(String(64))
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class Upload(IdMixin, TimestampedMixin, Base):
+    """A resumable upload of a bundle archive (tus 1.0)."""
+
+    __tablename__ = "upload"
+
+    api_key_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("api_key.id", ondelete="CASCADE"), index=True)
+    filename: Mapped[str | None] = mapped_column(String(255))
+    length: Mapped[int] = mapped_column(BigInteger)
+    offset: Mapped[int] = mapped_column(BigInteger, default=0)
+    state: Mapped[UploadState] = mapped_column(_str_enum(UploadState), default=UploadState.RECEIVING)
+    expected_sha256: Mapped[str | None] = mapped_column(String(64))
+    sha256: Mapped[str | None] = mapped_column(String(64))
+    path: Mapped[str] = mapped_column(String(512))
+    completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class Scene(IdMixin, TimestampedMixin, Base):
+    """A validated bundle, extracted under the storage folder."""
+
+    __tablename__ = "scene"
+
+    api_key_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("api_key.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    feature_dim: Mapped[int] = mapped_column(Integer)
+    feature_space: Mapped[str] = mapped_column(String(64))
+    num_frames: Mapped[int] = mapped_column(Integer)
+    has_vocabulary: Mapped[bool] = mapped_column(Boolean)
+    has_ground_truth: Mapped[bool] = mapped_column(Boolean)
+    bundle_path: Mapped[str] = mapped_column(String(512))
+    bundle_sha256: Mapped[str | None] = mapped_column(String(64))
+    size_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
+
+
+class Job(IdMixin, TimestampedMixin, Base):
+    """One pipeline run on a scene; its progress, timings, error and lease live here, not in the broker."""
+
+    __tablename__ = "job"
+    __table_args__ = (
+        Unique("api_key_id", "idempotency_key"),
+        Index("ix_job_state_heartbeat_at", "state", "heartbeat_at"),
+    )
+
+    api_key_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("api_key.id", ondelete="CASCADE"), index=True)
+    scene_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("scene.id", ondelete="CASCADE"), index=True)
+    state: Mapped[JobState] = mapped_column(_str_enum(JobState), default=JobState.QUEUED)
+    stage: Mapped[str | None] = mapped_column(String(64))
+    progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0..1 over all stages
+    stage_timings: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)  # stage -> seconds
+    config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # overrides as given
+    vocabulary: Mapped[str | None] = mapped_column(Text)
+    queue: Mapped[str] = mapped_column(String(64))
+    idempotency_key: Mapped[str | None] = mapped_column(String(255))
+    request_hash: Mapped[str] = mapped_column(String(64))  # tells a retry from a reuse of the key
+    error_type: Mapped[str | None] = mapped_column(String(100))
+    error_message: Mapped[str | None] = mapped_column(Text)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)  # times a worker claimed it
+    lease: Mapped[str | None] = mapped_column(String(64))  # the claiming task's id; guards every write
+    worker: Mapped[str | None] = mapped_column(String(255))
+    enqueued_at: Mapped[datetime | None] = mapped_column(UTCDateTime)  # NULL: not yet handed to the broker
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+    artifacts: Mapped[list[Artifact]] = relationship(
+        back_populates="job", cascade="all, delete-orphan", order_by="Artifact.name"
+    )
+
+
+class Artifact(IdMixin, TimestampedMixin, Base):
+    """A downloadable file of a finished job."""
+
+    __tablename__ = "artifact"
+    __table_args__ = (Unique("job_id", "name"),)
+
+    job_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    path: Mapped[str] = mapped_column(String(512))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+    media_type: Mapped[str] = mapped_column(String(100))
+
+    job: Mapped[Job] = relationship(back_populates="artifacts")

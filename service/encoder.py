@@ -1,0 +1,123 @@
+"""The text encoder for free-text queries, kept in a child process so that the API process never imports
+torch.
+
+The child is spawned (not forked) on the first free-text query and keeps its encoders loaded, so every query
+after the first is warm. Requests are serialised over a pipe; an encoder error in the child comes back as the
+same exception type where it is known (``EncoderUnavailableError``), otherwise as ``EncoderFailed``.
+A class-name or vector query never reaches the child.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+from multiprocessing.connection import Connection
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+CALL_TIMEOUT_S = 120.0  # the first call loads the model
+
+
+class EncoderFailed(RuntimeError):
+    """The encoder process failed or died."""
+
+
+def _serve(conn: Connection, model_path: str | None) -> None:  # pragma: no cover - runs in the child
+    import numpy as np
+
+    from panogs_core.text_encoders import get_text_encoder
+
+    while True:
+        try:
+            request = conn.recv()
+        except EOFError:
+            return
+        if request is None:
+            return
+        space, texts = request
+        try:
+            encoder = get_text_encoder(space, model_path=model_path)
+            vectors = np.asarray(encoder.encode(list(texts)), dtype=np.float32)
+            conn.send(("ok", vectors))
+        except Exception as exc:  # every failure goes back to the API process, typed by name
+            conn.send(("error", (type(exc).__name__, str(exc))))
+
+
+class EncoderProcess:
+    """A lazily spawned child that encodes texts; thread-safe, one request at a time."""
+
+    def __init__(self, model_path: str | None = None) -> None:
+        self._model_path = model_path
+        self._lock = threading.Lock()
+        self._conn: Connection | None = None
+        self._proc: Any = None
+
+    def _ensure(self) -> Connection:
+        if self._conn is not None and self._proc is not None and self._proc.is_alive():
+            return self._conn
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_serve, args=(child, self._model_path), name="panogs-text-encoder", daemon=True
+        )
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        logger.info("text encoder process started (pid %s)", self._proc.pid)
+        return parent
+
+    def encode(self, space: str, texts: list[str]) -> Any:
+        """(n, D) float32 unit rows for ``texts`` in ``space``."""
+        with self._lock:
+            conn = self._ensure()
+            try:
+                conn.send((space, texts))
+                if not conn.poll(CALL_TIMEOUT_S):
+                    self._kill()
+                    raise EncoderFailed(f"the text encoder did not answer within {CALL_TIMEOUT_S:g} s")
+                status, payload = conn.recv()
+            except (EOFError, OSError, BrokenPipeError) as exc:
+                self._kill()
+                raise EncoderFailed(f"the text encoder process died: {exc!r}") from exc
+        if status == "ok":
+            return payload
+        name, message = payload
+        if name == "EncoderUnavailableError":
+            from panogs_core.errors import EncoderUnavailableError
+
+            raise EncoderUnavailableError(message)
+        raise EncoderFailed(f"{name}: {message}")
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=5)
+        self._conn = None
+        self._proc = None
+
+    def close(self) -> None:
+        """Stop the child, if it runs."""
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    self._conn.send(None)
+                except OSError:
+                    pass
+            if self._proc is not None:
+                self._proc.join(timeout=5)
+            self._kill()
+
+
+class RemoteTextEncoder:
+    """A ``panogs_core.text_encoders.TextEncoder`` whose work happens in the encoder process."""
+
+    def __init__(self, process: EncoderProcess, space: str, dim: int) -> None:
+        self._process = process
+        self.space = space
+        self.dim = dim
+
+    def encode(self, texts: list[str]) -> Any:
+        """(n, D) float32 unit rows."""
+        return self._process.encode(self.space, texts)

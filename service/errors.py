@@ -1,0 +1,179 @@
+"""Service errors: each carries its HTTP status and a stable ``type``; one handler turns them into JSON.
+
+Every error response is ``{"type": ..., "message": ...}`` (plus ``problems`` where there are several).
+No stack trace leaves the server: unexpected exceptions are logged with a request id and answered with a 500
+that names only that id.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DBAPIError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+logger = logging.getLogger(__name__)
+
+
+class ServiceError(Exception):
+    """Base of the errors the API answers on purpose."""
+
+    status_code = 400
+    type = "bad_request"
+
+    def __init__(
+        self, message: str, *, problems: list[str] | None = None, headers: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(message)
+        self.message = message
+        self.problems = problems
+        self.headers = headers
+
+    def body(self) -> dict[str, Any]:
+        """The JSON body of the response."""
+        out: dict[str, Any] = {"type": self.type, "message": self.message}
+        if self.problems is not None:
+            out["problems"] = self.problems
+        return out
+
+
+class Unauthorized(ServiceError):
+    """Missing, malformed, unknown or revoked API key."""
+
+    status_code = 401
+    type = "unauthorized"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, headers={"WWW-Authenticate": "Bearer"})
+
+
+class NotFound(ServiceError):
+    """The resource does not exist, or belongs to another tenant (indistinguishable on purpose)."""
+
+    status_code = 404
+    type = "not_found"
+
+    def __init__(self, kind: str, ident: object) -> None:
+        super().__init__(f"{kind} {ident} not found")
+
+
+class Conflict(ServiceError):
+    """The resource is not in a state that allows the request."""
+
+    status_code = 409
+    type = "conflict"
+
+
+class InvalidInput(ServiceError):
+    """The request is well-formed but its content is refused."""
+
+    status_code = 422
+    type = "invalid_input"
+
+
+class InvalidBundle(InvalidInput):
+    """The uploaded bundle breaks SCENE_FORMAT.md; ``problems`` lists every problem found."""
+
+    type = "invalid_bundle"
+
+
+class PayloadTooLarge(ServiceError):
+    """More bytes than the limit allows."""
+
+    status_code = 413
+    type = "payload_too_large"
+
+
+class UnsupportedMediaType(ServiceError):
+    """Wrong Content-Type for the endpoint."""
+
+    status_code = 415
+    type = "unsupported_media_type"
+
+
+class ChecksumMismatch(ServiceError):
+    """The bytes do not match the checksum given (tus checksum extension status 460)."""
+
+    status_code = 460
+    type = "checksum_mismatch"
+
+
+class PreconditionFailed(ServiceError):
+    """A protocol header is missing or unsupported (e.g. Tus-Resumable)."""
+
+    status_code = 412
+    type = "precondition_failed"
+
+
+class ServiceUnavailable(ServiceError):
+    """A dependency (database, broker, encoder) cannot be reached right now."""
+
+    status_code = 503
+    type = "service_unavailable"
+
+
+_STATUS_TYPES = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+    416: "range_not_satisfiable",
+    422: "invalid_input",
+}
+
+
+def _format_location(loc: tuple[Any, ...]) -> str:
+    parts = [str(p) for p in loc if p not in ("body",)]
+    return ".".join(parts) or "body"
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the one JSON error format for every error the app can answer."""
+
+    @app.exception_handler(ServiceError)
+    async def _service_error(_request: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse(exc.body(), status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = [
+            f"{_format_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in exc.errors()
+        ]
+        body = {"type": "invalid_input", "message": "the request is not valid", "problems": problems}
+        return JSONResponse(body, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        body = {"type": _STATUS_TYPES.get(exc.status_code, "error"), "message": str(exc.detail)}
+        return JSONResponse(body, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(DBAPIError)
+    async def _database_error(request: Request, exc: DBAPIError) -> JSONResponse:
+        # A database that is briefly away is the client's cue to retry, not a server bug.
+        logger.warning(
+            "database error on %s %s: %s", request.method, request.url.path, type(exc.orig).__name__
+        )
+        body = {"type": "service_unavailable", "message": "the database is unavailable; retry shortly"}
+        return JSONResponse(body, status_code=503, headers={"Retry-After": "2"})
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        request_id = uuid.uuid4().hex[:12]
+        logger.exception(
+            "unhandled error on %s %s (request %s)", request.method, request.url.path, request_id
+        )
+        body = {
+            "type": "internal_error",
+            "message": f"internal error (request {request_id}); see the server log",
+        }
+        return JSONResponse(body, status_code=500)

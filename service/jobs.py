@@ -1,0 +1,116 @@
+"""Creating jobs (validated config, idempotency keys) and presenting them."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from service.db import crud
+from service.db.models import Job, JobState, Scene
+from service.errors import InvalidInput, NotFound
+from service.schemas import JobCreate, JobError, JobPublic
+from service.settings import Settings
+
+
+def config_factory(pipeline_function: str) -> Callable[[dict[str, Any]], Any]:
+    """What turns a job's overrides into the pipeline's config: ``PipelineConfig.from_dict``, or the
+    ``make_config`` of the module of a stand-in pipeline (``Settings.pipeline_function``)."""
+    module_name = pipeline_function.partition(":")[0]
+    if module_name != "panogs_core.pipeline":
+        make_config = getattr(importlib.import_module(module_name), "make_config", None)
+        if make_config is not None:
+            return make_config  # type: ignore[no-any-return]
+    from panogs_core.config import PipelineConfig
+
+    return PipelineConfig.from_dict
+
+
+def validate_config(overrides: dict[str, Any], pipeline_function: str) -> None:
+    """Refuse overrides that the pipeline's config refuses (unknown keys, bad values), with its message."""
+    from panogs_core.errors import ConfigError
+
+    try:
+        config_factory(pipeline_function)(overrides)
+    except ConfigError as exc:
+        raise InvalidInput("the pipeline config overrides are not valid", problems=[str(exc)]) from exc
+
+
+def request_hash(body: JobCreate) -> str:
+    """Fingerprint of a creation request, to tell a retry from a reuse of its Idempotency-Key."""
+    canonical = json.dumps(body.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def create_job(
+    session: Session, settings: Settings, tenant_id: uuid.UUID, body: JobCreate, idempotency_key: str | None
+) -> tuple[Job, bool]:
+    """The new job and True, or the job an earlier request with the same Idempotency-Key made and False.
+
+    Raises:
+        NotFound: the scene does not exist for this tenant.
+        InvalidInput: bad config overrides, or the key was used before with a different request.
+    """
+    fingerprint = request_hash(body)
+    if idempotency_key is not None:
+        earlier = _same_request(session, tenant_id, idempotency_key, fingerprint)
+        if earlier is not None:
+            return earlier, False
+    if crud.get_owned(session, Scene, body.scene_id, tenant_id) is None:
+        raise NotFound("scene", body.scene_id)
+    validate_config(body.config, settings.pipeline_function)
+    job = Job(
+        api_key_id=tenant_id,
+        scene_id=body.scene_id,
+        state=JobState.QUEUED,
+        config=body.config,
+        vocabulary=body.vocabulary,
+        queue=settings.job_queue,
+        idempotency_key=idempotency_key,
+        request_hash=fingerprint,
+        stage_timings={},
+    )
+    session.add(job)
+    try:
+        session.commit()
+    except IntegrityError:  # a concurrent request with the same key won the insert
+        session.rollback()
+        earlier = _same_request(session, tenant_id, idempotency_key or "", fingerprint)
+        if earlier is None:
+            raise
+        return earlier, False
+    return job, True
+
+
+def _same_request(session: Session, tenant_id: uuid.UUID, key: str, fingerprint: str) -> Job | None:
+    earlier = crud.find_idempotent_job(session, tenant_id, key)
+    if earlier is not None and earlier.request_hash != fingerprint:
+        raise InvalidInput(f"Idempotency-Key {key!r} was already used with a different request")
+    return earlier
+
+
+def to_public(job: Job) -> JobPublic:
+    """The API view of a job."""
+    error = JobError(type=job.error_type, message=job.error_message or "") if job.error_type else None
+    return JobPublic(
+        id=job.id,
+        scene_id=job.scene_id,
+        state=job.state,
+        stage=job.stage,
+        progress=job.progress,
+        stage_timings=job.stage_timings or {},
+        error=error,
+        config=job.config or {},
+        vocabulary=job.vocabulary,
+        cancel_requested=job.cancel_requested,
+        attempts=job.attempts,
+        created_at=job.created_at,
+        started_at=job.started_at,
+        finished_at=job.finished_at,
+    )

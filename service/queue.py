@@ -1,0 +1,69 @@
+"""Handing jobs to the broker, by task name, after the database commit.
+
+A job row is committed first with ``enqueued_at`` empty; then its message is published and ``enqueued_at``
+set. If the broker is away at that moment, the job stays queued and the reaper publishes it later (an
+outbox), so a broker outage delays jobs but loses none.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from pathlib import Path
+from typing import Protocol
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.db import crud
+from service.db.session import session_scope
+from service.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+
+class Sender(Protocol):
+    """What the dispatcher needs of a Celery app (tests pass a recorder)."""
+
+    def send_task(self, name: str, args: list[str] | None = ..., queue: str | None = ...) -> object: ...
+
+
+def celery_sender(settings: Settings) -> Sender:
+    """A Celery app for ``settings`` (configuration only; no task code is imported)."""
+    from worker.celery_app import create_celery_app
+
+    return create_celery_app(settings)  # type: ignore[return-value]
+
+
+def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, queue: str) -> bool:
+    """Publish a committed job's message, then record it; False when the broker refused it.
+
+    A job whose message could not be published stays ``queued`` with ``enqueued_at`` empty and the reaper
+    publishes it again. A message published twice is harmless: only one task can claim the job.
+    """
+    from worker.names import TaskName
+
+    try:
+        sender.send_task(TaskName.RUN_JOB.value, args=[str(job_id)], queue=queue)
+    except Exception as exc:  # any broker failure: the job stays queued and undispatched
+        logger.warning("job %s: broker refused the message (%s); the reaper will retry", job_id, exc)
+        return False
+    with session_scope(factory) as session:
+        crud.mark_enqueued(session, job_id)
+    return True
+
+
+def broker_ping(settings: Settings, timeout_s: float = 1.0) -> None:
+    """Raise when the broker cannot be reached within ``timeout_s`` (the filesystem broker: its folders)."""
+    if settings.is_embedded_broker:
+        for key in ("data_folder_in", "control_folder"):
+            folder = Path(settings.broker_transport_options()[key])
+            if not folder.is_dir():
+                raise ConnectionError(f"broker folder {folder} is missing")
+        return
+    from kombu import Connection
+
+    with Connection(
+        settings.broker, transport_options=settings.broker_transport_options(), connect_timeout=timeout_s
+    ) as conn:
+        conn.ensure_connection(max_retries=1, timeout=timeout_s)
+        conn.default_channel  # noqa: B018  (opening a channel round-trips to the server)

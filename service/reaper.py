@@ -1,0 +1,98 @@
+"""The API's background sweep: finds lost jobs, publishes jobs the broker missed, deletes abandoned uploads.
+
+Runs in a thread of every API process; every change is a guarded UPDATE, so several API processes sweeping at
+once do each thing once.
+
+- A ``running`` job whose worker sent no heartbeat for ``heartbeat_timeout_s`` (killed, machine gone) goes
+  back to ``queued`` and is published again, to be resumed by another worker from its last finished stage,
+  or is ``failed`` with ``WorkerLost`` once it has been started ``max_attempts`` times.
+- A ``queued`` job whose message never reached the broker (the broker was away) is published.
+- An upload untouched for ``upload_ttl_s`` is deleted with its bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.db import crud
+from service.db.session import session_scope
+from service.queue import Sender, dispatch
+from service.settings import Settings
+from service.storage import Storage
+
+logger = logging.getLogger(__name__)
+
+DISPATCH_GRACE_S = 2.0  # a new job's own request publishes it; the reaper steps in after this
+
+
+def sweep(
+    settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage
+) -> dict[str, int]:
+    """One pass; returns how many jobs were re-queued, failed and published, and uploads deleted."""
+    counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0}
+    silent_since = crud.stale_cutoff(settings.heartbeat_timeout_s)
+    with session_scope(factory) as session:
+        for job in crud.lost_jobs(session, silent_since):
+            if job.attempts >= settings.max_attempts:
+                message = (
+                    f"the worker running this job stopped responding (no heartbeat for "
+                    f"{settings.heartbeat_timeout_s:g} s), {job.attempts} time(s); giving up"
+                )
+                counts["failed"] += crud.fail_lost(session, job, silent_since, "WorkerLost", message)
+            elif crud.requeue_lost(session, job, silent_since):
+                logger.warning(
+                    "job %s: worker %s lost (attempt %d); re-queued", job.id, job.worker, job.attempts
+                )
+                counts["requeued"] += 1
+        pending = [
+            (job.id, job.queue)
+            for job in crud.undispatched_jobs(session, crud.stale_cutoff(DISPATCH_GRACE_S))
+        ]
+        stale = [
+            (u.id, u.path) for u in crud.stale_uploads(session, crud.stale_cutoff(settings.upload_ttl_s))
+        ]
+        for upload_id, rel in stale:
+            storage.remove_tree(storage.path(rel).parent)
+            crud.delete_upload(session, upload_id)
+            counts["uploads_deleted"] += 1
+    for job_id, queue in pending:
+        counts["published"] += dispatch(factory, sender, job_id, queue)
+    return counts
+
+
+class Reaper:
+    """Runs :func:`sweep` every ``reaper_interval_s`` in a daemon thread until stopped."""
+
+    def __init__(
+        self, settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage
+    ) -> None:
+        self._args = (settings, factory, sender, storage)
+        self._interval = settings.reaper_interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="panogs-reaper", daemon=True)
+
+    def start(self) -> None:
+        """Start sweeping."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop after the current pass."""
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self._interval):
+            try:
+                counts = sweep(*self._args)
+            except DBAPIError as exc:
+                logger.warning("reaper: database unavailable (%r)", exc.orig)
+                continue
+            except Exception:  # the sweep must keep running; the next pass may succeed
+                logger.exception("reaper: sweep failed")
+                continue
+            if any(counts.values()):
+                logger.info("reaper: %s", counts)

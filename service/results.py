@@ -1,0 +1,109 @@
+"""A finished job's results as the API serves them: instances and queries, loaded once and kept warm.
+
+Results are read with ``panogs_core.results.load_result`` (numpy only) and kept in a small LRU per API
+process; a finished job's folder never changes, so the cache needs no invalidation beyond the job id.
+Free text is encoded by :mod:`service.encoder` (a child process); class names and vectors need no encoder.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+from service.encoder import EncoderFailed, EncoderProcess, RemoteTextEncoder
+from service.errors import InvalidInput, ServiceUnavailable
+from service.schemas import QueryCreate, QueryHitPublic, QueryResult
+
+
+class ResultCache:
+    """Loaded results of finished jobs, least recently used dropped first."""
+
+    def __init__(self, capacity: int) -> None:
+        self._capacity = capacity
+        self._items: OrderedDict[uuid.UUID, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, job_id: uuid.UUID, out_dir: Path) -> Any:
+        """The loaded result (``instances``, ``vocabulary``, ``feature_space``) of a finished job."""
+        with self._lock:
+            if job_id in self._items:
+                self._items.move_to_end(job_id)
+                return self._items[job_id]
+        from panogs_core.results import load_result
+
+        loaded = load_result(out_dir)
+        with self._lock:
+            self._items[job_id] = loaded
+            while len(self._items) > self._capacity:
+                self._items.popitem(last=False)
+        return loaded
+
+
+def read_instances(out_dir: Path) -> list[dict[str, Any]]:
+    """instances.json of a finished job."""
+    data = json.loads((out_dir / "instances.json").read_text())
+    return list(data if isinstance(data, list) else data.get("instances", []))
+
+
+def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) -> QueryResult:
+    """Rank a finished job's instances against a text or vector query."""
+    import numpy as np
+
+    from panogs_core.errors import EncoderUnavailableError, InputError
+    from panogs_core.query import query_instances
+
+    start = time.perf_counter()
+    vocabulary = loaded.vocabulary
+    dim = int(np.asarray(vocabulary.embeddings).shape[1])
+    query: str | np.ndarray
+    if body.vector is not None:
+        if len(body.vector) != dim:
+            raise InvalidInput(f"vector has {len(body.vector)} values; this scene's features have {dim}")
+        query, kind = np.asarray(body.vector, dtype=np.float32), "vector"
+    else:
+        assert body.text is not None
+        query = body.text
+        named = body.text.strip().lower() in {n.lower() for n in vocabulary.names}
+        kind = "class" if named else "text"
+    remote = (
+        RemoteTextEncoder(encoder, loaded.feature_space, dim)
+        if encoder is not None
+        else _NoEncoder(loaded.feature_space, dim)
+    )
+    options: dict[str, Any] = {"top_k": body.top_k}
+    if body.min_score is not None:
+        options["min_score"] = body.min_score
+    try:
+        hits = query_instances(
+            loaded.instances, vocabulary, query, feature_space=loaded.feature_space, encoder=remote, **options
+        )
+    except EncoderUnavailableError as exc:
+        raise InvalidInput(f"free-text query not possible: {exc}") from exc
+    except InputError as exc:
+        raise InvalidInput(str(exc)) from exc
+    except EncoderFailed as exc:
+        raise ServiceUnavailable(f"text encoder unavailable: {exc}") from exc
+    took_ms = (time.perf_counter() - start) * 1000.0
+    return QueryResult(
+        hits=[QueryHitPublic(**hit.to_json()) for hit in hits], query_kind=kind, took_ms=round(took_ms, 3)
+    )
+
+
+class _NoEncoder:
+    """Stands in for an encoder where free-text queries are switched off (``PANOGS_QUERY_ENCODER=off``)."""
+
+    def __init__(self, space: str, dim: int) -> None:
+        self.space = space
+        self.dim = dim
+
+    def encode(self, texts: list[str]) -> Any:
+        from panogs_core.errors import EncoderUnavailableError
+
+        raise EncoderUnavailableError(
+            "free-text queries are switched off on this server; query a vocabulary class name or a vector"
+        )

@@ -1,0 +1,93 @@
+"""Making a scene from a complete upload: validate with the core validator, keep it only if it is valid.
+
+``panogs_core.bundle.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
+bombs) and checks every rule of SCENE_FORMAT.md, reporting every problem at once. A refused bundle leaves
+nothing behind: the extraction folder, the archive and the upload are deleted.
+"""
+
+from __future__ import annotations
+
+import uuid
+
+from sqlalchemy.orm import Session
+
+from service.db import crud
+from service.db.models import Scene, Upload, UploadState
+from service.errors import Conflict, InvalidBundle
+from service.storage import Storage, detect_archive, dir_size
+from service.uploads import discard_upload
+
+
+def create_scene(
+    session: Session,
+    storage: Storage,
+    upload: Upload,
+    name: str | None,
+    *,
+    max_bytes: int | None = None,
+    max_files: int | None = None,
+) -> Scene:
+    """Validate and extract ``upload`` into a new scene of the upload's tenant.
+
+    Raises:
+        Conflict: the upload is not complete, or was already made into a scene.
+        InvalidBundle: the bundle breaks the format; ``problems`` lists every problem. Nothing is kept.
+    """
+    from panogs_core.bundle import open_bundle
+    from panogs_core.errors import BundleError
+
+    if upload.state != UploadState.COMPLETE or not crud.set_upload_state(
+        session, upload.id, UploadState.COMPLETE, UploadState.CONSUMED
+    ):
+        raise Conflict(
+            f"upload {upload.id} is {upload.state.value} ({upload.offset} of {upload.length} bytes); "
+            "a scene needs a complete upload that no scene was made from"
+        )
+    source = storage.path(upload.path)
+    suffix = detect_archive(source)
+    if suffix is None:
+        discard_upload(session, storage, upload)
+        raise InvalidBundle(
+            "the upload is not a bundle archive; nothing was kept",
+            problems=[
+                f"{upload.filename or 'upload'}: not a .zip, .tar or .tar.gz archive (by its first bytes)"
+            ],
+        )
+    archive = source.with_name("bundle" + suffix)  # open_bundle tells archive kinds by their suffix
+    source.rename(archive)
+    scene_id = uuid.uuid4()
+    scene_dir = storage.scene_dir(scene_id)
+    limits = {k: v for k, v in (("max_bytes", max_bytes), ("max_files", max_files)) if v is not None}
+    try:
+        bundle = open_bundle(archive, workdir=scene_dir, **limits)
+        scene = Scene(
+            id=scene_id,
+            api_key_id=upload.api_key_id,
+            name=(name or bundle.name)[:255],
+            feature_dim=bundle.feature_dim,
+            feature_space=bundle.feature_space,
+            num_frames=len(bundle.frames),
+            has_vocabulary=bundle.vocabulary is not None,
+            has_ground_truth=bundle.has_ground_truth,
+            bundle_path=storage.rel(bundle.root),
+            bundle_sha256=upload.sha256,
+            size_bytes=dir_size(scene_dir),
+        )
+        session.add(scene)
+        session.commit()
+    except BundleError as exc:
+        session.rollback()
+        storage.remove_tree(scene_dir)
+        discard_upload(session, storage, upload)
+        raise InvalidBundle(
+            f"the bundle has {len(exc.problems)} problem(s); nothing was kept", problems=list(exc.problems)
+        ) from exc
+    except BaseException:
+        # Not the bundle's fault (disk, database): undo, so that the same upload can be tried again.
+        session.rollback()
+        storage.remove_tree(scene_dir)
+        archive.rename(source)
+        crud.set_upload_state(session, upload.id, UploadState.CONSUMED, UploadState.COMPLETE)
+        raise
+    storage.remove_tree(archive.parent)  # the archive is extracted; its bytes are no longer needed
+    return scene

@@ -1,0 +1,143 @@
+"""The one infrastructure configuration of the service and the worker (environment prefix ``PANOGS_``).
+
+With nothing set, everything lives under ``./panogs-data`` (the embedded default): a SQLite database, a
+filesystem message broker and local storage. The scaled deployment sets ``PANOGS_DATABASE_URL`` (PostgreSQL),
+``PANOGS_BROKER_URL`` (Redis) and ``PANOGS_STORAGE_DIR`` (a shared volume). ``.env.example`` lists every
+field.
+
+Placeholder secrets (``changethis``) and the embedded defaults are refused when
+``PANOGS_ENVIRONMENT=production``.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PLACEHOLDER_SECRET = "changethis"
+GIB = 1024**3
+
+
+class Settings(BaseSettings):
+    """Every infrastructure setting; the pipeline's own settings are ``PipelineConfig`` (per job)."""
+
+    model_config = SettingsConfigDict(env_prefix="PANOGS_", env_file=".env", extra="ignore", frozen=True)
+
+    environment: Literal["dev", "production"] = "dev"
+    data_dir: Path = Path("panogs-data")  # root of everything embedded (database, broker folders, storage)
+    database_url: str | None = None  # default: sqlite:///<data_dir>/panogs.db
+    broker_url: str | None = None  # default: filesystem:// with folders under <data_dir>/broker
+    broker_key_prefix: str = ""  # Redis key prefix (kombu global_keyprefix); lets tests share a Redis
+    storage_dir: Path | None = None  # uploads, scenes, artifacts; default <data_dir>/storage
+
+    # Uploads.
+    max_upload_bytes: int = Field(default=16 * GIB, gt=0)  # largest accepted bundle archive
+    bundle_max_bytes: int | None = Field(default=None, gt=0)  # extracted size limit; None: the core's default
+    upload_ttl_s: int = Field(default=24 * 3600, gt=0)  # unfinished uploads older than this are deleted
+
+    # Jobs and workers.
+    job_queue: str = "cpu"  # queue the API sends new jobs to ("gpu" where GPU workers run)
+    worker_queues: str = "cpu"  # comma-separated queues a worker consumes
+    worker_pool: Literal["solo", "prefork", "threads"] = "solo"  # one job per worker process by default
+    worker_concurrency: int = Field(default=1, gt=0)
+    job_time_limit_s: float = Field(
+        default=6 * 3600, gt=0
+    )  # a running job past this fails (checked in progress)
+    broker_visibility_timeout_s: int = Field(default=12 * 3600, gt=0)  # must exceed job_time_limit_s
+    heartbeat_interval_s: float = Field(default=10.0, gt=0)  # how often a running job proves its worker alive
+    heartbeat_timeout_s: float = Field(default=60.0, gt=0)  # silent this long: the worker is presumed lost
+    max_attempts: int = Field(default=3, gt=0)  # worker losses before a job is failed instead of re-queued
+    progress_interval_s: float = Field(default=0.5, ge=0)  # least time between progress writes/cancel checks
+    reaper_interval_s: float = Field(default=5.0, gt=0)  # API-side sweep for lost jobs and undispatched jobs
+    transient_retry_s: float = Field(default=120.0, ge=0)  # how long the worker waits out a database outage
+    pipeline_function: str = "panogs_core.pipeline:run_pipeline"  # module:function the worker runs
+
+    # API.
+    api_key_cache_s: float = Field(default=5.0, ge=0)  # a revoked key may work this much longer per process
+    query_encoder: Literal["process", "off"] = "process"  # free-text queries: encoder in a child process
+    text_model_path: str | None = None  # local text-encoder weights (panogs_core.text_encoders)
+    result_cache_size: int = Field(default=32, ge=1)  # finished results kept loaded for queries
+    auto_migrate: bool = True  # `panogs serve` upgrades the database to head on start
+    log_level: str = "INFO"
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        if self.broker_visibility_timeout_s <= self.job_time_limit_s:
+            raise ValueError(
+                f"broker_visibility_timeout_s ({self.broker_visibility_timeout_s}) must exceed "
+                f"job_time_limit_s "
+                f"({self.job_time_limit_s}), or a running job's message is delivered twice"
+            )
+        if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
+            raise ValueError("heartbeat_timeout_s must exceed heartbeat_interval_s")
+        if self.environment == "production":
+            for name in ("database_url", "broker_url"):
+                value = getattr(self, name)
+                if not value:
+                    raise ValueError(f"PANOGS_{name.upper()} must be set in production")
+                if PLACEHOLDER_SECRET in value:
+                    raise ValueError(
+                        f"PANOGS_{name.upper()} still holds the placeholder {PLACEHOLDER_SECRET!r}"
+                    )
+        return self
+
+    @property
+    def database(self) -> str:
+        """The database URL in force."""
+        return self.database_url or f"sqlite:///{(self.data_dir / 'panogs.db').resolve()}"
+
+    @property
+    def broker(self) -> str:
+        """The broker URL in force."""
+        return self.broker_url or "filesystem://"
+
+    @property
+    def is_embedded_broker(self) -> bool:
+        """True when the broker is the serverless filesystem transport."""
+        return self.broker.startswith("filesystem://")
+
+    @property
+    def storage(self) -> Path:
+        """Root of uploads, scenes and artifacts."""
+        return (self.storage_dir or self.data_dir / "storage").resolve()
+
+    @property
+    def broker_folder(self) -> Path:
+        """Folder of the filesystem broker's messages."""
+        return (self.data_dir / "broker").resolve()
+
+    def broker_transport_options(self) -> dict[str, Any]:
+        """kombu transport options for the broker in force."""
+        if self.is_embedded_broker:
+            folder = self.broker_folder
+            return {
+                "data_folder_in": str(folder / "queue"),
+                "data_folder_out": str(folder / "queue"),
+                "control_folder": str(folder / "control"),
+                "processed_folder": str(folder / "processed"),
+                "store_processed": False,
+                "polling_interval": 0.2,  # seconds; an idle embedded worker starts a job this quickly
+            }
+        options: dict[str, Any] = {"visibility_timeout": self.broker_visibility_timeout_s}
+        if self.broker_key_prefix:
+            options["global_keyprefix"] = self.broker_key_prefix
+        return options
+
+    def ensure_dirs(self) -> None:
+        """Create the local folders this configuration writes to."""
+        self.storage.mkdir(parents=True, exist_ok=True)
+        if self.database.startswith("sqlite:///"):
+            Path(self.database.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        if self.is_embedded_broker:
+            for key in ("data_folder_in", "control_folder", "processed_folder"):
+                Path(self.broker_transport_options()[key]).mkdir(parents=True, exist_ok=True)
+
+
+@functools.cache
+def get_settings() -> Settings:
+    """The process-wide settings, read once from the environment (and ``.env``)."""
+    return Settings()

@@ -1,0 +1,596 @@
+"""Bundle writer, validator and archive extraction: a valid bundle opens; every broken rule is reported."""
+
+from __future__ import annotations
+
+import gc
+import io
+import json
+import os
+import shutil
+import tarfile
+import warnings
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from panogs_core.bundle import FORMAT_ID, Scene, open_bundle
+from panogs_core.errors import BundleError, InputError
+from panogs_core.io.archive import extract_archive
+from panogs_core.io.writer import BundleWriter
+from panogs_core.types import Camera, Vocabulary
+
+CAM = Camera(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
+DIM = 8
+NUM_VERTICES = 20
+
+
+def _pose(angle: float, t: tuple[float, float, float]) -> np.ndarray:  # (4, 4)
+    c, s = np.cos(angle), np.sin(angle)
+    pose = np.eye(4)
+    pose[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    pose[:3, 3] = t
+    return pose
+
+
+def _write_valid(root: Path) -> Path:
+    """3 frames 64x48, D=8: frame 0 has everything, frame 1 no masks, frame 2 no colour nor features."""
+    rng = np.random.default_rng(0)
+    w = BundleWriter(root, name="tiny", camera=CAM, feature_dim=DIM, feature_space="test-space")
+    for i in range(3):
+        depth = rng.uniform(0.5, 3.0, (CAM.height, CAM.width))
+        depth[0, 0] = 0.0
+        color = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8) if i < 2 else None
+        features = rng.normal(size=(6, 8, DIM)).astype(np.float16) if i < 2 else None
+        masks = rng.integers(0, 4, (CAM.height, CAM.width)) if i != 1 else None
+        w.add_frame(f"{i:06d}", _pose(0.1 * i, (i, 0, 0)), depth, color=color, features=features, masks=masks)
+    w.write_geometry(rng.normal(size=(NUM_VERTICES, 3)), colors=rng.uniform(size=(NUM_VERTICES, 3)))
+    emb = rng.normal(size=(3, DIM))
+    w.write_vocabulary(Vocabulary(("wall", "chair", "table"), ("stuff", "thing", "thing"), emb))
+    w.write_ground_truth(rng.integers(-1, 3, NUM_VERTICES), rng.integers(-1, 5, NUM_VERTICES))
+    return w.close()
+
+
+@pytest.fixture
+def bundle_dir(tmp_path: Path) -> Path:
+    return _write_valid(tmp_path / "scene")
+
+
+def _manifest(root: Path) -> dict[str, Any]:
+    return json.loads((root / "scene.json").read_text())  # type: ignore[no-any-return]
+
+
+def _save(root: Path, doc: dict[str, Any]) -> None:
+    (root / "scene.json").write_text(json.dumps(doc))
+
+
+def _edit(change: Callable[[dict[str, Any]], None]) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        doc = _manifest(root)
+        change(doc)
+        _save(root, doc)
+
+    return apply
+
+
+def _problems(root: Path) -> list[str]:
+    with pytest.raises(BundleError) as info:
+        open_bundle(root)
+    return info.value.problems
+
+
+class TestOpenValid:
+    def test_smoke(self, bundle_dir: Path) -> None:
+        scene = open_bundle(bundle_dir)
+        assert isinstance(scene, Scene)
+        assert scene.name == "tiny"
+        assert scene.camera == CAM
+        assert (scene.feature_dim, scene.feature_space, scene.depth_scale) == (DIM, "test-space", 1000.0)
+        assert [f.id for f in scene.frames] == ["000000", "000001", "000002"]
+        assert [f.id for f in scene.feature_frames] == ["000000", "000001"]
+        assert [f.id for f in scene.mask_frames] == ["000000", "000002"]
+        assert scene.has_geometry
+        assert scene.has_ground_truth
+
+    def test_read_methods(self, bundle_dir: Path) -> None:
+        scene = open_bundle(bundle_dir)
+        f0, f2 = scene.frames[0], scene.frames[2]
+        depth = scene.read_depth(f0)
+        assert depth.shape == (48, 64)
+        assert depth.dtype == np.float32
+        assert depth[0, 0] == 0.0
+        assert 0.5 <= depth[1, 1] <= 3.0
+        color = scene.read_color(f0)
+        assert color is not None
+        assert color.shape == (48, 64, 3)  # resampled from 32x24
+        assert color.dtype == np.uint8
+        assert scene.read_color(f2) is None
+        feats = scene.read_features(f0)
+        assert feats.shape == (6, 8, DIM)
+        assert feats.dtype == np.float16
+        masks = scene.read_masks(f0)
+        assert masks.dtype == np.int32
+        assert masks.shape == (48, 64)
+        with pytest.raises(InputError, match="no masks"):
+            scene.read_masks(scene.frames[1])
+        np.testing.assert_allclose(scene.frames[1].T_world_cam, _pose(0.1, (1, 0, 0)))
+
+    def test_depth_round_trip_in_millimetres(self, tmp_path: Path) -> None:
+        w = BundleWriter(tmp_path, name="d", camera=CAM, feature_dim=2, feature_space="s")
+        depth = np.full((48, 64), 1.2344)
+        depth[0, :3] = [np.nan, -1.0, 70.0]  # invalid, invalid, beyond uint16 at 1000 per metre
+        w.add_frame(
+            "a", np.eye(4), depth, features=np.zeros((2, 2, 2), np.float32), masks=np.ones((4, 4), int)
+        )
+        scene = open_bundle(w.close())
+        out = scene.read_depth(scene.frames[0])
+        assert out[1, 1] == pytest.approx(1.234, abs=1e-6)
+        assert out[0, :3].tolist() == pytest.approx([0.0, 0.0, 65.535])
+
+    def test_geometry_and_ground_truth(self, bundle_dir: Path) -> None:
+        scene = open_bundle(bundle_dir)
+        geo = scene.read_geometry()
+        assert geo is not None
+        assert geo.points.shape == (NUM_VERTICES, 3)
+        assert geo.colors is not None
+        assert 0.0 <= geo.colors.min() <= geo.colors.max() <= 1.0
+        gt = scene.read_ground_truth()
+        assert gt is not None
+        assert gt.semantic.dtype == np.int64
+        assert gt.semantic.shape == (NUM_VERTICES,)
+        assert gt.points is None
+        vocab = scene.vocabulary
+        assert vocab is not None
+        assert vocab.kinds == ("stuff", "thing", "thing")
+        assert vocab.embeddings is not None
+        np.testing.assert_allclose(np.linalg.norm(vocab.embeddings, axis=1), 1.0, rtol=1e-5)
+
+    def test_jpeg_with_trailer_after_end_marker(self, bundle_dir: Path) -> None:
+        path = bundle_dir / "color" / "000000.jpg"
+        path.write_bytes(path.read_bytes() + b"\x00trailer appended by a phone" * 40)
+        scene = open_bundle(bundle_dir)
+        color = scene.read_color(scene.frames[0])
+        assert color is not None
+
+    def test_optional_files_absent(self, bundle_dir: Path) -> None:
+        for name in ("geometry.ply", "vocabulary.json", "vocabulary.npy"):
+            (bundle_dir / name).unlink()
+        shutil.rmtree(bundle_dir / "gt")
+        scene = open_bundle(bundle_dir)
+        assert scene.read_geometry() is None
+        assert scene.read_ground_truth() is None
+        assert scene.vocabulary is None
+
+    def test_ground_truth_with_points_needs_no_geometry(self, bundle_dir: Path) -> None:
+        (bundle_dir / "geometry.ply").unlink()
+        np.savez(
+            bundle_dir / "gt" / "labels.npz",
+            semantic=np.array([0, 1, -1]),
+            instance=np.array([-1, 0, 1]),
+            points=np.zeros((3, 3), np.float32),
+        )
+        gt = open_bundle(bundle_dir).read_ground_truth()
+        assert gt is not None
+        assert gt.points is not None
+        assert gt.points.shape == (3, 3)
+
+
+def _truncate(rel: str, keep: float = 0.5) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        data = (root / rel).read_bytes()
+        (root / rel).write_bytes(data[: int(len(data) * keep)])
+
+    return apply
+
+
+def _replace_image(rel: str, image: np.ndarray) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        assert cv2.imwrite(str(root / rel), image)
+
+    return apply
+
+
+def _replace_npy(rel: str, array: np.ndarray, *, pickle: bool = False) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        np.save(root / rel, array, allow_pickle=pickle)
+
+    return apply
+
+
+def _symlink_depth(root: Path) -> None:
+    target = root.parent / "outside.png"
+    shutil.copy(root / "depth/000001.png", target)
+    (root / "depth/000001.png").unlink()
+    os.symlink(target, root / "depth/000001.png")
+
+
+def _symlink_folder(root: Path) -> None:
+    shutil.move(root / "masks", root.parent / "masks_elsewhere")
+    os.symlink(root.parent / "masks_elsewhere", root / "masks")
+
+
+def _set_gt(**arrays: np.ndarray) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        np.savez(root / "gt" / "labels.npz", **arrays)
+
+    return apply
+
+
+def _set(path: list[Any], value: Any) -> Callable[[dict[str, Any]], None]:
+    def change(doc: dict[str, Any]) -> None:
+        node = doc
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+
+    return change
+
+
+def _bad_rotation(doc: dict[str, Any]) -> None:
+    doc["frames"][1]["pose"][0][0] = 1.2
+
+
+def _drop_key(key: str) -> Callable[[dict[str, Any]], None]:
+    def change(doc: dict[str, Any]) -> None:
+        for frame in doc["frames"]:
+            frame.pop(key, None)
+
+    return change
+
+
+_GRAY = np.zeros((24, 32), np.uint8)
+_SMALL_DEPTH = np.ones((24, 32), np.uint16)
+_NAN_POSE = [[float("nan"), 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+
+BROKEN: list[tuple[str, Callable[[Path], None], str]] = [
+    ("no manifest", lambda r: (r / "scene.json").unlink(), "scene.json: missing"),
+    ("bad json", lambda r: (r / "scene.json").write_text("{nope"), "scene.json: not valid JSON"),
+    ("manifest not object", lambda r: (r / "scene.json").write_text("[1]"), "expected an object"),
+    ("format id", _edit(_set(["format"], "panogs-scene/2")), "scene.json: format 'panogs-scene/2'"),
+    ("fx negative", _edit(_set(["camera", "fx"], -5)), "camera.fx -5"),
+    ("width float", _edit(_set(["camera", "width"], 64.5)), "camera.width 64.5"),
+    ("cy missing", _edit(lambda d: d["camera"].pop("cy")), "camera.cy None"),
+    ("fy infinite", _edit(_set(["camera", "fy"], float("inf"))), "camera.fy inf"),
+    ("depth scale", _edit(_set(["depth_scale"], 0)), "depth_scale 0"),
+    ("feature dim", _edit(_set(["features", "dim"], 0)), "features.dim 0"),
+    ("feature space", _edit(lambda d: d["features"].pop("space")), "features.space None"),
+    ("no frames", _edit(_set(["frames"], [])), "frames [], expected a non-empty list"),
+    ("duplicate id", _edit(_set(["frames", 2, "id"], "000000")), "frames[2].id: '000000' used by an earlier"),
+    ("nan pose", _edit(_set(["frames", 1, "pose"], _NAN_POSE)), "frames[1].pose: contains NaN"),
+    ("pose shape", _edit(_set(["frames", 0, "pose"], [[1, 0], [0, 1]])), "frames[0].pose: [[1, 0], [0, 1]]"),
+    ("rotation", _edit(_bad_rotation), "frames[1].pose: rotation not orthonormal"),
+    ("reflection", _edit(_set(["frames", 0, "pose", 2, 2], -1.0)), "det = -1.0000"),
+    ("last row", _edit(_set(["frames", 0, "pose", 3, 0], 0.5)), "frames[0].pose: last row"),
+    ("depth key", _edit(lambda d: d["frames"][0].pop("depth")), "frames[0].depth: None"),
+    ("absolute path", _edit(_set(["frames", 0, "depth"], "/etc/passwd.png")), "/etc/passwd.png: absolute"),
+    ("dot dot", _edit(_set(["frames", 0, "color"], "../x.png")), "../x.png: leaves the bundle"),
+    ("extension", _edit(_set(["frames", 0, "features"], "features/000000.txt")), "extension not allowed"),
+    ("missing depth file", lambda r: (r / "depth/000001.png").unlink(), "depth/000001.png: missing"),
+    ("missing features", lambda r: (r / "features/000000.npy").unlink(), "features/000000.npy: missing"),
+    ("symlinked file", _symlink_depth, "depth/000001.png: depth/000001.png is a symbolic link"),
+    ("symlinked folder", _symlink_folder, "masks/000000.png: masks is a symbolic link"),
+    (
+        "depth size",
+        _replace_image("depth/000001.png", _SMALL_DEPTH),
+        "depth/000001.png: 32x24, expected 64x48",
+    ),
+    (
+        "depth 8 bit",
+        _replace_image("depth/000002.png", np.ones((48, 64), np.uint8)),
+        "expected 16-bit single",
+    ),
+    ("truncated depth", _truncate("depth/000000.png"), "depth/000000.png: does not decode"),
+    ("truncated jpeg", _truncate("color/000001.jpg", 0.7), "color/000001.jpg: truncated JPEG"),
+    ("not an image", lambda r: (r / "masks/000002.png").write_bytes(b"hello"), "masks/000002.png: does not"),
+    (
+        "gray colour",
+        _replace_image("color/000000.jpg", _GRAY),
+        "color/000000.jpg: 8-bit 1 channel(s), expected",
+    ),
+    (
+        "rgb masks",
+        _replace_image("masks/000000.png", np.zeros((4, 4, 3), np.uint8)),
+        "masks/000000.png: 8-bit 3",
+    ),
+    ("pickled npy", _replace_npy("features/000000.npy", np.array([{}], object), pickle=True), "pickled"),
+    (
+        "feature dim 4",
+        _replace_npy("features/000001.npy", np.zeros((2, 2, 4), np.float32)),
+        "last dimension 4",
+    ),
+    ("features f64", _replace_npy("features/000001.npy", np.zeros((2, 2, DIM))), "dtype float64"),
+    (
+        "features 2d",
+        _replace_npy("features/000001.npy", np.zeros((2, DIM), np.float32)),
+        "expected (Hf, Wf, D)",
+    ),
+    ("fortran", _replace_npy("features/000000.npy", np.zeros((2, 3, DIM), np.float32, order="F")), "Fortran"),
+    ("features truncated", _truncate("features/000000.npy", 0.9), "features/000000.npy: file size"),
+    ("not npy", lambda r: (r / "features/000001.npy").write_bytes(b"\x93NUMPY junk"), "not a valid .npy"),
+    ("no features", _edit(_drop_key("features")), "no frame has features"),
+    ("no masks", _edit(_drop_key("masks")), "no frame has masks"),
+    (
+        "bad geometry",
+        lambda r: (r / "geometry.ply").write_bytes(b"ply\nformat ascii 1.0\n"),
+        "geometry.ply: ",
+    ),
+    (
+        "vocab kind",
+        lambda r: (r / "vocabulary.json").write_text('{"classes": [{"name": "a", "kind": "x"}]}'),
+        "kind 'x'",
+    ),
+    ("vocab json", lambda r: (r / "vocabulary.json").write_text("{"), "vocabulary.json: not valid JSON"),
+    (
+        "vocab dim",
+        _replace_npy("vocabulary.npy", np.ones((3, 5), np.float32)),
+        "vocabulary.npy: shape (3, 5)",
+    ),
+    (
+        "vocab nan",
+        _replace_npy("vocabulary.npy", np.full((3, DIM), np.nan, np.float32)),
+        "vocabulary.npy: contains NaN",
+    ),
+    (
+        "gt range",
+        _set_gt(semantic=np.full(NUM_VERTICES, 3), instance=np.zeros(NUM_VERTICES, int)),
+        "expected [-1, 3)",
+    ),
+    ("gt count", _set_gt(semantic=np.zeros(5, int), instance=np.zeros(5, int)), "5 labels, expected 20"),
+    (
+        "gt float",
+        _set_gt(semantic=np.zeros(NUM_VERTICES), instance=np.zeros(NUM_VERTICES, int)),
+        "semantic float64",
+    ),
+    ("gt key", _set_gt(semantic=np.zeros(NUM_VERTICES, int)), "key 'instance' missing"),
+    ("gt pickled", _set_gt(semantic=np.array([None] * 3), instance=np.zeros(3, int)), "pickled"),
+    ("gt no vocab", lambda r: (r / "vocabulary.json").unlink(), "need vocabulary.json"),
+]
+
+
+@pytest.mark.parametrize(("breaker", "expected"), [b[1:] for b in BROKEN], ids=[b[0] for b in BROKEN])
+def test_broken_rule_is_reported(bundle_dir: Path, breaker: Callable[[Path], None], expected: str) -> None:
+    open_bundle(bundle_dir)  # valid before the change
+    breaker(bundle_dir)
+    problems = _problems(bundle_dir)
+    assert any(expected in p for p in problems), problems
+
+
+def test_all_problems_reported_at_once(bundle_dir: Path) -> None:
+    _edit(_set(["camera", "fx"], 0))(bundle_dir)
+    _replace_image("depth/000001.png", _SMALL_DEPTH)(bundle_dir)
+    _replace_npy("features/000001.npy", np.zeros((2, 2, 4), np.float32))(bundle_dir)
+    (bundle_dir / "masks/000002.png").unlink()
+    problems = _problems(bundle_dir)
+    expected = [
+        "camera.fx 0",
+        "depth/000001.png: 32x24",
+        "features/000001.npy: last dimension 4",
+        "masks/000002.png",
+    ]
+    for text in expected:
+        assert any(text in p for p in problems), (text, problems)
+    assert len(problems) == 4, problems
+
+
+def test_error_message_lists_every_problem(bundle_dir: Path) -> None:
+    _edit(_set(["depth_scale"], -1))(bundle_dir)
+    _edit(_set(["format"], "x"))(bundle_dir)
+    with pytest.raises(BundleError, match="2 problem") as info:
+        open_bundle(bundle_dir)
+    assert "depth_scale -1" in str(info.value)
+
+
+def test_not_a_bundle(tmp_path: Path) -> None:
+    with pytest.raises(BundleError, match="does not exist"):
+        open_bundle(tmp_path / "missing")
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(BundleError, match="not a folder"):
+        open_bundle(tmp_path / "file.txt")
+
+
+class TestWriterFiles:
+    def test_add_frame_files_copies_or_links(self, bundle_dir: Path, tmp_path: Path) -> None:
+        w = BundleWriter(tmp_path / "copy", name="c", camera=CAM, feature_dim=DIM, feature_space="s")
+        for i, link in enumerate((False, True)):
+            w.add_frame_files(
+                f"f{i}",
+                np.eye(4),
+                depth=bundle_dir / "depth/000000.png",
+                color=bundle_dir / "color/000000.jpg",
+                features=bundle_dir / "features/000000.npy",
+                masks=bundle_dir / "masks/000000.png",
+                link=link,
+            )
+        scene = open_bundle(w.close())
+        assert [f.color for f in scene.frames] == ["color/f0.jpg", "color/f1.jpg"]
+        assert (scene.root / "depth/f1.png").read_bytes() == (bundle_dir / "depth/000000.png").read_bytes()
+        assert (scene.root / "depth/f0.png").stat().st_nlink == 1  # a copy, never the source itself
+        with pytest.raises(InputError, match="expected one of"):
+            w.add_frame_files("f9", np.eye(4), depth=bundle_dir / "color/000000.jpg")
+
+
+class TestWriterExceptions:
+    def test_exception(self, tmp_path: Path) -> None:
+        w = BundleWriter(tmp_path, name="x", camera=CAM, feature_dim=DIM, feature_space="s")
+        depth = np.ones((48, 64))
+        with pytest.raises(InputError, match="expected \\(48, 64\\)"):
+            w.add_frame("a", np.eye(4), np.ones((10, 10)))
+        with pytest.raises(InputError, match="frame id"):
+            w.add_frame("../a", np.eye(4), depth)
+        with pytest.raises(InputError, match="last dim 3"):
+            w.add_frame("a", np.eye(4), depth, features=np.zeros((2, 2, 3), np.float32))
+        with pytest.raises(InputError, match="mask ids"):
+            w.add_frame("a", np.eye(4), depth, masks=np.full((2, 2), 70000))
+        with pytest.raises(InputError, match="pose"):
+            w.add_frame("a", np.full((4, 4), np.nan), depth)
+        with pytest.raises(InputError, match="at least one frame"):
+            w.close()
+        w.add_frame("a", np.eye(4), depth)
+        with pytest.raises(InputError, match="used twice"):
+            w.add_frame("a", np.eye(4), depth)
+
+
+# -- archives ------------------------------------------------------------------------------------------------
+
+
+def _zip_folder(folder: Path, out: Path, prefix: str = "") -> Path:
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(folder.rglob("*")):
+            zf.write(path, prefix + path.relative_to(folder).as_posix())
+    return out
+
+
+def _zip_entries(out: Path, entries: list[tuple[str | zipfile.ZipInfo, bytes]]) -> Path:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zipfile warns about the duplicate names some tests write on purpose
+        with zipfile.ZipFile(out, "w") as zf:
+            for name, data in entries:
+                zf.writestr(name, data)
+    return out
+
+
+def _tar_entries(out: Path, entries: list[tuple[tarfile.TarInfo, bytes]]) -> Path:
+    with tarfile.open(out, "w:gz") as tf:
+        for info, data in entries:
+            info.size = len(data) if info.isreg() else 0
+            tf.addfile(info, io.BytesIO(data) if info.isreg() else None)
+    return out
+
+
+def _tar_info(name: str, kind: bytes = tarfile.REGTYPE, link: str = "") -> tarfile.TarInfo:
+    info = tarfile.TarInfo(name)
+    info.type = kind
+    info.linkname = link
+    return info
+
+
+class TestArchives:
+    def test_zip_round_trip_with_top_folder(self, bundle_dir: Path, tmp_path: Path) -> None:
+        archive = _zip_folder(bundle_dir, tmp_path / "scene.zip", prefix="my_scene/")
+        scene = open_bundle(archive, workdir=tmp_path / "work")
+        assert scene.root.name == "my_scene"
+        assert scene.root.is_relative_to(tmp_path / "work")
+        assert len(scene.frames) == 3
+        assert scene.read_depth(scene.frames[0]).shape == (48, 64)
+
+    def test_tar_gz_round_trip(self, bundle_dir: Path, tmp_path: Path) -> None:
+        archive = tmp_path / "scene.tar.gz"
+        with tarfile.open(archive, "w:gz") as tf:
+            tf.add(bundle_dir, arcname=".")
+        scene = open_bundle(archive)
+        root = scene.root
+        assert (root / "scene.json").is_file()
+        assert scene.read_features(scene.frames[1]).shape == (6, 8, DIM)
+        del scene  # the temporary extraction goes with the last reference to the scene
+        gc.collect()
+        assert not root.exists()
+
+    def test_invalid_content_cleans_up(self, bundle_dir: Path, tmp_path: Path) -> None:
+        (bundle_dir / "scene.json").unlink()
+        archive = _zip_folder(bundle_dir, tmp_path / "scene.zip")
+        with pytest.raises(BundleError, match=r"scene\.json: missing"):
+            open_bundle(archive, workdir=tmp_path / "work")
+        assert list((tmp_path / "work").iterdir()) == []
+
+    @pytest.mark.parametrize(
+        ("entries", "expected"),
+        [
+            ([("../evil.txt", b"x")], "../evil.txt: path leaves the bundle"),
+            ([("a/../../evil.txt", b"x")], "path leaves the bundle"),
+            ([("/etc/evil.txt", b"x")], "/etc/evil.txt: absolute path"),
+            ([("C:/evil.txt", b"x")], "absolute path"),
+            ([("a\\..\\evil.txt", b"x")], "backslash"),
+            ([("a.txt", b"x"), ("a.txt", b"y")], "a.txt: duplicate name"),
+            ([("a", b"x"), ("a/b.txt", b"y")], "'a' is both a file and a folder"),
+        ],
+    )
+    def test_zip_bad_names(self, tmp_path: Path, entries: list[tuple[str, bytes]], expected: str) -> None:
+        archive = _zip_entries(tmp_path / "bad.zip", [(n, d) for n, d in entries])
+        dest = tmp_path / "out"
+        with pytest.raises(BundleError) as info:
+            extract_archive(archive, dest)
+        assert any(expected in p for p in info.value.problems), info.value.problems
+        assert not (tmp_path / "evil.txt").exists()
+        assert list(dest.rglob("*")) == []  # nothing written when a member is refused
+
+    def test_zip_symlink(self, tmp_path: Path) -> None:
+        link = zipfile.ZipInfo("scene.json")
+        link.external_attr = 0o120777 << 16  # S_IFLNK: what `zip --symlinks` stores
+        archive = _zip_entries(tmp_path / "l.zip", [(link, b"/etc/passwd")])
+        with pytest.raises(BundleError, match=r"scene\.json: symbolic link"):
+            extract_archive(archive, tmp_path / "out")
+
+    @pytest.mark.parametrize(
+        ("info", "expected"),
+        [
+            (_tar_info("scene.json", tarfile.SYMTYPE, "/etc/passwd"), "symbolic link to '/etc/passwd'"),
+            (_tar_info("x.png", tarfile.LNKTYPE, "../../x"), "hard link"),
+            (_tar_info("dev", tarfile.CHRTYPE), "not a regular file"),
+            (_tar_info("fifo", tarfile.FIFOTYPE), "not a regular file"),
+            (_tar_info("../up.txt"), "leaves the bundle"),
+        ],
+    )
+    def test_tar_unsafe_members(self, tmp_path: Path, info: tarfile.TarInfo, expected: str) -> None:
+        archive = _tar_entries(tmp_path / "bad.tar.gz", [(_tar_info("ok.txt"), b"fine"), (info, b"x")])
+        with pytest.raises(BundleError) as err:
+            open_bundle(archive, workdir=tmp_path / "work")
+        assert any(expected in p for p in err.value.problems), err.value.problems
+        assert not (tmp_path / "work" / "ok.txt").exists()
+
+    def test_declared_size_bomb(self, tmp_path: Path) -> None:
+        # A tar header declaring 1 TB with no data behind it: refused from the header, before any write.
+        info = _tar_info("huge.bin")
+        info.size = 10**12
+        archive = tmp_path / "bomb.tar"
+        archive.write_bytes(info.tobuf() + b"\0" * 1024)
+        with pytest.raises(BundleError, match="declared uncompressed size 1000000000000"):
+            extract_archive(archive, tmp_path / "out", max_bytes=10**9)
+
+    def test_compressed_bomb_over_limit(self, tmp_path: Path) -> None:
+        archive = tmp_path / "zeros.zip"
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("zeros.bin", b"\0" * 4_000_000)
+        assert archive.stat().st_size < 50_000
+        with pytest.raises(BundleError, match="exceeds the limit of 1000000"):
+            extract_archive(archive, tmp_path / "out", max_bytes=1_000_000)
+
+    def test_lying_declared_size_is_refused(self, tmp_path: Path) -> None:
+        # Declared 10 bytes in both headers, 100000 bytes of data: must not expand past what was declared.
+        archive = tmp_path / "liar.zip"
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as zf:
+            zf.writestr("a.bin", b"\x01" * 100_000)
+        data = bytearray(archive.read_bytes())
+        size = (100_000).to_bytes(4, "little")
+        for at in [i for i in range(len(data) - 3) if data[i : i + 4] == size]:
+            data[at : at + 4] = (10).to_bytes(4, "little")
+        archive.write_bytes(bytes(data))
+        dest = tmp_path / "out"
+        with pytest.raises(BundleError):
+            extract_archive(archive, dest, max_bytes=50_000)
+        written = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
+        assert written <= 50_000
+
+    def test_too_many_files(self, tmp_path: Path) -> None:
+        archive = _zip_entries(tmp_path / "many.zip", [(f"f{i}.txt", b"x") for i in range(10)])
+        with pytest.raises(BundleError, match="more than 5 members"):
+            extract_archive(archive, tmp_path / "out", max_files=5)
+
+    def test_corrupt_archive(self, bundle_dir: Path, tmp_path: Path) -> None:
+        archive = _zip_folder(bundle_dir, tmp_path / "scene.zip")
+        data = archive.read_bytes()
+        cut = tmp_path / "cut.tar.gz"
+        with tarfile.open(cut, "w:gz") as tf:
+            tf.add(bundle_dir, arcname=".")
+        cut.write_bytes(cut.read_bytes()[:2000])
+        with pytest.raises(BundleError, match="corrupt or unreadable"):
+            open_bundle(cut)
+        (tmp_path / "junk.zip").write_bytes(data[100:])
+        with pytest.raises(BundleError):
+            open_bundle(tmp_path / "junk.zip")
+
+    def test_format_id_exported(self) -> None:
+        assert FORMAT_ID == "panogs-scene/1"

@@ -1,0 +1,332 @@
+"""Stage 8 (labeling.py) and the label sets (labelsets.py)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panogs_core.errors import ConfigError, EncoderUnavailableError, InputError, NumericalError, ShapeError
+from panogs_core.labeling import (
+    InstanceInfo,
+    LabelingConfig,
+    PanopticLabels,
+    assign_panoptic,
+    instances_to_json,
+    vote_in_segments,
+)
+from panogs_core.labelsets import (
+    SPACE_TEMPERATURES,
+    builtin_vocabulary,
+    default_temperature,
+    ensure_embeddings,
+    load_vocabulary_file,
+    resolve_vocabulary,
+)
+from panogs_core.types import Vocabulary
+
+WALL, FLOOR, CHAIR, TABLE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class _Labels:
+    """Stand-in for SuperPrimitives / Clusters (only ``labels`` is read)."""
+
+    labels: np.ndarray
+
+
+def _vocab() -> Vocabulary:
+    # One-hot embeddings: the cosine of a one-hot feature is 1 for its class and 0 for the others.
+    return Vocabulary(names=("wall", "floor", "chair", "table"), kinds=("stuff", "stuff", "thing", "thing"),
+                      embeddings=np.eye(4, dtype=np.float32))
+
+
+def _scene() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(points, features, true class, cluster) of a hand-made scene; segments = 5 primitives each."""
+    blocks = [  # (class, cluster, count)
+        (CHAIR, 0, 60), (WALL, 0, 5),  # chair cluster with a few wall points
+        (CHAIR, 1, 40), (TABLE, 1, 30),  # mixed thing cluster: majority chair
+        (TABLE, 2, 10),  # too small a thing instance (min_instance_points = 20)
+        (CHAIR, -1, 8), (FLOOR, -1, 7),  # removed cluster
+        (WALL, 3, 100), (FLOOR, 4, 50),
+    ]
+    cls = np.concatenate([np.full(n, c) for c, _, n in blocks]).astype(np.int64)
+    cluster = np.concatenate([np.full(n, k) for _, k, n in blocks]).astype(np.int64)
+    points = np.stack([np.arange(len(cls)), cluster, np.zeros(len(cls))], 1).astype(np.float32)
+    return points, np.eye(4, dtype=np.float32)[cls], cls, cluster
+
+
+def _run(cfg: LabelingConfig, features: np.ndarray | None = None) -> tuple[PanopticLabels, np.ndarray]:
+    points, feats, cls, cluster = _scene()
+    segments = np.arange(len(cls)) // 5
+    feats = feats if features is None else features
+    out = assign_panoptic(points, feats, _Labels(segments), _Labels(cluster), _vocab(), cfg)
+    return out, cls
+
+
+class TestLabelingConfig:
+    def test_smoke(self) -> None:
+        cfg = LabelingConfig()
+        assert cfg.vote == "superprimitive"
+        assert 0.0 <= cfg.vote_min_fraction <= 1.0
+
+    @pytest.mark.parametrize(
+        ("kwargs", "match"),
+        [
+            ({"vote": "cluster"}, "labeling.vote"),
+            ({"vote_min_fraction": 1.5}, "vote_min_fraction"),
+            ({"min_instance_points": 0}, "min_instance_points"),
+            ({"score_temperature": 0.0}, "score_temperature"),
+        ],
+    )
+    def test_exception(self, kwargs: dict[str, object], match: str) -> None:
+        with pytest.raises(ConfigError, match=match):
+            LabelingConfig(**kwargs)  # type: ignore[arg-type]
+
+
+class TestVoteInSegments:
+    def test_smoke(self) -> None:
+        out = vote_in_segments(np.array([1, 1, 2, 3, -1]), np.array([0, 0, 0, 1, 1]))
+        assert out.tolist() == [1, 1, 1, 3, 3]  # void points receive the vote
+
+    def test_ties_go_to_smallest_class(self) -> None:
+        assert vote_in_segments(np.array([4, 2, 4, 2]), np.array([0, 0, 0, 0])).tolist() == [2, 2, 2, 2]
+
+    def test_purity_guard(self) -> None:
+        classes = np.array([1, 1, 2, 3, 5, 5, 5, 6])
+        segments = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+        # segment 0: majority 1 holds 2/4 = 0.5; segment 1: majority 5 holds 3/4.
+        assert vote_in_segments(classes, segments, 0.6).tolist() == [1, 1, 2, 3, 5, 5, 5, 5]
+        assert vote_in_segments(classes, segments, 0.5).tolist() == [1, 1, 1, 1, 5, 5, 5, 5]
+
+    def test_all_void(self) -> None:
+        assert vote_in_segments(np.array([-1, -1]), np.array([0, 0])).tolist() == [-1, -1]
+
+
+class TestAssignPanoptic:
+    cfg = LabelingConfig(vote="none", min_instance_points=20, score_temperature=0.5)
+
+    def test_cardinality(self) -> None:
+        out, cls = _run(self.cfg)
+        assert out.semantic.shape == out.instance.shape == cls.shape
+        assert out.semantic.dtype == out.instance.dtype == np.int64
+        assert [i.id for i in out.instances] == list(range(len(out.instances)))
+        assert set(np.unique(out.instance)) == {-1, *range(len(out.instances))}
+
+    def test_feature(self) -> None:
+        out, cls = _run(self.cfg)
+        _, _, _, cluster = _scene()
+        summary = [(i.class_name, i.kind, i.num_points) for i in out.instances]
+        # things by cluster id (0, 1), then stuff by class index (wall, floor); cluster 2 (10 < 20) dissolved.
+        assert summary == [("chair", "thing", 60), ("chair", "thing", 70), ("wall", "stuff", 105),
+                           ("floor", "stuff", 57)]
+        mixed = cluster == 1
+        assert np.all(out.semantic[mixed] == CHAIR)  # panoptic consistency: the 30 table points become chair
+        assert np.all(out.instance[mixed] == 1)
+        small = cluster == 2
+        assert np.all(out.semantic[small] == TABLE)
+        assert np.all(out.instance[small] == -1)
+        removed_chair = (cluster == -1) & (cls == CHAIR)
+        assert np.all(out.semantic[removed_chair] == CHAIR)
+        assert np.all(out.instance[removed_chair] == -1)
+        assert np.all(out.instance[cls == FLOOR] == 3)  # stuff joins its class segment, even in cluster -1
+        assert np.all(out.instance[(cls == WALL)] == 2)
+
+    def test_instance_info_values(self) -> None:
+        out, _ = _run(self.cfg)
+        points, _, _, cluster = _scene()
+        first = out.instances[0]
+        member = (cluster == 0) & (np.arange(len(cluster)) < 60)
+        np.testing.assert_allclose(first.centroid, points[member].mean(0), rtol=1e-6)
+        np.testing.assert_allclose(first.bbox_min, points[member].min(0))
+        np.testing.assert_allclose(first.bbox_max, points[member].max(0))
+        np.testing.assert_allclose(first.feature, [0, 0, 1, 0], atol=1e-6)
+        # Score by hand, T = 0.5: a chair point has logits (0, 0, 2, 0)
+        # -> p(chair) = e^2 / (e^2 + 3) = 0.7112; a table point has logits (0, 0, 0, 2)
+        # -> p(chair) = 1 / (e^2 + 3) = 0.0963.
+        p_own, p_other = np.e**2 / (np.e**2 + 3), 1 / (np.e**2 + 3)
+        assert first.score == pytest.approx(p_own)
+        assert out.instances[1].score == pytest.approx((40 * p_own + 30 * p_other) / 70)
+        mixed_feature = np.array([0, 0, 40, 30]) / 50.0  # mean of 40 chair + 30 table one-hots, normalised
+        np.testing.assert_allclose(out.instances[1].feature, mixed_feature, atol=1e-6)
+
+    def test_zero_feature_is_void(self) -> None:
+        _, feats, _, _ = _scene()
+        feats = feats.copy()
+        feats[0] = 0.0
+        out, _ = _run(self.cfg, feats)
+        assert out.semantic[0] == -1
+        assert out.instance[0] == -1
+
+    def test_vote_within_superprimitives(self) -> None:
+        _, feats, cls, cluster = _scene()
+        feats = feats.copy()
+        wall_start = int(np.flatnonzero((cls == WALL) & (cluster == 3))[0])  # a 5-point segment starts here
+        feats[wall_start + 1] = np.eye(4)[FLOOR]  # one wrong point: the segment is 4/5 wall
+        for fraction, expected in ((0.5, WALL), (0.9, FLOOR)):
+            cfg = LabelingConfig(vote="superprimitive", vote_min_fraction=fraction, min_instance_points=20)
+            out, _ = _run(cfg, feats)
+            assert out.semantic[wall_start + 1] == expected
+        none, _ = _run(LabelingConfig(vote="none", min_instance_points=20), feats)
+        assert none.semantic[wall_start + 1] == FLOOR
+
+    def test_exception(self) -> None:
+        points, feats, _, cluster = _scene()
+        seg = _Labels(np.zeros(len(points), np.int64))
+        with pytest.raises(ShapeError, match="features"):
+            assign_panoptic(points, feats[:, :3], seg, _Labels(cluster), _vocab(), self.cfg)
+        with pytest.raises(ShapeError, match=r"clusters\.labels"):
+            assign_panoptic(points, feats, seg, _Labels(cluster[:-1]), _vocab(), self.cfg)
+        with pytest.raises(InputError, match="no embeddings"):
+            assign_panoptic(points, feats, seg, _Labels(cluster), Vocabulary(("a",), ("thing",)), self.cfg)
+        bad = feats.copy()
+        bad[3, 0] = np.nan
+        with pytest.raises(NumericalError, match="NaN"):
+            assign_panoptic(points, bad, seg, _Labels(cluster), _vocab(), self.cfg)
+
+    def test_save_load_round_trip(self, tmp_path: Path) -> None:
+        out, _ = _run(self.cfg)
+        path = tmp_path / "labels.npz"
+        out.save(path)
+        again = PanopticLabels.load(path)
+        np.testing.assert_array_equal(again.semantic, out.semantic)
+        np.testing.assert_array_equal(again.instance, out.instance)
+        assert [i.to_json(with_feature=True) for i in again.instances] == \
+            [i.to_json(with_feature=True) for i in out.instances]
+
+    def test_save_load_empty(self, tmp_path: Path) -> None:
+        void = np.full(3, -1, np.int64)
+        empty = PanopticLabels(semantic=void, instance=void, instances=())
+        empty.save(tmp_path / "e.npz")
+        assert PanopticLabels.load(tmp_path / "e.npz").instances == ()
+
+    def test_instances_to_json(self) -> None:
+        out, _ = _run(self.cfg)
+        doc = instances_to_json(out, _vocab())
+        json.dumps(doc)  # plain types only
+        assert doc[0]["class_name"] == "chair"
+        assert len(doc[0]["centroid"]) == 3
+        assert "feature" not in doc[0]
+        other = Vocabulary(names=("a", "b", "c", "d"), kinds=("stuff",) * 4)
+        with pytest.raises(InputError, match="not class"):
+            instances_to_json(out, other)
+
+    def test_instance_info_json_types(self) -> None:
+        info = InstanceInfo(id=0, class_index=1, class_name="x", kind="thing", score=np.float32(0.5),
+                            num_points=np.int64(3), centroid=np.zeros(3), bbox_min=np.zeros(3),
+                            bbox_max=np.ones(3), feature=np.ones(2) / np.sqrt(2))
+        doc = info.to_json(with_feature=True)
+        assert type(doc["score"]) is float
+        assert type(doc["num_points"]) is int
+        assert len(doc["feature"]) == 2
+
+
+class _FakeEncoder:
+    """A deterministic stand-in text encoder: hashes the text into a unit vector."""
+
+    def __init__(self, space: str, dim: int) -> None:
+        self.space, self.dim = space, dim
+        self.seen: list[str] = []
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        self.seen.extend(texts)
+        rows = [np.random.default_rng(sum(map(ord, t))).normal(size=self.dim) for t in texts]
+        out = np.asarray(rows, np.float32)
+        return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+class TestLabelSets:
+    def test_builtin_scannet20(self) -> None:
+        v = builtin_vocabulary("scannet20")
+        assert len(v.names) == 20
+        assert v.names[:5] == ("wall", "floor", "cabinet", "bed", "chair")
+        assert v.names[-1] == "otherfurniture"
+        assert [n for n, k in zip(v.names, v.kinds) if k == "stuff"] == ["wall", "floor"]
+        assert v.embeddings is not None
+        assert v.embeddings.shape == (20, 512)
+        assert v.embeddings.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(v.embeddings, axis=1), 1.0, atol=1e-6)
+
+    def test_builtin_matterport21(self) -> None:
+        v = builtin_vocabulary("Matterport21")
+        s = builtin_vocabulary("scannet20")
+        assert v.names[19:] == ("other", "ceiling")
+        assert v.kinds[20] == "stuff"
+        assert v.embeddings is not None
+        assert s.embeddings is not None
+        cos = np.sum(v.embeddings[:19] * s.embeddings[:19], axis=1)
+        assert cos.min() > 0.999  # rows 0-18 are the same classes (README)
+
+    def test_builtin_other_space_drops_embeddings(self) -> None:
+        assert builtin_vocabulary("scannet20", feature_space="minilm-l6").embeddings is None
+        assert builtin_vocabulary("scannet20", feature_space="clip-vit-b32").embeddings is not None
+
+    def test_builtin_exception(self) -> None:
+        with pytest.raises(InputError, match="unknown built-in"):
+            builtin_vocabulary("coco")
+
+    def test_load_vocabulary_file(self, tmp_path: Path) -> None:
+        np.save(tmp_path / "emb.npy", np.array([[2.0, 0.0], [0.0, 3.0]], np.float16))
+        doc = {"classes": [{"name": "wall", "kind": "stuff"}, {"name": "lamp"}], "embeddings": "emb.npy"}
+        (tmp_path / "vocabulary.json").write_text(json.dumps(doc))
+        v = load_vocabulary_file(tmp_path / "vocabulary.json")
+        assert v.names == ("wall", "lamp")
+        assert v.kinds == ("stuff", "thing")
+        assert v.embeddings is not None
+        np.testing.assert_allclose(v.embeddings, np.eye(2))
+        assert resolve_vocabulary(str(tmp_path / "vocabulary.json")).names == v.names
+        assert resolve_vocabulary("SCANNET20").names[0] == "wall"
+
+    @pytest.mark.parametrize(
+        ("doc", "match"),
+        [
+            ({"classes": []}, "at least|>= 1 class"),
+            ({"classes": [{"name": "a", "kind": "blob"}]}, "kind must be"),
+            ({"classes": [{"name": "a"}, {"name": "A"}]}, "duplicate"),
+            ({"classes": [{"kind": "thing"}]}, "non-empty string 'name'"),
+            ({"classes": [{"name": "a"}], "embeddings": "../x.npy"}, "relative path inside"),
+            ({"classes": [{"name": "a"}], "embeddings": "missing.npy"}, "cannot read embeddings"),
+            ({"classes": [{"name": "a"}], "embeddings": "two.npy"}, r"float \(1, D\)"),
+        ],
+    )
+    def test_load_exception(self, tmp_path: Path, doc: dict[str, object], match: str) -> None:
+        np.save(tmp_path / "two.npy", np.ones((2, 4), np.float32))
+        (tmp_path / "v.json").write_text(json.dumps(doc))
+        with pytest.raises(InputError, match=match):
+            load_vocabulary_file(tmp_path / "v.json")
+
+    def test_resolve_exception(self, tmp_path: Path) -> None:
+        with pytest.raises(InputError, match="no such file"):
+            resolve_vocabulary(str(tmp_path / "nope.json"))
+        (tmp_path / "bad.json").write_text("{not json")
+        with pytest.raises(InputError, match="cannot read a vocabulary"):
+            resolve_vocabulary(str(tmp_path / "bad.json"))
+
+    def test_ensure_embeddings(self) -> None:
+        enc = _FakeEncoder("clip-vit-b32", 8)
+        bare = Vocabulary(("chair", "wall"), ("thing", "stuff"))
+        v = ensure_embeddings(bare, "clip-vit-b32", 8, encoder=enc)
+        assert v.embeddings is not None
+        assert v.embeddings.shape == (2, 8)
+        assert enc.seen == ["a chair in a scene", "a wall in a scene"]  # the space's prompt template
+        same = ensure_embeddings(v, "clip-vit-b32", 8)  # present and right: kept, no encoder needed
+        np.testing.assert_allclose(same.embeddings, v.embeddings)  # type: ignore[arg-type]
+
+    def test_ensure_embeddings_exception(self) -> None:
+        with pytest.raises(InputError, match="features are 384-d"):
+            ensure_embeddings(builtin_vocabulary("scannet20"), "minilm-l6", 384)
+        bare = Vocabulary(("chair",), ("thing",))
+        with pytest.raises(InputError, match="gives 8-d"):
+            ensure_embeddings(bare, "clip-vit-b32", 512, encoder=_FakeEncoder("clip-vit-b32", 8))
+        with pytest.raises(EncoderUnavailableError, match="'my-space'"):
+            ensure_embeddings(bare, "my-space", 16)
+
+    def test_default_temperature(self) -> None:
+        v = builtin_vocabulary("matterport21")
+        assert default_temperature("clip-vit-b32", None) == SPACE_TEMPERATURES["clip-vit-b32"] == 0.01
+        # The spread rule lands near the measured CLIP value: 0.06 * (1 - 0.828).
+        assert default_temperature(None, v.embeddings) == pytest.approx(0.0103, abs=5e-4)
+        assert default_temperature("other-space", np.eye(3)) == pytest.approx(0.06)

@@ -1,0 +1,238 @@
+"""Tests of stage 4: the tri-plane language field (known-answer regions, determinism, save/load)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
+from panogs_core.language_field import (
+    LanguageField,
+    LanguageFieldConfig,
+    decode_points,
+    field_bounds,
+    fit_language_field,
+    plane_resolutions,
+)
+
+DIM = 16
+
+
+@dataclass(frozen=True)
+class _Fused:
+    """Stand-in with the fields of ``panogs_core.fusion.FusedFeatures`` that the field reads."""
+
+    features: np.ndarray  # (N, D) float32
+    weights: np.ndarray  # (N,) float32
+    seen_count: np.ndarray  # (N,) int32
+    colors: np.ndarray | None = None
+
+
+def _small_cfg(**overrides: object) -> LanguageFieldConfig:
+    settings: dict[str, object] = {
+        "cell_sizes": (0.5, 0.2),
+        "hidden_dims": (32,),
+        "epochs": 10,
+        "batch_size": 256,
+        "lr": 1e-2,
+        "plane_lr": 3e-2,
+        "seed": 0,
+    }
+    settings.update(overrides)
+    return LanguageFieldConfig(**settings)  # type: ignore[arg-type]
+
+
+def _three_regions(n_per: int = 400, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Three 1 m boxes along x (gaps of 1 m), each with its own constant unit feature."""
+    rng = np.random.default_rng(seed)
+    region = np.repeat(np.arange(3), n_per)
+    points = rng.uniform(0, 1, (3 * n_per, 3)) + np.c_[region * 2.0, np.zeros((3 * n_per, 2))]
+    anchors = rng.normal(size=(3, DIM))
+    anchors /= np.linalg.norm(anchors, axis=1, keepdims=True)
+    return points.astype(np.float32), region, anchors.astype(np.float32)
+
+
+def _fused(features: np.ndarray, weights: np.ndarray) -> _Fused:
+    return _Fused(
+        features=features.astype(np.float32),
+        weights=weights.astype(np.float32),
+        seen_count=(weights > 0).astype(np.int32),
+    )
+
+
+@pytest.fixture(scope="module")
+def regions_field() -> tuple[LanguageField, np.ndarray, np.ndarray, np.ndarray]:
+    points, region, anchors = _three_regions()
+    field = fit_language_field(points, _fused(anchors[region], np.ones(len(points))), _small_cfg())
+    return field, points, region, anchors
+
+
+class TestFitLanguageField:
+    def test_smoke(self, regions_field) -> None:
+        field, points, _, _ = regions_field
+        assert isinstance(field, LanguageField)
+        assert field.features.shape == (points.shape[0], DIM)
+        assert field.features.dtype == np.float32
+        assert field.bounds.shape == (2, 3)
+        assert field.bounds.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(field.features, axis=1), 1.0, atol=1e-5)
+        assert field.dim == DIM
+        assert sorted(field.state) == ["mlp.0", "mlp.1", "planes.0", "planes.1"]
+        assert field.state["mlp.0"].shape == (32, 10)
+        assert field.state["mlp.1"].shape == (DIM, 32)
+
+    def test_recovers_region_features(self, regions_field) -> None:
+        field, _, region, anchors = regions_field
+        cos = (field.features * anchors[region]).sum(axis=1)
+        assert cos.min() > 0.95
+
+    def test_zero_weight_points_are_ignored(self) -> None:
+        points, region, anchors = _three_regions(n_per=150, seed=1)
+        rng = np.random.default_rng(2)
+        unseen = rng.random(len(points)) < 0.3
+        weights = np.where(unseen, 0.0, 1.0)
+        targets_a = np.where(unseen[:, None], rng.normal(size=(len(points), DIM)), anchors[region])
+        targets_b = np.where(unseen[:, None], 0.0, anchors[region])
+        cfg = _small_cfg(epochs=3)
+        field_a = fit_language_field(points, _fused(targets_a, weights), cfg)
+        field_b = fit_language_field(points, _fused(targets_b, weights), cfg)
+        for key in field_a.state:
+            np.testing.assert_array_equal(field_a.state[key], field_b.state[key])
+
+    def test_deterministic_for_a_seed(self) -> None:
+        points, region, anchors = _three_regions(n_per=100, seed=3)
+        fused = _fused(anchors[region], np.ones(len(points)))
+        first = fit_language_field(points, fused, _small_cfg(epochs=2))
+        second = fit_language_field(points, fused, _small_cfg(epochs=2))
+        other = fit_language_field(points, fused, _small_cfg(epochs=2, seed=1))
+        for key in first.state:
+            np.testing.assert_array_equal(first.state[key], second.state[key])
+        np.testing.assert_array_equal(first.features, second.features)
+        assert not np.array_equal(first.state["planes.0"], other.state["planes.0"])
+
+    def test_progress_per_epoch_and_cancel(self) -> None:
+        points, region, anchors = _three_regions(n_per=50, seed=4)
+        fused = _fused(anchors[region], np.ones(len(points)))
+        calls: list[tuple[int, int]] = []
+        fit_language_field(points, fused, _small_cfg(epochs=3), on_progress=lambda d, t: calls.append((d, t)))
+        assert calls == [(1, 3), (2, 3), (3, 3)]
+
+        def cancel(done: int, total: int) -> None:
+            raise Cancelled("stop")
+
+        with pytest.raises(Cancelled):
+            fit_language_field(points, fused, _small_cfg(epochs=3), on_progress=cancel)
+
+    def test_exception(self) -> None:
+        points, region, anchors = _three_regions(n_per=20, seed=5)
+        cfg = _small_cfg(epochs=1)
+        good = _fused(anchors[region], np.ones(len(points)))
+        with pytest.raises(ShapeError, match="points"):
+            fit_language_field(points[:, :2], good, cfg)
+        with pytest.raises(ShapeError, match=r"fused\.features"):
+            fit_language_field(points[:10], good, cfg)
+        with pytest.raises(ShapeError, match=r"fused\.weights"):
+            fit_language_field(points, _fused(anchors[region], np.ones(5)), cfg)
+        with pytest.raises(InputError, match="every weight is 0"):
+            fit_language_field(points, _fused(anchors[region], np.zeros(len(points))), cfg)
+        with pytest.raises(InputError, match=r"fused\.weights"):
+            fit_language_field(points, _fused(anchors[region], -np.ones(len(points))), cfg)
+        bad = points.copy()
+        bad[0, 0] = np.nan
+        with pytest.raises(InputError, match="NaN"):
+            fit_language_field(bad, good, cfg)
+
+
+class TestDecodePoints:
+    def test_new_points_inside_regions(self, regions_field) -> None:
+        field, _, _, anchors = regions_field
+        points, region, _ = _three_regions(n_per=100, seed=9)  # new positions, same boxes
+        decoded = decode_points(field, points)
+        assert decoded.shape == (300, DIM)
+        assert decoded.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(decoded, axis=1), 1.0, atol=1e-5)
+        assert (decoded * anchors[region]).sum(axis=1).min() > 0.95
+
+    def test_training_points_match_fit_features(self, regions_field) -> None:
+        field, points, _, _ = regions_field
+        np.testing.assert_allclose(decode_points(field, points), field.features, atol=1e-6)
+
+    def test_outside_box_is_finite_unit(self, regions_field) -> None:
+        field, _, _, _ = regions_field
+        far = np.array([[-100.0, 0, 0], [100.0, 100.0, 100.0]], np.float32)
+        decoded = decode_points(field, far)
+        assert np.isfinite(decoded).all()
+        np.testing.assert_allclose(np.linalg.norm(decoded, axis=1), 1.0, atol=1e-5)
+
+    def test_save_load_round_trip(self, regions_field, tmp_path) -> None:
+        field, points, _, _ = regions_field
+        path = tmp_path / "field.npz"
+        field.save(path)
+        with np.load(path, allow_pickle=False) as data:
+            assert "state.planes.0" in data.files
+            assert "features" in data.files
+        loaded = LanguageField.load(path)
+        assert sorted(loaded.state) == sorted(field.state)
+        np.testing.assert_array_equal(loaded.features, field.features)
+        np.testing.assert_array_equal(loaded.bounds, field.bounds)
+        query = points[::7] + 0.01
+        np.testing.assert_array_equal(decode_points(loaded, query), decode_points(field, query))
+
+    def test_exception(self, regions_field) -> None:
+        field, _, _, _ = regions_field
+        with pytest.raises(ShapeError, match="points"):
+            decode_points(field, np.zeros((4, 2), np.float32))
+        with pytest.raises(InputError, match="state"):
+            decode_points(
+                LanguageField(features=field.features, bounds=field.bounds, state={}), np.zeros((1, 3))
+            )
+
+
+class TestGeometry:
+    def test_bounds_and_resolutions(self) -> None:
+        points = np.array([[0, 0, 0], [4.0, 2.0, 1.0]], np.float32)
+        bounds = field_bounds(points, 0.5)
+        np.testing.assert_array_equal(bounds, [[-0.5, -0.5, -0.5], [4.5, 2.5, 1.5]])
+        cfg = LanguageFieldConfig(cell_sizes=(0.25, 0.0625), max_resolution=50)
+        assert plane_resolutions(bounds, cfg) == [20, 50]  # max extent 5 m: 5 / 0.25 = 20; 80 capped to 50
+
+    def test_flat_axis_gets_a_box(self) -> None:
+        points = np.array([[0, 0, 1.0], [1.0, 1.0, 1.0]], np.float32)
+        bounds = field_bounds(points, 0.0)
+        assert (bounds[1] > bounds[0]).all()
+
+
+class TestConfig:
+    @pytest.mark.parametrize(
+        ("field", "value"),
+        [
+            ("cell_sizes", ()),
+            ("cell_sizes", (0.2, -1.0)),
+            ("channels", 0),
+            ("init_scale", 0.0),
+            ("hidden_dims", (0,)),
+            ("epochs", 0),
+            ("batch_size", 0),
+            ("lr", -1.0),
+            ("plane_lr", 0.0),
+            ("weight_decay", -1.0),
+            ("betas", (0.9, 1.0)),
+            ("bound_padding", -0.1),
+            ("max_resolution", 1),
+            ("device", "not-a-device"),
+        ],
+    )
+    def test_exception_names_field(self, field: str, value: object) -> None:
+        with pytest.raises(ConfigError, match=f"language_field.{field}"):
+            LanguageFieldConfig(**{field: value})  # type: ignore[arg-type]
+
+    def test_defaults_follow_scannet(self) -> None:
+        cfg = LanguageFieldConfig()
+        assert cfg.cell_sizes == (0.2, 0.06)
+        assert cfg.channels == 10
+        assert cfg.hidden_dims == (128,)
+        assert cfg.betas == (0.9, 0.99)
+        assert cfg.weight_decay == 1e-6
+        assert cfg.init_scale == 0.1

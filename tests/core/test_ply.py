@@ -1,0 +1,172 @@
+"""PLY writer and vertex reader: round trips, the three encodings, skipped elements, malformed files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panogs_core.errors import InputError
+from panogs_core.io.ply import read_ply_vertices, vertex_count, write_ply
+
+
+def _fields(n: int = 5) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    return {
+        "x": rng.normal(size=n).astype(np.float32),
+        "y": rng.normal(size=n).astype(np.float32),
+        "z": rng.normal(size=n).astype(np.float64),
+        "red": rng.integers(0, 256, n).astype(np.uint8),
+        "label": rng.integers(-5, 5, n).astype(np.int32),
+        "code": rng.integers(0, 60000, n).astype(np.uint16),
+        "small": rng.integers(-300, 300, n).astype(np.int16),
+    }
+
+
+class TestWritePly:
+    def test_round_trip_keeps_dtypes_and_values(self, tmp_path: Path) -> None:
+        fields = _fields()
+        write_ply(tmp_path / "a.ply", fields)
+        out = read_ply_vertices(tmp_path / "a.ply")
+        assert list(out) == list(fields)
+        for name, arr in fields.items():
+            assert out[name].dtype == arr.dtype, name
+            np.testing.assert_array_equal(out[name], arr)
+
+    def test_int64_written_as_int(self, tmp_path: Path) -> None:
+        write_ply(tmp_path / "a.ply", {"x": np.array([1, -2, 3], dtype=np.int64)})
+        out = read_ply_vertices(tmp_path / "a.ply")
+        assert out["x"].dtype == np.int32
+        np.testing.assert_array_equal(out["x"], [1, -2, 3])
+        assert b"property int x" in (tmp_path / "a.ply").read_bytes()
+
+    def test_faces_are_skipped_and_counted(self, tmp_path: Path) -> None:
+        faces = np.array([[0, 1, 2], [2, 3, 4]])
+        write_ply(tmp_path / "m.ply", _fields(), faces=faces)
+        data = (tmp_path / "m.ply").read_bytes()
+        assert b"element face 2\nproperty list uchar int vertex_indices" in data
+        assert vertex_count(tmp_path / "m.ply") == 5
+        np.testing.assert_array_equal(read_ply_vertices(tmp_path / "m.ply")["red"], _fields()["red"])
+
+    @pytest.mark.parametrize(
+        ("fields", "faces", "match"),
+        [
+            ({"x": np.zeros((2, 2), np.float32)}, None, "1-D"),
+            ({"x": np.zeros(2, np.float32), "y": np.zeros(3, np.float32)}, None, "3 values"),
+            ({"x": np.array([2**40], np.int64)}, None, "int32 range"),
+            ({"x": np.zeros(2, np.complex64)}, None, "unsupported dtype"),
+            ({"x": np.zeros(3, np.float32)}, np.array([[0, 1, 3]]), r"\[0, 3\)"),
+        ],
+    )
+    def test_exception(
+        self, tmp_path: Path, fields: dict[str, np.ndarray], faces: np.ndarray | None, match: str
+    ) -> None:
+        with pytest.raises(InputError, match=match):
+            write_ply(tmp_path / "bad.ply", fields, faces=faces)
+
+
+def _header(fmt: str, n: int, extra_before: str = "", extra_after: str = "") -> bytes:
+    return (
+        f"ply\nformat {fmt} 1.0\ncomment made by a test\n{extra_before}element vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\nproperty uchar red\n"
+        f"{extra_after}end_header\n"
+    ).encode()
+
+
+class TestReadPly:
+    def test_ascii_with_faces_after_vertices(self, tmp_path: Path) -> None:
+        body = "0 0 0 255\n1.5 2 -3 7\n0 1 0 0\n3 0 1 2\n"
+        path = tmp_path / "a.ply"
+        path.write_bytes(
+            _header("ascii", 3, extra_after="element face 1\nproperty list uchar int vertex_indices\n")
+            + body.encode()
+        )
+        out = read_ply_vertices(path)
+        np.testing.assert_allclose(out["y"], [0, 2, 1])
+        assert out["red"].dtype == np.uint8
+        np.testing.assert_array_equal(out["red"], [255, 7, 0])
+
+    def test_big_endian(self, tmp_path: Path) -> None:
+        rec = np.zeros(2, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("red", "u1")])
+        rec["x"], rec["y"], rec["z"], rec["red"] = [1.0, -2.5], [3.0, 4.0], [5.0, 6.0], [9, 200]
+        path = tmp_path / "be.ply"
+        path.write_bytes(_header("binary_big_endian", 2) + rec.tobytes())
+        out = read_ply_vertices(path)
+        np.testing.assert_array_equal(out["x"], [1.0, -2.5])
+        assert out["x"].dtype == np.float32
+        assert out["x"].dtype.byteorder in ("=", "<", "|")  # native order, usable without surprises
+        np.testing.assert_array_equal(out["red"], [9, 200])
+
+    def test_element_with_lists_before_vertices_is_skipped(self, tmp_path: Path) -> None:
+        # A leading element with variable-length lists forces the reader to walk it row by row.
+        pre = "element meta 2\nproperty list uchar short vals\nproperty uchar flag\n"
+        meta = np.array([2], "u1").tobytes() + np.array([1, 2], "<i2").tobytes() + b"\x01"
+        meta += np.array([0], "u1").tobytes() + b"\x00"
+        rec = np.zeros(1, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])
+        rec["x"], rec["red"] = 7.0, 3
+        path = tmp_path / "pre.ply"
+        path.write_bytes(_header("binary_little_endian", 1, extra_before=pre) + meta + rec.tobytes())
+        out = read_ply_vertices(path)
+        assert out["x"].tolist() == [7.0]
+        assert out["red"].tolist() == [3]
+
+    def test_ascii_element_before_vertices_is_skipped(self, tmp_path: Path) -> None:
+        pre = "element face 1\nproperty list uchar int vertex_indices\n"
+        path = tmp_path / "pre.ply"
+        path.write_bytes(_header("ascii", 1, extra_before=pre) + b"4 0 1 2 3\n9 8 7 6\n")
+        assert read_ply_vertices(path)["z"].tolist() == [7.0]
+
+    @pytest.mark.parametrize(
+        ("content", "match"),
+        [
+            (b"not a ply\n", "not a PLY"),
+            (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no end_header"),
+            (b"ply\nformat weird 1.0\nend_header\n", "unsupported PLY format"),
+            (b"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "before any element"),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n",
+                "malformed PLY property",
+            ),
+            (b"ply\nformat ascii 1.0\nelement face 0\nend_header\n", "no vertex element"),
+            (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n", "truncated"),
+            (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\nabc\n", "not numeric"),
+            (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty uchar x\nend_header\n1.5\n", "integers"),
+            (
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nend_header\n\0\0",
+                "truncated",
+            ),
+            (
+                b"ply\nformat binary_big_endian 1.0\nelement vertex 999999999999\n"
+                b"property double x\nend_header\n",
+                "truncated",
+            ),
+            (
+                b"ply\nformat binary_little_endian 1.0\nelement face 99999999999\nproperty uchar f\n"
+                b"element vertex 1\nproperty float x\nend_header\n",
+                "'face' truncated",
+            ),
+        ],
+    )
+    def test_malformed_names_the_file(self, tmp_path: Path, content: bytes, match: str) -> None:
+        path = tmp_path / "broken.ply"
+        path.write_bytes(content)
+        with pytest.raises(InputError, match=match) as info:
+            read_ply_vertices(path)
+        assert "broken.ply" in str(info.value)
+
+    def test_missing_file(self, tmp_path: Path) -> None:
+        with pytest.raises(InputError, match=r"nope\.ply"):
+            read_ply_vertices(tmp_path / "nope.ply")
+
+    def test_open3d_reads_what_we_write(self, tmp_path: Path) -> None:
+        o3d = pytest.importorskip("open3d")
+        pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+        write_ply(
+            tmp_path / "t.ply",
+            {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
+            faces=np.array([[0, 1, 2]]),
+        )
+        mesh = o3d.io.read_triangle_mesh(str(tmp_path / "t.ply"))
+        np.testing.assert_allclose(np.asarray(mesh.vertices), pts)
+        np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2]])

@@ -1,0 +1,291 @@
+"""Tests of stage 5: kNN graph and language-guided graph cuts (known-answer scenes and a plain oracle)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
+from panogs_core.superprimitives import (
+    KnnGraph,
+    SuperPrimitiveConfig,
+    SuperPrimitives,
+    build_knn,
+    edge_weights,
+    graph_cut_superprimitives,
+)
+
+
+def _grid(nu: int, nv: int, spacing: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    u, v = np.meshgrid(np.arange(nu) * spacing, np.arange(nv) * spacing, indexing="ij")
+    return u.ravel(), v.ravel()
+
+
+def _perpendicular_planes() -> tuple[np.ndarray, np.ndarray]:
+    """Floor z=0 (x >= 0.05) and wall x=0 (z >= 0.05), 20 x 20 points each, exact normals."""
+    u, v = _grid(20, 20)
+    floor = np.c_[u + 0.05, v, np.zeros_like(u)]
+    wall = np.c_[np.zeros_like(u), v, u + 0.05]
+    points = np.concatenate([floor, wall]).astype(np.float32)
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (400, 1)), np.tile([1.0, 0.0, 0.0], (400, 1))])
+    return points, normals.astype(np.float32)
+
+
+def _coplanar_two_features(dim: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One 40 x 20 plane; the left half has feature e0, the right half e1 (orthogonal)."""
+    u, v = _grid(40, 20)
+    points = np.c_[u, v, np.zeros_like(u)].astype(np.float32)
+    normals = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (points.shape[0], 1))
+    features = np.zeros((points.shape[0], dim), np.float32)
+    features[u < 1.0, 0] = 1.0
+    features[u >= 1.0, 1] = 1.0
+    return points, normals, features
+
+
+def _noisy_cloud(n: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    # Few noisy directions (and both signs) so that many edges have small weights and some merges happen.
+    directions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.6, 0.8, 0.0]])
+    normals = directions[rng.integers(0, 4, n)] + rng.normal(0, 0.15, (n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    features = rng.normal(size=(3, dim))[rng.integers(0, 3, n)] + rng.normal(0, 0.3, (n, dim))
+    features /= np.linalg.norm(features, axis=1, keepdims=True)
+    return points, normals.astype(np.float32), features.astype(np.float32)
+
+
+def _oracle_labels(
+    n: int, src: np.ndarray, dst: np.ndarray, weights: np.ndarray, features: np.ndarray | None, cfg
+) -> np.ndarray:
+    """The reference's segment_graph + small-segment merge written plainly (reference 4.5-4.7)."""
+    parent, rank, size, tau = list(range(n)), [0] * n, [1] * n, [cfg.k_thresh] * n
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    def union(x: int, y: int) -> int:
+        if rank[x] > rank[y]:
+            parent[y] = x
+            size[x] += size[y]
+            return x
+        parent[x] = y
+        size[y] += size[x]
+        if rank[x] == rank[y]:
+            rank[y] += 1
+        return y
+
+    for e in sorted(range(len(weights)), key=lambda i: weights[i]):
+        a, b, w = find(int(src[e])), find(int(dst[e])), float(weights[e])
+        if a != b and w <= tau[a] and w <= tau[b]:
+            if features is None or float(features[a] @ features[b]) > cfg.merge_cosine:
+                r = union(a, b)
+                tau[r] = w + cfg.k_thresh / size[r]
+    for e in range(len(weights)):
+        a, b = find(int(src[e])), find(int(dst[e]))
+        if a != b and (size[a] < cfg.min_size or size[b] < cfg.min_size):
+            union(a, b)
+    roots = np.array([find(i) for i in range(n)])
+    return np.unique(roots, return_inverse=True)[1]
+
+
+class TestBuildKnn:
+    def test_smoke(self) -> None:
+        points = np.random.default_rng(0).uniform(size=(100, 3)).astype(np.float32)
+        knn = build_knn(points, 7)
+        assert isinstance(knn, KnnGraph)
+        assert knn.neighbors.shape == (100, 7)
+        assert knn.neighbors.dtype == np.int64
+        assert knn.distances.shape == (100, 7)
+        assert knn.distances.dtype == np.float32
+        assert knn.k == 7
+        assert (np.diff(knn.distances, axis=1) >= 0).all()
+
+    def test_excludes_self(self) -> None:
+        points = np.random.default_rng(1).uniform(size=(50, 3))
+        knn = build_knn(points, 5)
+        assert not (knn.neighbors == np.arange(50)[:, None]).any()
+        assert (knn.distances > 0).all()
+
+    def test_excludes_self_with_duplicates(self) -> None:
+        rng = np.random.default_rng(2)
+        # 12 copies of one point (more than k + 1, so self can fall outside the queried columns), plus pairs.
+        points = np.concatenate([np.zeros((12, 3)), np.repeat(rng.uniform(1, 2, (20, 3)), 2, axis=0)])
+        knn = build_knn(points, 4)
+        assert knn.neighbors.shape == (52, 4)
+        assert not (knn.neighbors == np.arange(52)[:, None]).any()
+        assert (knn.distances[:12] == 0).all()
+        # Each duplicated pair finds its twin first, at distance 0.
+        twins = np.arange(12, 52) ^ 1  # (12, 13), (14, 15), ...
+        assert (knn.neighbors[12:, 0] == twins).all()
+        assert (knn.distances[12:, 0] == 0).all()
+
+    def test_exception(self) -> None:
+        with pytest.raises(ShapeError, match="points"):
+            build_knn(np.zeros((10, 2)), 3)
+        with pytest.raises(InputError, match="at least 8 points"):
+            build_knn(np.zeros((5, 3)), 7)
+        with pytest.raises(InputError, match="k: expected >= 1"):
+            build_knn(np.zeros((5, 3)), 0)
+        with pytest.raises(InputError, match="NaN"):
+            build_knn(np.full((10, 3), np.nan), 3)
+
+
+class TestEdgeWeights:
+    def test_matches_per_edge_rule(self) -> None:
+        points, normals, features = _noisy_cloud(60, 4, seed=3)
+        knn = build_knn(points, 5)
+        cfg = SuperPrimitiveConfig(k_neighbors=5)
+        src, dst, w = edge_weights(
+            points.astype(np.float64), normals.astype(np.float64), features, knn.neighbors, cfg
+        )
+        assert (src == np.repeat(np.arange(60), 5)).all()
+        assert (dst == knn.neighbors.ravel()).all()
+        for e in range(src.size):
+            a, b = src[e], dst[e]
+            expected = 1.0 - float(normals[a] @ normals[b])
+            d = points[b] - points[a]
+            if float(normals[b] @ (d / np.linalg.norm(d))) > 0:
+                expected = expected**2
+            if 1.0 - float(features[a] @ features[b]) > 0.1:
+                expected *= 20.0
+            assert w[e] == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+    def test_orient_invariant(self) -> None:
+        points = np.array([[0, 0, 0], [0.1, 0, 0]], np.float64)
+        normals = np.array([[0, 0, 1.0], [0, 0, -1.0]])
+        nbrs = np.array([[1], [0]])
+        _, _, plain = edge_weights(points, normals, None, nbrs, SuperPrimitiveConfig(k_neighbors=1))
+        _, _, inv = edge_weights(
+            points, normals, None, nbrs, SuperPrimitiveConfig(k_neighbors=1, orient_invariant=True)
+        )
+        assert plain.tolist() == [2.0, 2.0]
+        assert inv.tolist() == [0.0, 0.0]
+
+
+class TestGraphCut:
+    def test_smoke(self) -> None:
+        points, normals = _perpendicular_planes()
+        cfg = SuperPrimitiveConfig()
+        sp = graph_cut_superprimitives(points, normals, None, build_knn(points, cfg.k_neighbors), cfg)
+        assert isinstance(sp, SuperPrimitives)
+        assert sp.labels.shape == (800,)
+        assert sp.labels.dtype == np.int64
+
+    def test_perpendicular_planes_two_segments(self) -> None:
+        points, normals = _perpendicular_planes()
+        cfg = SuperPrimitiveConfig()
+        sp = graph_cut_superprimitives(points, normals, None, build_knn(points, cfg.k_neighbors), cfg)
+        assert sp.count == 2
+        assert len(np.unique(sp.labels[:400])) == 1
+        assert len(np.unique(sp.labels[400:])) == 1
+
+    def test_language_splits_coplanar_regions(self) -> None:
+        points, normals, features = _coplanar_two_features()
+        cfg = SuperPrimitiveConfig()
+        knn = build_knn(points, cfg.k_neighbors)
+        with_language = graph_cut_superprimitives(points, normals, features, knn, cfg)
+        without = graph_cut_superprimitives(points, normals, None, knn, cfg)
+        switched_off = graph_cut_superprimitives(
+            points, normals, features, knn, SuperPrimitiveConfig(use_language=False)
+        )
+        assert with_language.count == 2
+        left = points[:, 0] < 1.0
+        assert len(np.unique(with_language.labels[left])) == 1
+        assert len(np.unique(with_language.labels[~left])) == 1
+        assert without.count == 1
+        assert switched_off.count == 1
+
+    def test_orient_invariant_ignores_normal_signs(self) -> None:
+        points, normals = _perpendicular_planes()
+        flips = np.where(np.random.default_rng(4).random(800) < 0.5, -1.0, 1.0).astype(np.float32)
+        flipped = normals * flips[:, None]
+        knn = build_knn(points, 7)
+        invariant = graph_cut_superprimitives(
+            points, flipped, None, knn, SuperPrimitiveConfig(orient_invariant=True)
+        )
+        reference = graph_cut_superprimitives(points, flipped, None, knn, SuperPrimitiveConfig())
+        assert invariant.count == 2
+        assert reference.count > 2  # the reference rule sees w = 2 between opposite signs
+
+    def test_min_size_and_dense_labels(self) -> None:
+        points, normals, features = _noisy_cloud(2000, 8, seed=5)
+        cfg = SuperPrimitiveConfig()
+        sp = graph_cut_superprimitives(points, normals, features, build_knn(points, 7), cfg)
+        sizes = np.bincount(sp.labels)
+        assert sp.count > 1
+        assert sizes.min() >= cfg.min_size
+        assert (np.unique(sp.labels) == np.arange(sp.count)).all()
+
+    @pytest.mark.parametrize("language", [True, False])
+    def test_matches_plain_oracle(self, language: bool) -> None:
+        points, normals, features = _noisy_cloud(1500, 8, seed=6)
+        cfg = SuperPrimitiveConfig(min_size=10)
+        knn = build_knn(points, cfg.k_neighbors)
+        feats = features if language else None
+        sp = graph_cut_superprimitives(points, normals, feats, knn, cfg)
+        src, dst, w = edge_weights(
+            points.astype(np.float64), normals.astype(np.float64), feats, knn.neighbors, cfg
+        )
+        expected = _oracle_labels(points.shape[0], src, dst, w, feats, cfg)
+        assert sp.count > 5
+        assert (sp.labels == expected).all()
+
+    def test_uses_first_k_columns(self) -> None:
+        points, normals, features = _noisy_cloud(500, 8, seed=7)
+        cfg = SuperPrimitiveConfig(k_neighbors=5)
+        wide = graph_cut_superprimitives(points, normals, features, build_knn(points, 9), cfg)
+        exact = graph_cut_superprimitives(points, normals, features, build_knn(points, 5), cfg)
+        assert (wide.labels == exact.labels).all()
+
+    def test_progress_and_cancel(self) -> None:
+        points, normals = _perpendicular_planes()
+        knn = build_knn(points, 7)
+        calls: list[tuple[int, int]] = []
+        graph_cut_superprimitives(
+            points, normals, None, knn, SuperPrimitiveConfig(), on_progress=lambda d, t: calls.append((d, t))
+        )
+        assert calls
+        assert calls[-1][0] == calls[-1][1]
+
+        def cancel(done: int, total: int) -> None:
+            raise Cancelled("stop")
+
+        with pytest.raises(Cancelled):
+            graph_cut_superprimitives(points, normals, None, knn, SuperPrimitiveConfig(), on_progress=cancel)
+
+    def test_save_load(self, tmp_path) -> None:
+        sp = SuperPrimitives(labels=np.array([0, 1, 1, 2], np.int64))
+        sp.save(tmp_path / "sp.npz")
+        loaded = SuperPrimitives.load(tmp_path / "sp.npz")
+        assert loaded.count == 3
+        assert (loaded.labels == sp.labels).all()
+
+    def test_exception(self) -> None:
+        points, normals = _perpendicular_planes()
+        knn = build_knn(points, 7)
+        cfg = SuperPrimitiveConfig()
+        with pytest.raises(ShapeError, match="normals"):
+            graph_cut_superprimitives(points, normals[:10], None, knn, cfg)
+        with pytest.raises(ShapeError, match="features"):
+            graph_cut_superprimitives(points, normals, np.zeros((10, 4), np.float32), knn, cfg)
+        with pytest.raises(InputError, match="k_neighbors"):
+            graph_cut_superprimitives(points, normals, None, build_knn(points, 3), cfg)
+
+
+class TestConfig:
+    @pytest.mark.parametrize(
+        ("field", "value"),
+        [
+            ("k_neighbors", 0),
+            ("k_thresh", 0.0),
+            ("language_penalty", 0.5),
+            ("edge_cosine", 1.5),
+            ("merge_cosine", -2.0),
+            ("min_size", 0),
+        ],
+    )
+    def test_exception_names_field(self, field: str, value: float) -> None:
+        with pytest.raises(ConfigError, match=f"superprimitives.{field}"):
+            SuperPrimitiveConfig(**{field: value})

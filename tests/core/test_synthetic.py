@@ -1,0 +1,272 @@
+"""Tests of the synthetic scene generator (panogs_core.synthetic)."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from panogs_core.bundle import Scene, open_bundle
+from panogs_core.errors import ConfigError, EncoderUnavailableError
+from panogs_core.synthetic import CLASS_KINDS, CLASS_NAMES, PRESETS, build_layout, make_scene
+from panogs_core.synthetic.layout import NUM_STUFF
+from panogs_core.synthetic.placement import Boxes, inside_room, overlaps
+from panogs_core.synthetic.sampling import sample_surfaces
+
+CLIP = "clip-vit-b32"  # no model to load: the label-set rows ship with the package
+
+
+def _build(root: Path, **kw: object) -> tuple[Path, float]:
+    t0 = time.perf_counter()
+    path = make_scene(root, **{"preset": "tiny", "feature_space": CLIP, **kw})  # type: ignore[arg-type]
+    return path, time.perf_counter() - t0
+
+
+@pytest.fixture(scope="module")
+def easy(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
+    return _build(tmp_path_factory.mktemp("easy") / "scene", difficulty="easy", seed=0)
+
+
+@pytest.fixture(scope="module")
+def easy_scene(easy: tuple[Path, float]) -> Scene:
+    return open_bundle(easy[0])
+
+
+def _pixels_world(scene: Scene, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Valid depth pixels of a frame: rows, columns and world points."""
+    frame, cam = scene.frames[frame_index], scene.camera
+    depth = scene.read_depth(frame)
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u]
+    cam_pts = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], axis=1)
+    T = frame.T_world_cam
+    return v, u, cam_pts @ T[:3, :3].T + T[:3, 3]
+
+
+def _cells(
+    v: np.ndarray, u: np.ndarray, shape: tuple[int, ...], scene: Scene
+) -> tuple[np.ndarray, np.ndarray]:
+    """SCENE_FORMAT.md's pixel-to-cell rule."""
+    rows = ((v + 0.5) * shape[0] / scene.camera.height).astype(np.int64)
+    cols = ((u + 0.5) * shape[1] / scene.camera.width).astype(np.int64)
+    return rows, cols
+
+
+class TestBundle:
+    def test_smoke(self, easy: tuple[Path, float]) -> None:
+        root, seconds = easy
+        assert seconds < 10.0, f"tiny scene took {seconds:.1f} s"
+        for name in ("scene.json", "geometry.ply", "vocabulary.json", "vocabulary.npy", "gt/labels.npz"):
+            assert (root / name).is_file(), name
+        assert {p.name for p in root.iterdir()} >= {"color", "depth", "features", "masks"}
+
+    def test_cardinality(self, easy_scene: Scene) -> None:
+        spec = PRESETS["tiny"]
+        scene = easy_scene
+        assert (scene.camera.width, scene.camera.height) == (spec.width, spec.height)
+        assert len(scene.frames) == spec.num_frames == len(scene.feature_frames) == len(scene.mask_frames)
+        assert scene.feature_space == CLIP
+        assert scene.feature_dim == 512
+        frame = scene.frames[0]
+        assert scene.read_depth(frame).shape == (spec.height, spec.width)
+        feats = scene.read_features(frame)
+        stride = spec.feature_stride
+        assert feats.shape == (spec.height // stride, spec.width // stride, 512)
+        assert feats.dtype == np.float16
+        np.testing.assert_allclose(np.linalg.norm(feats.astype(np.float32), axis=-1), 1.0, atol=2e-3)
+        assert scene.read_masks(frame).shape == (spec.height, spec.width)
+        geo, gt = scene.read_geometry(), scene.read_ground_truth()
+        assert geo is not None
+        assert gt is not None
+        assert gt.points is None
+        assert 8_000 <= len(geo.points) <= 16_000
+        assert gt.semantic.shape == gt.instance.shape == (len(geo.points),)
+        assert geo.normals is not None
+        assert geo.colors is not None
+
+    def test_vocabulary(self, easy_scene: Scene) -> None:
+        voc = easy_scene.vocabulary
+        assert voc is not None
+        assert voc.names == CLASS_NAMES
+        assert voc.kinds == CLASS_KINDS
+        assert {n for n, k in zip(voc.names, voc.kinds) if k == "stuff"} == {"wall", "floor", "ceiling"}
+        assert voc.embeddings is not None
+        assert voc.embeddings.shape == (len(CLASS_NAMES), 512)
+
+    def test_poses(self, easy_scene: Scene) -> None:
+        for frame in easy_scene.frames:
+            rot = frame.T_world_cam[:3, :3]
+            np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-6)
+            assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-6)
+            assert 1.3 - 1e-6 <= frame.T_world_cam[2, 3] <= 1.7 + 1e-6
+            assert rot[2, 1] < -0.5  # OpenCV: camera y (image down) points roughly down in the z-up world
+
+    def test_without_geometry(self, tmp_path: Path) -> None:
+        root, _ = _build(tmp_path / "scene", difficulty="easy", seed=0, with_geometry=False)
+        assert not (root / "geometry.ply").exists()
+        gt = open_bundle(root).read_ground_truth()
+        assert gt is not None
+        assert gt.points is not None
+        assert gt.points.shape == (len(gt.semantic), 3)
+
+    def test_exception(self, tmp_path: Path) -> None:
+        with pytest.raises(ConfigError, match="preset"):
+            make_scene(tmp_path / "a", preset="huge")
+        with pytest.raises(ConfigError, match="difficulty"):
+            make_scene(tmp_path / "b", difficulty="brutal")
+        with pytest.raises(ValueError, match="feature_space"):
+            make_scene(tmp_path / "c", feature_space="rgb")
+
+
+class TestGroundTruth:
+    def test_classes_and_instances(self) -> None:
+        thing_classes: set[int] = set()
+        for seed in range(4):
+            layout = build_layout(PRESETS["tiny"], np.random.default_rng(seed))
+            surface = sample_surfaces(layout, 5_000, np.random.default_rng(seed))
+            kinds = np.array([CLASS_KINDS[c] for c in surface.semantic])
+            assert set(np.unique(surface.instance[kinds == "stuff"])) == set(range(NUM_STUFF))
+            # one class per instance, every instance has points
+            pairs = np.unique(np.stack([surface.instance, surface.semantic], 1), axis=0)
+            assert len(pairs) == len(np.unique(surface.instance)) == len(layout.instance_class)
+            counts = np.bincount(layout.instance_class[NUM_STUFF:])
+            assert counts.max() >= 2, "some class should have several instances"
+            thing_classes |= set(layout.instance_class[NUM_STUFF:].tolist())
+        assert len(thing_classes) >= 8
+
+    def test_no_interpenetration(self) -> None:
+        for preset, seed in (("tiny", 0), ("tiny", 1), ("default", 2), ("large", 3)):
+            layout = build_layout(PRESETS[preset], np.random.default_rng(seed))
+            b, idx = layout.boxes, np.arange(NUM_STUFF, len(layout.boxes.yaw))
+            assert inside_room(Boxes(b.centers[idx], b.half[idx], b.yaw[idx]), layout.room)
+            for k in idx:
+                other = idx[layout.box_instance[idx] != layout.box_instance[k]]
+                one = Boxes(b.centers[[k]], b.half[[k]], b.yaw[[k]])
+                assert not overlaps(one, Boxes(b.centers[other], b.half[other], b.yaw[other]), -1e-4)
+
+    def test_overlaps(self) -> None:
+        a = Boxes(np.array([[0.0, 0.0, 0.5]]), np.array([[0.5, 0.5, 0.5]]), np.zeros(1))
+        touching = Boxes(np.array([[1.0, 0.0, 0.5]]), np.array([[0.5, 0.5, 0.5]]), np.zeros(1))
+        assert not overlaps(a, touching, 0.0)
+        assert overlaps(a, touching, 0.01)
+        # a diamond whose corner is 0.05 m from a's face: clear along x, but not by 0.1 m
+        diamond = Boxes(np.array([[0.5 + 0.05 + 0.5 * np.sqrt(2), 0.0, 0.5]]), a.half, np.array([np.pi / 4]))
+        assert not overlaps(a, diamond, 0.0)
+        assert overlaps(a, diamond, 0.1)
+        above = Boxes(np.array([[0.0, 0.0, 1.5]]), a.half, np.zeros(1))
+        assert not overlaps(a, above, 0.0)
+
+
+class TestViews:
+    def test_backprojection(self, easy_scene: Scene) -> None:
+        geo = easy_scene.read_geometry()
+        assert geo is not None
+        assert geo.normals is not None
+        tree = cKDTree(geo.points)
+        dist = []
+        for i in range(0, len(easy_scene.frames), 3):
+            _, _, world = _pixels_world(easy_scene, i)
+            _, nn = tree.query(world)
+            dist.append(np.abs(np.sum((world - geo.points[nn]) * geo.normals[nn], axis=1)))
+        assert np.median(np.concatenate(dist)) < 0.02
+
+    def test_features_easy(self, easy_scene: Scene) -> None:
+        geo, gt, voc = easy_scene.read_geometry(), easy_scene.read_ground_truth(), easy_scene.vocabulary
+        assert geo is not None
+        assert gt is not None
+        assert voc is not None
+        assert voc.embeddings is not None
+        tree = cKDTree(geo.points)
+        hits = []
+        for i, frame in enumerate(easy_scene.feature_frames):
+            v, u, world = _pixels_world(easy_scene, i)
+            feats = easy_scene.read_features(frame).astype(np.float32)
+            rows, cols = _cells(v, u, feats.shape, easy_scene)
+            pred = (feats[rows, cols] @ voc.embeddings.T).argmax(axis=1)
+            hits.append(pred == gt.semantic[tree.query(world)[1]])
+        assert np.concatenate(hits).mean() > 0.95
+
+    def test_masks_easy(self, easy_scene: Scene) -> None:
+        geo, gt = easy_scene.read_geometry(), easy_scene.read_ground_truth()
+        assert geo is not None
+        assert gt is not None
+        tree = cKDTree(geo.points)
+        pure = total = 0
+        for i, frame in enumerate(easy_scene.mask_frames):
+            v, u, world = _pixels_world(easy_scene, i)
+            masks = easy_scene.read_masks(frame)
+            rows, cols = _cells(v, u, masks.shape, easy_scene)
+            mask, inst = masks[rows, cols], gt.instance[tree.query(world)[1]]
+            keep = mask > 0
+            assert keep.mean() > 0.8, "easy masks should cover most of the image"
+            pair, count = np.unique(np.stack([mask[keep], inst[keep]], 1), axis=0, return_counts=True)
+            best = np.zeros(int(mask.max()) + 1, dtype=np.int64)
+            np.maximum.at(best, pair[:, 0], count)
+            pure, total = pure + best.sum(), total + keep.sum()
+        assert pure / total > 0.95
+
+    def test_all_instances_seen(self, easy_scene: Scene) -> None:
+        gt, geo = easy_scene.read_ground_truth(), easy_scene.read_geometry()
+        assert gt is not None
+        assert geo is not None
+        tree = cKDTree(geo.points)
+        seen = set()
+        for i in range(len(easy_scene.frames)):
+            seen |= set(gt.instance[tree.query(_pixels_world(easy_scene, i)[2])[1]].tolist())
+        assert seen == set(np.unique(gt.instance).tolist())
+
+
+class TestDeterminism:
+    def test_same_seed_same_bundle(self, easy: tuple[Path, float], tmp_path: Path) -> None:
+        again, _ = _build(tmp_path / "again", difficulty="easy", seed=0)
+        for rel in (
+            "gt/labels.npz",
+            "geometry.ply",
+            "features/000005.npy",
+            "masks/000005.png",
+            "depth/000005.png",
+        ):
+            assert (again / rel).read_bytes() == (easy[0] / rel).read_bytes(), rel
+        a, b = open_bundle(again), open_bundle(easy[0])
+        np.testing.assert_array_equal(a.frames[7].T_world_cam, b.frames[7].T_world_cam)
+
+    def test_other_seed_other_room(self, easy_scene: Scene, tmp_path: Path) -> None:
+        other, _ = _build(tmp_path / "other", difficulty="easy", seed=1)
+        assert open_bundle(other).frames[0].T_world_cam.tolist() != easy_scene.frames[0].T_world_cam.tolist()
+
+    def test_difficulty_degrades(self, easy_scene: Scene, tmp_path: Path) -> None:
+        hard = open_bundle(_build(tmp_path / "hard", difficulty="hard", seed=0)[0])
+        same_room = hard.read_ground_truth()
+        assert same_room is not None
+        gt = easy_scene.read_ground_truth()
+        assert gt is not None
+        # difficulty changes the sensors and the 2D models, not the room
+        np.testing.assert_array_equal(same_room.semantic, gt.semantic)
+        holes = [np.mean(s.read_depth(s.frames[3]) == 0) for s in (easy_scene, hard)]
+        assert holes[1] > holes[0] + 0.02
+
+
+@pytest.mark.slow
+def test_minilm_space(tmp_path: Path) -> None:
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    try:
+        from panogs_core.text_encoders import encode_labels, get_text_encoder
+
+        encoder = get_text_encoder("minilm-l6")
+    except EncoderUnavailableError as exc:
+        pytest.skip(str(exc))
+    scene = open_bundle(
+        make_scene(tmp_path / "m", preset="tiny", difficulty="easy", feature_space="minilm-l6")
+    )
+    assert scene.feature_space == "minilm-l6"
+    assert scene.feature_dim == 384
+    assert scene.read_features(scene.frames[0]).shape[-1] == 384
+    assert scene.vocabulary is not None
+    assert scene.vocabulary.embeddings is not None
+    np.testing.assert_allclose(
+        scene.vocabulary.embeddings, encode_labels(encoder, list(CLASS_NAMES)), atol=1e-5
+    )

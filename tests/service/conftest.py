@@ -1,0 +1,131 @@
+"""Fixtures of the service tests: a real PostgreSQL database (and the embedded SQLite), the app, API keys,
+bundles.
+
+URLs come from the environment with local defaults: ``PANOGS_TEST_PG_ADMIN_URL`` (a database this user may
+create databases from) and ``PANOGS_TEST_REDIS_URL``. Each session creates its own database and Redis key
+prefix and removes them at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import text
+from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
+
+from service.db.migrate import upgrade
+from service.db.session import get_engine
+from service.main import create_app
+from service.settings import Settings
+from service.testing import (
+    DEFAULT_PG_ADMIN_URL,
+    DEFAULT_REDIS_URL,
+    drop_redis_prefix,
+    new_redis_prefix,
+    postgres_reachable,
+    redis_reachable,
+    temp_postgres,
+)
+
+PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
+REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
+TABLES = ("artifact", "job", "scene", "upload", "api_key")
+
+
+@pytest.fixture(scope="session")
+def pg_url() -> Iterator[str]:
+    """A migrated PostgreSQL database of this session."""
+    if not postgres_reachable(PG_ADMIN_URL):
+        pytest.skip(f"PostgreSQL not reachable at {PG_ADMIN_URL}")
+    with temp_postgres(PG_ADMIN_URL) as url:
+        upgrade(url)
+        yield url
+
+
+@pytest.fixture(scope="session")
+def redis_prefix() -> Iterator[str]:
+    """A Redis key prefix of this session (its keys are deleted at the end)."""
+    if not redis_reachable(REDIS_URL):
+        pytest.skip(f"Redis not reachable at {REDIS_URL}")
+    prefix = new_redis_prefix()
+    yield prefix
+    drop_redis_prefix(REDIS_URL, prefix)
+
+
+@pytest.fixture(scope="session")
+def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A migrated SQLite file, copied for each test that uses the embedded database."""
+    path = tmp_path_factory.mktemp("template") / "panogs.db"
+    upgrade(f"sqlite:///{path}")
+    get_engine.cache_clear()
+    return path
+
+
+def _clean_postgres(url: str) -> None:
+    with get_engine(url).begin() as conn:
+        conn.execute(text(f"TRUNCATE {', '.join(TABLES)} CASCADE"))
+
+
+@pytest.fixture
+def make_settings(
+    tmp_path: Path, sqlite_template: Path, request: pytest.FixtureRequest
+) -> Callable[..., Settings]:
+    """Settings for a backend, with everything on disk under this test's tmp_path."""
+
+    def make(backend: str = "postgres", **overrides: Any) -> Settings:
+        values: dict[str, Any] = {
+            "data_dir": tmp_path / "data",
+            "heartbeat_timeout_s": 30,
+            "api_key_cache_s": 0,
+            "pipeline_function": "worker.scripted:run_pipeline",  # API tests run no pipeline
+        }
+        if backend == "postgres":
+            url = request.getfixturevalue("pg_url")
+            _clean_postgres(url)
+            values["database_url"] = url
+        else:
+            (tmp_path / "data").mkdir(exist_ok=True)
+            shutil.copy(sqlite_template, tmp_path / "data" / "panogs.db")
+        values.update(overrides)
+        return Settings(_env_file=None, **values)  # type: ignore[call-arg]
+
+    return make
+
+
+@pytest.fixture
+def settings(make_settings: Callable[..., Settings], request: pytest.FixtureRequest) -> Settings:
+    """PostgreSQL settings by default; ``BOTH_BACKENDS`` runs a test on the embedded SQLite as well."""
+    return make_settings(getattr(request, "param", "postgres"))
+
+
+@pytest.fixture
+def sender() -> RecordingSender:
+    return RecordingSender()
+
+
+@pytest.fixture
+def client(settings: Settings, sender: RecordingSender) -> Iterator[TestClient]:
+    app = create_app(settings, sender=sender, run_reaper=False)
+    with TestClient(app) as c:
+        yield c
+
+
+@pytest.fixture
+def auth(settings: Settings) -> dict[str, str]:
+    return new_key(settings, "alice")
+
+
+@pytest.fixture
+def other_auth(settings: Settings) -> dict[str, str]:
+    return new_key(settings, "mallory")
+
+
+@pytest.fixture
+def tiny_zip(tmp_path: Path) -> bytes:
+    return pack(write_tiny_bundle(tmp_path / "bundle"))

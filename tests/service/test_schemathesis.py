@@ -1,0 +1,80 @@
+"""Property-based API tests from the OpenAPI schema (schemathesis): no input makes the server answer 5xx."""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import schemathesis
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
+from sqlalchemy import text
+from svc_helpers import RecordingSender, make_scene, new_key, pack, write_tiny_bundle
+
+from service.db.session import get_engine
+from service.main import create_app
+from service.settings import Settings
+
+CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
+
+
+@pytest.fixture(scope="module")
+def app_and_auth(
+    pg_url: str, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[tuple[FastAPI, dict[str, str]]]:
+    tmp = tmp_path_factory.mktemp("schemathesis")
+    with get_engine(pg_url).begin() as conn:
+        conn.execute(text("TRUNCATE artifact, job, scene, upload, api_key CASCADE"))
+    settings_ = Settings(  # type: ignore[call-arg]
+        _env_file=None,
+        data_dir=tmp / "data",
+        database_url=pg_url,
+        api_key_cache_s=0,
+        max_upload_bytes=1_000_000,
+        pipeline_function="worker.scripted:run_pipeline",
+    )
+    app = create_app(settings_, sender=RecordingSender(), run_reaper=False)
+    auth = new_key(settings_)
+    with TestClient(app) as client:  # a scene and a job exist, so that some generated requests find rows
+        scene = make_scene(client, auth, pack(write_tiny_bundle(Path(tmp / "bundle"))))
+        client.post("/v1/jobs", json={"scene_id": scene["id"]}, headers=auth)
+        previous, DEFERRED.app = DEFERRED.app, app
+        yield app, auth
+        DEFERRED.app = previous
+
+
+class DeferredApp:
+    """An ASGI app that forwards to whichever app the fixture installs (the schema must load at import)."""
+
+    def __init__(self) -> None:
+        scratch = Path(tempfile.mkdtemp(prefix="panogs-schema-"))
+        scratch_settings = Settings(_env_file=None, data_dir=scratch)  # type: ignore[call-arg]
+        self.app: Any = create_app(scratch_settings, sender=RecordingSender(), run_reaper=False)
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        await self.app(scope, receive, send)
+
+
+# tus bodies are raw bytes under their own media type.
+schemathesis.serializer.alias("application/offset+octet-stream", "application/octet-stream")
+DEFERRED = DeferredApp()
+schema = schemathesis.openapi.from_asgi("/openapi.json", DEFERRED)
+
+
+@schema.parametrize()
+@settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
+def test_no_server_errors(case: Any, app_and_auth: tuple[FastAPI, dict[str, str]]) -> None:
+    _, auth = app_and_auth
+    response = case.call(headers={**(case.headers or {}), **auth})
+    case.validate_response(response, checks=CHECKS)
+    assert response.status_code < 500, response.text

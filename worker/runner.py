@@ -1,0 +1,377 @@
+"""Run one job: claim it, run the pipeline with progress, heartbeats and cancellation, record the outcome.
+
+``execute_job`` knows nothing of Celery: tests call it with a scripted pipeline and a SQLite database.
+
+- **Claim**: a job is run by the task holding its ``lease``; every write is guarded by it (``crud``).
+- **Progress**: ``on_progress(stage, done, total)`` writes stage, overall progress and per-stage timings at
+  most every ``progress_interval_s``, and checks for a cancel request and the time limit at the same
+  moments. A database that is briefly away only skips progress writes; the run goes on.
+- **Heartbeat**: a thread refreshes ``heartbeat_at`` every ``heartbeat_interval_s``, also inside long
+  stages; the API's reaper re-queues (or fails) a running job whose heartbeat stops.
+- **Cancellation** is cooperative: the callback raises :class:`panogs_core.errors.Cancelled`, which stages let
+  through, between and inside stages.
+- **Resume**: the pipeline runs with ``resume=True`` in the job's own folder, so a job claimed again after its
+  worker died reuses the checkpoints of the stages that finished.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
+
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.orm import Session, sessionmaker
+
+from panogs_core.errors import Cancelled, PanoGSError
+from service.db import crud
+from service.db.models import Artifact, Job, JobState
+from service.db.session import session_scope
+from service.jobs import config_factory
+from service.settings import Settings
+from service.storage import Storage, sha256_file
+
+logger = logging.getLogger(__name__)
+T = TypeVar("T")
+
+# The pipeline's outputs that become downloadable artifacts, with their media types.
+ARTIFACTS = {
+    "panoptic.ply": "application/octet-stream",
+    "gaussians.ply": "application/octet-stream",
+    "labels.npz": "application/octet-stream",
+    "instances.json": "application/json",
+    "report.json": "application/json",
+    "metrics.json": "application/json",
+    "vocabulary.json": "application/json",
+}
+
+
+class PipelineFn(Protocol):
+    """``panogs_core.pipeline.run_pipeline``'s signature, as the runner uses it."""
+
+    def __call__(
+        self,
+        bundle: Path,
+        out_dir: Path,
+        config: Any,
+        *,
+        vocabulary: str | None,
+        on_progress: Callable[[str, int, int], None],
+        resume: bool,
+    ) -> Any: ...
+
+
+class TransientError(Exception):
+    """The database or broker was away for longer than the runner waits; the task is retried later."""
+
+
+class CancelRequested(Cancelled):
+    """The job's owner asked to cancel it."""
+
+
+class LeaseLost(Cancelled):
+    """Another task now holds the job (this worker was presumed dead); stop without writing anything."""
+
+
+class TimeLimitExceeded(Cancelled):
+    """The job ran past ``job_time_limit_s``."""
+
+
+class Interrupted(Cancelled):
+    """The worker is shutting down; the job goes back to the queue and resumes later."""
+
+
+@dataclass(frozen=True)
+class JobEnv:
+    """Everything a job run needs besides its id; built once per worker process."""
+
+    settings: Settings
+    session_factory: sessionmaker[Session]
+    storage: Storage
+    pipeline: PipelineFn
+    make_config: Callable[[dict[str, Any]], Any]
+    stages: tuple[str, ...] = ()
+    shutdown: threading.Event = field(default_factory=threading.Event)  # set when the worker is stopping
+
+
+def load_pipeline(spec: str) -> tuple[PipelineFn, tuple[str, ...], Callable[[dict[str, Any]], Any]]:
+    """Import ``module:function``, the module's ``STAGES`` and its config factory.
+
+    The config factory is the module's ``make_config`` when it has one, else ``PipelineConfig.from_dict``.
+    """
+    module_name, _, attr = spec.partition(":")
+    module = importlib.import_module(module_name)
+    return getattr(module, attr), tuple(getattr(module, "STAGES", ())), config_factory(spec)
+
+
+def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:
+    """Call ``fn``; while the database is unreachable, retry with backoff until ``deadline_s`` has passed."""
+    start = time.monotonic()
+    delay = 0.25
+    while True:
+        try:
+            return fn()
+        except DBAPIError as exc:
+            if time.monotonic() - start + delay > deadline_s:
+                raise TransientError(f"database unavailable while trying to {what}: {exc.orig!r}") from exc
+            logger.warning("database unavailable (%s); retrying in %.1f s", what, delay)
+            time.sleep(delay)
+            delay = min(delay * 2, 5.0)
+
+
+@dataclass
+class _Tracker:
+    """Progress state of one run, shared by the callback and the heartbeat thread."""
+
+    job_id: uuid.UUID
+    lease: str
+    env: JobEnv
+    timings: dict[str, float]
+    started: float = field(default_factory=time.monotonic)
+    stage: str | None = None
+    stage_started: float = 0.0
+    last_write: float = 0.0
+    stop: threading.Event = field(default_factory=threading.Event)
+    lost: bool = False
+
+    def fraction(self, stage: str, done: int, total: int) -> float:
+        if stage not in self.env.stages:
+            return 0.0
+        within = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
+        return (self.env.stages.index(stage) + within) / len(self.env.stages)
+
+    def close_stage(self, now: float) -> None:
+        # A stage that a previous attempt finished keeps that attempt's time (a resumed stage takes ~0 s).
+        if self.stage is not None and self.stage not in self.timings:
+            self.timings[self.stage] = round(now - self.stage_started, 3)
+
+    def on_progress(self, stage: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        changed = stage != self.stage
+        if changed:
+            self.close_stage(now)
+            self.stage, self.stage_started = stage, now
+        if self.lost:
+            raise LeaseLost(f"job {self.job_id}: another worker holds it now")
+        if self.env.shutdown.is_set():
+            raise Interrupted("the worker is shutting down")
+        if not changed and now - self.last_write < self.env.settings.progress_interval_s:
+            return
+        self.last_write = now
+        if now - self.started > self.env.settings.job_time_limit_s:
+            raise TimeLimitExceeded(f"the job ran longer than {self.env.settings.job_time_limit_s:g} s")
+        self.write(stage=stage, progress=self.fraction(stage, done, total), stage_timings=dict(self.timings))
+
+    def write(self, **values: Any) -> None:
+        """Progress and heartbeat write; a database that is away is skipped, a lost lease or a cancel
+        stops."""
+        try:
+            with session_scope(self.env.session_factory) as session:
+                held = crud.update_running(session, self.job_id, self.lease, **values)
+                cancel = crud.cancel_requested(session, self.job_id)
+        except DBAPIError as exc:
+            logger.warning("job %s: progress not recorded, database unavailable (%r)", self.job_id, exc.orig)
+            return
+        if not held:
+            self.lost = True
+            raise LeaseLost(f"job {self.job_id}: another worker holds it now, or it was finished")
+        if cancel:
+            raise CancelRequested("canceled at the owner's request")
+
+    @contextmanager
+    def beating(self) -> Iterator[None]:
+        """Heartbeats from a thread while the body runs; stopped before the outcome is written."""
+        beat = threading.Thread(target=self.heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
+        beat.start()
+        try:
+            yield
+        finally:
+            self.stop.set()
+            beat.join(timeout=5)
+
+    def heartbeat_loop(self) -> None:
+        while not self.stop.wait(self.env.settings.heartbeat_interval_s):
+            try:
+                self.write()
+            except CancelRequested:
+                pass  # the progress callback raises it in the pipeline's thread
+            except LeaseLost:
+                logger.warning(
+                    "job %s: lease lost; the pipeline stops at its next progress step", self.job_id
+                )
+                return
+
+
+def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> JobState | None:
+    """Run job ``job_id`` under ``lease``; returns the state it ended in, or None when it was not ours to run.
+
+    Raises:
+        TransientError: the database stayed away longer than ``transient_retry_s``; retry the task later.
+    """
+    deadline = env.settings.transient_retry_s
+    job = with_db_retry(lambda: _claim(job_id, lease, worker, env), deadline_s=deadline, what="claim the job")
+    if job is None:
+        return None
+    if job.attempts > env.settings.max_attempts:
+        message = f"the job was started {job.attempts - 1} times and its worker was lost each time"
+        _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
+        return JobState.FAILED
+    log = logging.LoggerAdapter(logger, {"job_id": str(job_id)})
+    log.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
+    tracker = _Tracker(job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}))
+    return _run(job, tracker, env)
+
+
+def _claim(job_id: uuid.UUID, lease: str, worker: str, env: JobEnv) -> Job | None:
+    with session_scope(env.session_factory) as session:
+        stale = crud.stale_cutoff(env.settings.heartbeat_timeout_s)
+        job = crud.claim_job(session, job_id, lease, worker, stale)
+        if job is None:
+            current = session.get(Job, job_id)
+            if current is not None and current.cancel_requested and not current.state.is_terminal:
+                crud.cancel_unclaimed(session, job_id)
+            logger.info("job %s: not claimed (%s)", job_id, current.state if current else "no such job")
+        return job
+
+
+def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
+    with session_scope(env.session_factory) as session:
+        scene = crud.get_scene(session, job.scene_id)
+    if scene is None:
+        return _finish(
+            job.id,
+            tracker.lease,
+            env,
+            JobState.FAILED,
+            error_type="SceneMissing",
+            error_message=f"scene {job.scene_id} no longer exists",
+        )
+    out_dir = env.storage.job_dir(job.id)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        config = env.make_config(job.config or {})
+        with tracker.beating():
+            result = env.pipeline(
+                env.storage.path(scene.bundle_path),
+                out_dir,
+                config,
+                vocabulary=job.vocabulary,
+                on_progress=tracker.on_progress,
+                resume=True,
+            )
+    except LeaseLost:
+        logger.warning("job %s: stopped, another worker holds it", job.id)
+        return None
+    except Interrupted:
+        with_db_retry(
+            lambda: _release(job.id, tracker),
+            deadline_s=env.settings.transient_retry_s,
+            what="hand the job back",
+        )
+        logger.info("job %s: handed back to the queue (worker shutting down)", job.id)
+        return JobState.QUEUED
+    except CancelRequested:
+        tracker.close_stage(time.monotonic())
+        return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings)
+    except (TimeLimitExceeded, PanoGSError) as exc:
+        # Domain errors: the input or the configuration is at fault, retrying cannot help.
+        tracker.close_stage(time.monotonic())
+        logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
+        return _finish(
+            job.id,
+            tracker.lease,
+            env,
+            JobState.FAILED,
+            stage_timings=tracker.timings,
+            error_type=type(exc).__name__,
+            error_message=str(exc)[:10_000],
+        )
+    tracker.close_stage(time.monotonic())
+    timings = merge_timings(tracker.timings, getattr(result, "timings", None))
+    artifacts = collect_artifacts(job.id, out_dir, env.storage)
+    return _finish(
+        job.id,
+        tracker.lease,
+        env,
+        JobState.SUCCEEDED,
+        artifacts=artifacts,
+        progress=1.0,
+        stage=None,
+        stage_timings=timings,
+    )
+
+
+def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
+    tracker.close_stage(time.monotonic())
+    with session_scope(tracker.env.session_factory) as session:
+        crud.release_job(session, job_id, tracker.lease, stage_timings=dict(tracker.timings))
+
+
+def merge_timings(measured: dict[str, float], reported: Any) -> dict[str, float]:
+    """The pipeline's own stage times over the runner's, except for stages it reused from a checkpoint.
+
+    ``reported`` is ``PipelineResult.timings``: records with ``name``, ``wall_s`` and ``cached``, or a
+    mapping of stage to seconds. A cached stage keeps the time of the attempt that computed it.
+    """
+    out = dict(measured)
+    items = (
+        reported.items()
+        if isinstance(reported, Mapping)
+        else [(getattr(r, "name", None), r) for r in (reported or [])]
+    )
+    for stage, value in items:
+        seconds = getattr(value, "wall_s", value)
+        if stage is None or not isinstance(seconds, int | float):
+            continue
+        if getattr(value, "cached", False) and stage in out:
+            continue
+        out[str(stage)] = round(float(seconds), 3)
+    return out
+
+
+def collect_artifacts(job_id: uuid.UUID, out_dir: Path, storage: Storage) -> list[Artifact]:
+    """Artifact rows for the pipeline outputs present in ``out_dir``."""
+    rows = []
+    for name, media_type in ARTIFACTS.items():
+        path = out_dir / name
+        if path.is_file():
+            rows.append(
+                Artifact(
+                    job_id=job_id,
+                    name=name,
+                    path=storage.rel(path),
+                    size_bytes=path.stat().st_size,
+                    sha256=sha256_file(path).hexdigest(),
+                    media_type=media_type,
+                )
+            )
+    return rows
+
+
+def _finish(job_id: uuid.UUID, lease: str, env: JobEnv, state: JobState, **values: Any) -> JobState | None:
+    def write() -> bool:
+        with session_scope(env.session_factory) as session:
+            return crud.finish_job(session, job_id, lease, state, **values)
+
+    if not with_db_retry(write, deadline_s=env.settings.transient_retry_s, what=f"record the job as {state}"):
+        logger.warning("job %s: could not record %s, the job moved on without this worker", job_id, state)
+        return None
+    logger.info("job %s: %s", job_id, state)
+    return state
+
+
+def record_crash(job_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:
+    """Fail a job after an unexpected error at the task boundary (best effort; the error is re-raised
+    there)."""
+    message = f"{type(exc).__name__}: {exc}"[:10_000]
+    try:
+        _finish(job_id, lease, env, JobState.FAILED, error_type="InternalError", error_message=message)
+    except Exception:  # the original error matters more than this one
+        logger.exception("job %s: could not record the crash", job_id)

@@ -1,0 +1,103 @@
+"""A scripted stand-in for ``panogs_core.pipeline.run_pipeline``, to test and benchmark the service itself.
+
+Same signature and the same outputs' names, no torch, and a known duration: each stage takes
+``PANOGS_SCRIPTED_STAGE_S`` seconds (default 0.2) in 5 progress steps, and leaves a checkpoint so that a
+resumed run skips it. The config overrides it accepts are ``{"fail_at": "<stage>"}`` (raise a
+``NumericalError`` there) and ``{"stage_s": <seconds>}``. Select it with
+``PANOGS_PIPELINE_FUNCTION=worker.scripted:run_pipeline``. Not for production: its outputs are placeholders
+(two instances, "chair" and "table").
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from panogs_core.errors import ConfigError, NumericalError
+
+STAGES = ("validate", "primitives", "fusion", "clustering", "labeling", "export")
+STEPS = 5
+INSTANCES = [
+    {"id": 0, "class_name": "chair", "class_index": 1, "kind": "thing", "score": 0.9, "num_points": 2,
+     "centroid": [1.0, 0.0, 0.5], "bbox_min": [0.8, -0.2, 0.0], "bbox_max": [1.2, 0.2, 1.0]},
+    {"id": 1, "class_name": "table", "class_index": 2, "kind": "thing", "score": 0.8, "num_points": 2,
+     "centroid": [-1.0, 0.0, 0.4], "bbox_min": [-1.5, -0.5, 0.0], "bbox_max": [-0.5, 0.5, 0.8]},
+]  # fmt: skip
+
+
+@dataclass
+class ScriptedResult:
+    """What :func:`run_pipeline` returns (a subset of ``PipelineResult``)."""
+
+    out_dir: Path
+    instances: list[dict[str, Any]]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def make_config(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Validate the scripted pipeline's overrides (unknown keys are refused, as ``PipelineConfig`` does)."""
+    unknown = sorted(set(overrides) - {"fail_at", "stage_s"})
+    if unknown:
+        raise ConfigError(f"config: unknown key(s) {unknown}; known keys are ['fail_at', 'stage_s']")
+    return dict(overrides)
+
+
+def run_pipeline(
+    bundle: str | Path,
+    out_dir: str | Path,
+    config: dict[str, Any] | None = None,
+    *,
+    vocabulary: str | None = None,
+    on_progress: Callable[[str, int, int], None] | None = None,
+    resume: bool = True,
+) -> ScriptedResult:
+    """Walk the stages with progress and checkpoints, then write placeholder outputs."""
+    config = config or {}
+    out = Path(out_dir)
+    (out / "stages").mkdir(parents=True, exist_ok=True)
+    stage_s = float(config.get("stage_s", os.environ.get("PANOGS_SCRIPTED_STAGE_S", "0.2")))
+    timings: dict[str, float] = {}
+    for stage in STAGES:
+        marker = out / "stages" / f"{stage}.done"
+        start = time.perf_counter()
+        if resume and marker.exists():
+            if on_progress is not None:
+                on_progress(stage, 1, 1)
+            continue
+        for step in range(STEPS):
+            if on_progress is not None:
+                on_progress(stage, step, STEPS)
+            if config.get("fail_at") == stage:
+                raise NumericalError(f"{stage}: scripted failure (config fail_at={stage!r})")
+            time.sleep(stage_s / STEPS)
+        if on_progress is not None:
+            on_progress(stage, STEPS, STEPS)
+        marker.write_text("done")
+        timings[stage] = time.perf_counter() - start
+    _write_outputs(out, Path(bundle), vocabulary)
+    return ScriptedResult(out_dir=out, instances=INSTANCES, timings=timings)
+
+
+def _write_outputs(out: Path, bundle: Path, vocabulary: str | None) -> None:
+    (out / "instances.json").write_text(json.dumps(INSTANCES))
+    points = np.array([[0.9, 0, 0.5], [1.1, 0, 0.5], [-1.2, 0, 0.4], [-0.8, 0, 0.4]], np.float32)
+    semantic = np.array([1, 1, 2, 2], np.int64)
+    instance = np.array([0, 0, 1, 1], np.int64)
+    np.savez(out / "labels.npz", semantic=semantic, instance=instance, superprimitive=instance)
+    header = (
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty int semantic\n"
+        "property int instance\nend_header\n"
+    )
+    rows = [f"{x} {y} {z} 128 128 128 {s} {i}" for (x, y, z), s, i in zip(points, semantic, instance)]
+    (out / "panoptic.ply").write_text(header + "\n".join(rows) + "\n")
+    (out / "gaussians.ply").write_text(header + "\n".join(rows) + "\n")
+    report = {"scene": bundle.name, "vocabulary": vocabulary, "stages": list(STAGES)}
+    (out / "report.json").write_text(json.dumps(report))
