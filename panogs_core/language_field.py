@@ -35,20 +35,23 @@ _DECODE_BATCH = 32768  # points per decoding batch: (32768, 512) float32 is 64 M
 class LanguageFieldConfig:
     """Settings of the language field (reference 3.2-3.3; defaults: the reference's ScanNet settings).
 
-    DEPARTURE (training schedule): the reference trains 11 epochs at batch 256 with lr 1e-3 (about 6.4k small
-    steps for 150k primitives), far too slow on a CPU. We train fewer, larger batches with a larger plane
-    learning rate; on synthetic 150k-point / 512-d scenes this reaches the same decoded-class agreement
-    (see the stage's benchmark numbers in the report of this module).
+    DEPARTURE (training schedule): the reference trains 11 epochs at batch 256 with lr 1e-3 for both groups
+    (about 6.4k steps for 150k primitives). On a CPU the cost is per point, not per step, so we make fewer
+    passes (4 epochs, batch 1024) with larger learning rates (decoder 5e-3, planes 1e-2). Measured on a
+    synthetic 150k-point, 512-d room (ScanNet-20 CLIP embeddings on spatial blobs, 10 % class noise, 2 cores):
+    13 s instead of 61 s, decoded argmax agreeing with the fused argmax on 0.901 of the points (reference
+    schedule 0.905), mean cosine to the target 0.844 (0.846), accuracy against the true class 0.984 (0.981).
+    Larger batches (4096-8192) at the same cost per epoch needed more epochs for the same quality.
     """
 
     cell_sizes: tuple[float, ...] = (0.2, 0.06)  # metres per tri-plane cell, one per pyramid level (3.2)
     channels: int = 10  # latent channels C per plane (reference num_components)
     init_scale: float = 0.1  # std of the N(0, s^2) plane initialisation
     hidden_dims: tuple[int, ...] = (128,)  # decoder hidden widths: C -> 128 -> D (ScanNet), no biases
-    epochs: int = 8  # passes over the seen primitives (reference: 11 at batch 256)
-    batch_size: int = 8192  # primitives per step (reference: 256)
-    lr: float = 3e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
-    plane_lr: float = 3e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
+    epochs: int = 4  # passes over the seen primitives (reference: 11)
+    batch_size: int = 1024  # primitives per step (reference: 256)
+    lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
+    plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
     weight_decay: float = 1e-6  # L2 on the decoder weights only (reference)
     betas: tuple[float, float] = (0.9, 0.99)  # Adam betas (reference)
     bound_padding: float = 0.05  # metres added on every side of the primitives' box
@@ -108,10 +111,11 @@ class LanguageField:
         return int(self.features.shape[1])
 
     def save(self, path: str | Path) -> None:
-        """Write one ``.npz``: ``features``, ``bounds`` and every state array under ``state.<name>``."""
+        """Write one ``.npz`` at exactly ``path``: features, bounds, each state array as ``state.<name>``."""
         arrays: dict[str, Any] = {f"{_STATE_PREFIX}{k}": v for k, v in self.state.items()}
         arrays.update(features=self.features, bounds=self.bounds)
-        np.savez(Path(path), **cast(dict[str, Any], arrays))
+        with Path(path).open("wb") as fh:  # a handle: np.savez would append ".npz" to a bare path
+            np.savez(fh, **cast(dict[str, Any], arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> LanguageField:
@@ -136,7 +140,8 @@ class _TriplaneDecoder(torch.nn.Module):
         grid = grid.unsqueeze(1)  # (3, 1, B, 2)
         latent = coords.new_zeros(coords.shape[0], self.planes[0].shape[1])  # (B, C)
         for plane in self.planes:
-            # "border" only matters outside the box (decode_points on new points): nearest edge value, not 0.
+            # DEPARTURE (reference: zero padding): "border" only matters outside the box, i.e. for
+            # decode_points on new points, which take the nearest face's value instead of a zero latent.
             sampled = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
             latent = latent + sampled.sum(dim=0).squeeze(1).t()  # sum over planes, then over levels
         return latent
@@ -266,7 +271,8 @@ def _training_set(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coordinates in [-1, 1], unit targets and weights of the primitives with weight > 0 only.
 
-    Zero-weight (unseen) primitives add exactly 0 to the loss, so they are left out of the batches.
+    DEPARTURE (minor): zero-weight (unseen) primitives add exactly 0 to the loss, so they are left out of the
+    batches; the batch mean then runs over seen primitives only (a constant rescale that Adam ignores).
     """
     keep = np.flatnonzero(weights > 0)
     coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds))  # (M, 3)
@@ -310,6 +316,14 @@ def fit_language_field(
         ShapeError: if ``points``, ``fused.features`` and ``fused.weights`` disagree on shape.
         InputError: for non-finite inputs, negative weights, or when every weight is 0.
         NumericalError: if the loss becomes NaN or infinite.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> points = np.random.default_rng(0).uniform(size=(200, 3)).astype(np.float32)
+        >>> fused = SimpleNamespace(features=np.ones((200, 8), np.float32), weights=np.ones(200, np.float32))
+        >>> field = fit_language_field(points, fused, LanguageFieldConfig(epochs=1, hidden_dims=(16,)))
+        >>> field.features.shape, decode_points(field, points[:5]).shape
+        ((200, 8), (5, 8))
     """
     points, features, weights = _check_inputs(points, fused)
     device = torch.device(cfg.device)

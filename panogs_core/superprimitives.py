@@ -86,8 +86,9 @@ class SuperPrimitives:
         return int(self.labels.max()) + 1 if self.labels.size else 0
 
     def save(self, path: str | Path) -> None:
-        """Write ``labels`` to one ``.npz``."""
-        np.savez(Path(path), labels=self.labels)
+        """Write ``labels`` to one ``.npz`` at exactly ``path``."""
+        with Path(path).open("wb") as fh:  # a handle: np.savez would append ".npz" to a bare path
+            np.savez(fh, labels=self.labels)
 
     @classmethod
     def load(cls, path: str | Path) -> SuperPrimitives:
@@ -112,6 +113,11 @@ def build_knn(points: np.ndarray, k: int) -> KnnGraph:  # points (N, 3) float
     Raises:
         ShapeError: if ``points`` is not ``(N, 3)``.
         InputError: if ``k < 1``, there are fewer than ``k + 1`` points, or coordinates are not finite.
+
+    Example:
+        >>> knn = build_knn(np.random.default_rng(0).uniform(size=(50, 3)), 7)
+        >>> knn.neighbors.shape, bool((knn.neighbors != np.arange(50)[:, None]).all())
+        ((50, 7), True)
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -160,6 +166,18 @@ def graph_cut_superprimitives(
     Raises:
         ShapeError: if the arrays disagree on ``N`` or have the wrong shape.
         InputError: if the graph has fewer than ``cfg.k_neighbors`` columns or an input is not finite.
+
+    Example:
+        Two perpendicular planes (a floor and a wall) give two super-primitives:
+
+        >>> u, v = (g.ravel() for g in np.meshgrid(np.arange(20) * 0.05, np.arange(20) * 0.05))
+        >>> floor = np.c_[u + 0.05, v, np.zeros(400)]
+        >>> wall = np.c_[np.zeros(400), v, u + 0.05]
+        >>> points = np.concatenate([floor, wall])
+        >>> normals = np.repeat([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], 400, axis=0)
+        >>> knn = build_knn(points, 7)
+        >>> graph_cut_superprimitives(points, normals, None, knn, SuperPrimitiveConfig()).count
+        2
     """
     points, normals, features, neighbors = _check_inputs(points, normals, features, knn, cfg)
     n = points.shape[0]
@@ -197,6 +215,10 @@ def _check_inputs(
     neighbors = np.asarray(knn.neighbors)
     if neighbors.ndim != 2 or neighbors.shape[0] != n:
         raise ShapeError(f"knn.neighbors: expected shape ({n}, K), found {neighbors.shape}")
+    if neighbors.size and (neighbors.min() < 0 or neighbors.max() >= n):
+        raise InputError(
+            f"knn.neighbors: expected indices in [0, {n}), found [{neighbors.min()}, {neighbors.max()}]"
+        )
     if neighbors.shape[1] < cfg.k_neighbors:
         raise InputError(
             f"knn: has {neighbors.shape[1]} neighbours per point, cfg.k_neighbors is {cfg.k_neighbors}"

@@ -26,6 +26,7 @@ from panogs_core.synthetic.render import make_raycaster, render_view
 from panogs_core.synthetic.sampling import SurfacePoints, sample_surfaces
 from panogs_core.synthetic.trajectory import make_trajectory
 from panogs_core.types import Camera
+from panogs_core.visibility import VisibilityConfig, frame_visibility
 
 DEPTH_SCALE = 1000.0
 
@@ -118,22 +119,33 @@ def make_scene(
         feature_dim=embeddings.shape[1],
         feature_space=space,
     )
-    _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, on_progress)
-    _write_static(writer, surface, embeddings, with_geometry)
+    observed = _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, surface.points,
+                             on_progress)
+    _write_static(writer, _subset(surface, observed), embeddings, with_geometry)
     return writer.close()
 
 
 def _write_frames(
     writer: BundleWriter, scene: o3d.t.geometry.RaycastingScene, layout: Layout, model: FeatureModel,
     poses: np.ndarray, spec: SyntheticSpec, level: Difficulty, seeds: list[np.random.SeedSequence],
-    on_progress: ProgressFn | None,
-) -> None:  # fmt: skip
-    """Render, degrade and write every frame; key frames also get features and masks."""
+    surface_points: np.ndarray, on_progress: ProgressFn | None,
+) -> np.ndarray:  # fmt: skip
+    """Render, degrade and write every frame; key frames also get features and masks.
+
+    Returns which surface points any frame observes (clean depth, 2 % tolerance): a real capture's
+    geometry holds only surfaces the camera saw, so the scene keeps only those (floor under a cabinet,
+    the back of a bookshelf against a wall and the underside of a table top are not in a scan).
+    """
     camera = writer.camera
+    observed = np.zeros(surface_points.shape[0], dtype=bool)
+    vis_cfg = VisibilityConfig(depth_rtol=0.02)
     feature_shape = (spec.height // spec.feature_stride, spec.width // spec.feature_stride)
     for i, (pose, seq) in enumerate(zip(poses, seeds)):
         rng = np.random.default_rng(seq)
         view = render_view(scene, layout, camera, pose)
+        seen, _, _ = frame_visibility(surface_points, np.linalg.inv(pose), camera,
+                                      view.depth.astype(np.float32), vis_cfg)
+        observed[seen] = True
         instance = np.where(view.box >= 0, layout.box_instance[np.maximum(view.box, 0)], -1)
         features = masks = None
         if i % spec.key_frame_stride == 0:
@@ -143,6 +155,14 @@ def _write_frames(
                          color=degrade_color(view.color, level.color_noise, rng), features=features,
                          masks=masks)  # fmt: skip
         report(on_progress, i + 1, len(poses))
+    return observed
+
+
+def _subset(surface: SurfacePoints, keep: np.ndarray) -> SurfacePoints:
+    """The surface points where ``keep`` is True, every field alike."""
+    return SurfacePoints(points=surface.points[keep], normals=surface.normals[keep],
+                         colors=surface.colors[keep], semantic=surface.semantic[keep],
+                         instance=surface.instance[keep], box=surface.box[keep])
 
 
 def _write_static(

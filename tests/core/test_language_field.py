@@ -144,6 +144,19 @@ class TestFitLanguageField:
         with pytest.raises(InputError, match="NaN"):
             fit_language_field(bad, good, cfg)
 
+    def test_accepts_fusion_output(self) -> None:
+        from panogs_core.fusion import FusedFeatures
+
+        points, region, anchors = _three_regions(n_per=50, seed=6)
+        fused = FusedFeatures(
+            features=anchors[region],
+            weights=np.ones(len(points), np.float32),
+            seen_count=np.ones(len(points), np.int32),
+            colors=None,
+        )
+        field = fit_language_field(points, fused, _small_cfg(epochs=1))
+        assert field.features.shape == (len(points), DIM)
+
 
 class TestDecodePoints:
     def test_new_points_inside_regions(self, regions_field) -> None:
@@ -178,6 +191,9 @@ class TestDecodePoints:
         np.testing.assert_array_equal(loaded.features, field.features)
         np.testing.assert_array_equal(loaded.bounds, field.bounds)
         query = points[::7] + 0.01
+        bare = tmp_path / "field_without_suffix"
+        field.save(bare)
+        np.testing.assert_array_equal(LanguageField.load(bare).features, field.features)
         np.testing.assert_array_equal(decode_points(loaded, query), decode_points(field, query))
 
     def test_exception(self, regions_field) -> None:

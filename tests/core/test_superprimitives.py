@@ -257,8 +257,8 @@ class TestGraphCut:
 
     def test_save_load(self, tmp_path) -> None:
         sp = SuperPrimitives(labels=np.array([0, 1, 1, 2], np.int64))
-        sp.save(tmp_path / "sp.npz")
-        loaded = SuperPrimitives.load(tmp_path / "sp.npz")
+        sp.save(tmp_path / "sp")  # exactly this path, no ".npz" appended
+        loaded = SuperPrimitives.load(tmp_path / "sp")
         assert loaded.count == 3
         assert (loaded.labels == sp.labels).all()
 
@@ -270,6 +270,10 @@ class TestGraphCut:
             graph_cut_superprimitives(points, normals[:10], None, knn, cfg)
         with pytest.raises(ShapeError, match="features"):
             graph_cut_superprimitives(points, normals, np.zeros((10, 4), np.float32), knn, cfg)
+        bad = KnnGraph(neighbors=knn.neighbors.copy(), distances=knn.distances)
+        bad.neighbors[0, 0] = 800
+        with pytest.raises(InputError, match="indices"):
+            graph_cut_superprimitives(points, normals, None, bad, cfg)
         with pytest.raises(InputError, match="k_neighbors"):
             graph_cut_superprimitives(points, normals, None, build_knn(points, 3), cfg)
 

@@ -1,0 +1,105 @@
+"""Deployment files: docker-compose.yml parses, names every service, volume and setting, and runs the commands
+the end-to-end tests run; the Dockerfile builds the CPU image with a CUDA build argument; .env.example lists
+every setting. (Docker itself cannot run on these machines.)"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from service.cli import add_service_commands
+from service.settings import Settings
+
+REPO = Path(__file__).resolve().parents[2]
+FIELDS = {f"PANOGS_{name.upper()}" for name in Settings.model_fields}
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    return dict(yaml.safe_load((REPO / "docker-compose.yml").read_text()))
+
+
+def test_services(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    assert {"api", "worker", "redis", "postgres"} <= set(services)
+    for name in ("api", "worker", "redis", "postgres"):
+        assert "healthcheck" in services[name], f"{name} has no health check"
+    assert services["worker"]["depends_on"]["api"]["condition"] == "service_healthy"
+    assert services["api"]["depends_on"]["postgres"]["condition"] == "service_healthy"
+    assert "replicas" not in services["worker"].get("deploy", {})  # --scale worker=N decides
+    assert "ports" not in services["worker"]  # so that it can be scaled
+    assert "/readyz" in " ".join(services["api"]["healthcheck"]["test"])
+
+
+def test_shared_volume(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    for name in ("api", "worker", "worker-gpu"):
+        assert "data:/data" in services[name]["volumes"]
+        assert services[name]["environment"]["PANOGS_STORAGE_DIR"].startswith("/data")
+    assert {"data", "pgdata", "redisdata"} <= set(compose["volumes"])
+
+
+def test_environment_names_real_settings(compose: dict[str, Any]) -> None:
+    for name in ("api", "worker", "worker-gpu"):
+        env = compose["services"][name]["environment"]
+        panogs = {k for k in env if k.startswith("PANOGS_")}
+        assert panogs <= FIELDS, f"{name}: unknown settings {panogs - FIELDS}"
+        assert {"PANOGS_DATABASE_URL", "PANOGS_BROKER_URL", "PANOGS_STORAGE_DIR"} <= panogs
+        assert env["PANOGS_ENVIRONMENT"] == "production"
+        assert env["PANOGS_DATABASE_URL"].startswith("postgresql+psycopg://")
+        assert env["PANOGS_BROKER_URL"].startswith("redis://redis:")
+    assert compose["services"]["worker-gpu"]["environment"]["PANOGS_WORKER_QUEUES"] == "gpu"
+
+
+def test_commands_are_the_tested_ones(compose: dict[str, Any]) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="panogs")
+    add_service_commands(parser.add_subparsers(dest="command", required=True))
+    api = compose["services"]["api"]["command"]
+    assert api[:3] == ["panogs", "serve", "--no-worker"]
+    assert parser.parse_args(api[1:]).port == 8000
+    assert compose["services"]["worker"]["command"] == ["panogs", "worker"]
+    from procs import compose_command  # what test_e2e and test_faults start
+
+    assert compose_command("api")[3:] == api[1:]
+    assert compose_command("worker")[3:] == ["worker"]
+
+
+def test_dockerfile() -> None:
+    text = (REPO / "Dockerfile").read_text()
+    assert re.search(r"^ARG TORCH_VARIANT=cpu$", text, re.M)
+    assert "download.pytorch.org/whl/${TORCH_VARIANT}" in text
+    assert ".[service,worker,text]" in text
+    assert re.search(r'^CMD \["panogs", "serve"', text, re.M)
+    assert re.search(r"^USER panogs$", text, re.M)
+
+
+def test_env_example_lists_every_setting() -> None:
+    text = (REPO / ".env.example").read_text()
+    named = set(re.findall(r"\bPANOGS_[A-Z_]+(?==)", text))
+    assert FIELDS <= named, f"missing from .env.example: {sorted(FIELDS - named)}"
+    assert "POSTGRES_PASSWORD=changethis" in text
+
+
+def test_production_refuses_placeholders(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    common = {
+        "_env_file": None,
+        "data_dir": tmp_path,
+        "environment": "production",
+        "broker_url": "redis://r:6379/0",
+    }
+    with pytest.raises(ValidationError, match="placeholder"):
+        Settings(database_url="postgresql+psycopg://panogs:changethis@db/panogs", **common)  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="must be set in production"):
+        Settings(**common)  # type: ignore[arg-type]
+    assert (
+        Settings(database_url="postgresql+psycopg://panogs:s3cret@db/panogs", **common).environment
+        == "production"
+    )  # type: ignore[arg-type]
