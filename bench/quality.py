@@ -26,9 +26,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.config import PipelineConfig  # noqa: E402
-from panogs_core.pipeline import run_pipeline  # noqa: E402
-from panogs_core.synthetic import make_scene  # noqa: E402
+from panogs_core.config import PipelineConfig
+from panogs_core.pipeline import run_pipeline
+from panogs_core.synthetic import make_scene
 
 VARIANTS: dict[str, dict] = {
     "full": {},
@@ -56,8 +56,9 @@ def main() -> None:
         for seed in args.seeds:
             scene_dir = Path(args.work) / f"{args.preset}-{difficulty}-{seed}"
             if not (scene_dir / "scene" / "scene.json").is_file():
-                make_scene(scene_dir / "scene", preset=args.preset, difficulty=difficulty, seed=seed,
-                           feature_space=args.space)
+                make_scene(
+                    scene_dir / "scene", preset=args.preset, difficulty=difficulty, seed=seed, feature_space=args.space
+                )
             for variant in args.variants:
                 cfg = PipelineConfig().with_overrides(VARIANTS[variant])
                 res = run_pipeline(scene_dir / "scene", scene_dir / "run", cfg)
@@ -65,11 +66,16 @@ def main() -> None:
                 if m is None:
                     raise SystemExit(f"{scene_dir}: no metrics (scene without ground truth?)")
                 results.setdefault((difficulty, variant), []).append(m)
-                print(f"{difficulty:>8} seed {seed} {variant:<15} " + "  ".join(
-                    f"{k} {m[k]:.3f}" for k in METRICS), file=sys.stderr, flush=True)
+                print(
+                    f"{difficulty:>8} seed {seed} {variant:<15} " + "  ".join(f"{k} {m[k]:.3f}" for k in METRICS),
+                    file=sys.stderr,
+                    flush=True,
+                )
 
-    print(f"\npreset {args.preset}, space {args.space}, seeds {args.seeds}, standard mode "
-          f"(mean ± std over seeds); {time.perf_counter() - t0:.0f} s\n")
+    print(
+        f"\npreset {args.preset}, space {args.space}, seeds {args.seeds}, standard mode "
+        f"(mean ± std over seeds); {time.perf_counter() - t0:.0f} s\n"
+    )
     print("| difficulty | variant | " + " | ".join(METRICS) + " |")
     print("|---|---|" + "---|" * len(METRICS))
     for difficulty in args.difficulties:

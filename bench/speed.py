@@ -68,13 +68,19 @@ def main() -> None:
     floor_s, files, nbytes = io_floor(bundle)
     out = work / f"run-{args.preset}-{args.seed}"
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "panogs_core.cli", "run", str(bundle), "--out", str(out),
-                    "--no-resume", "--quiet"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-m", "panogs_core.cli", "run", str(bundle), "--out", str(out), "--no-resume", "--quiet"],
+        check=True,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+    )
     wall = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
 
-    print(f"\nscene {report['scene']}: {report['num_primitives']} primitives, {report['num_frames']} frames, "
-          f"{report['feature_dim']}-d features, {report['num_instances']} instances")
+    print(
+        f"\nscene {report['scene']}: {report['num_primitives']} primitives, {report['num_frames']} frames, "
+        f"{report['feature_dim']}-d features, {report['num_instances']} instances"
+    )
     print(f"I/O floor: {floor_s:.1f} s to read {files} files ({nbytes / 2**20:.0f} MiB decoded)\n")
     print("| stage | wall s | peak RSS MB |")
     print("|---|---:|---:|")

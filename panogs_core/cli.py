@@ -20,8 +20,14 @@ from panogs_core.errors import PanoGSError
 def _cmd_synth(args: argparse.Namespace) -> int:
     from panogs_core.synthetic import make_scene
 
-    path = make_scene(args.out, preset=args.preset, difficulty=args.difficulty, seed=args.seed,
-                      feature_space=args.space, with_geometry=not args.no_geometry)
+    path = make_scene(
+        args.out,
+        preset=args.preset,
+        difficulty=args.difficulty,
+        seed=args.seed,
+        feature_space=args.space,
+        with_geometry=not args.no_geometry,
+    )
     print(f"wrote synthetic scene ({args.preset}, {args.difficulty}, seed {args.seed}) to {path}")
     return 0
 
@@ -30,8 +36,12 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from panogs_core.labelsets import resolve_vocabulary
 
     vocabulary = resolve_vocabulary(args.vocabulary) if args.vocabulary else None
-    common: dict[str, Any] = {"stride": args.stride, "vocabulary": vocabulary, "geometry": args.geometry,
-                              "feature_space": args.feature_space}
+    common: dict[str, Any] = {
+        "stride": args.stride,
+        "vocabulary": vocabulary,
+        "geometry": args.geometry,
+        "feature_space": args.feature_space,
+    }
     if args.layout == "scannet":
         from panogs_core.io.scannet import import_scannet
 
@@ -48,11 +58,13 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from panogs_core.bundle import open_bundle
 
     scene = open_bundle(args.bundle)
-    print(f"{args.bundle}: valid {scene.name}: {len(scene.frames)} frames "
-          f"({len(scene.feature_frames)} with features, {len(scene.mask_frames)} with masks), "
-          f"camera {scene.camera.width}x{scene.camera.height}, features {scene.feature_dim}-d "
-          f"{scene.feature_space}, geometry {'yes' if scene.has_geometry else 'no (TSDF)'}, "
-          f"ground truth {'yes' if scene.has_ground_truth else 'no'}")
+    print(
+        f"{args.bundle}: valid {scene.name}: {len(scene.frames)} frames "
+        f"({len(scene.feature_frames)} with features, {len(scene.mask_frames)} with masks), "
+        f"camera {scene.camera.width}x{scene.camera.height}, features {scene.feature_dim}-d "
+        f"{scene.feature_space}, geometry {'yes' if scene.has_geometry else 'no (TSDF)'}, "
+        f"ground truth {'yes' if scene.has_ground_truth else 'no'}"
+    )
     return 0
 
 
@@ -72,8 +84,9 @@ class _StageBars:
         if stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=max(total, 1), desc=f"{stage:>16}", unit="step", leave=True,
-                            file=sys.stderr, dynamic_ncols=True)
+            self.bar = tqdm(
+                total=max(total, 1), desc=f"{stage:>16}", unit="step", leave=True, file=sys.stderr, dynamic_ncols=True
+            )
         if self.bar is not None:
             if total != self.bar.total:
                 self.bar.total = max(total, 1)
@@ -109,8 +122,10 @@ def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
     lines = [f"{'id':>4}  {'class':<16} {'kind':<5} {'score':>5} {'points':>7}  centroid (m)"]
     for inst in rows[:limit]:
         c = inst["centroid"]
-        lines.append(f"{inst['id']:>4}  {inst['class_name'][:16]:<16} {inst['kind']:<5} {inst['score']:>5.2f} "
-                     f"{inst['num_points']:>7}  ({c[0]:6.2f}, {c[1]:6.2f}, {c[2]:6.2f})")
+        lines.append(
+            f"{inst['id']:>4}  {inst['class_name'][:16]:<16} {inst['kind']:<5} {inst['score']:>5.2f} "
+            f"{inst['num_points']:>7}  ({c[0]:6.2f}, {c[1]:6.2f}, {c[2]:6.2f})"
+        )
     if len(rows) > limit:
         lines.append(f"... {len(rows) - limit} more in instances.json")
     return "\n".join(lines)
@@ -118,13 +133,16 @@ def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
 
 def format_metrics(metrics: dict[str, Any]) -> str:
     """One line per evaluation mode."""
+
     def num(value: Any) -> str:
         return "  n/a" if value is None else f"{value:.3f}"
 
     lines = []
     for mode, m in metrics.items():
-        lines.append(f"{mode:>8}: mIoU {num(m['miou'])}  mAcc {num(m['macc'])}  "
-                     f"PRQ(T) {num(m['prq_thing'])}  PRQ(S) {num(m['prq_stuff'])}")
+        lines.append(
+            f"{mode:>8}: mIoU {num(m['miou'])}  mAcc {num(m['macc'])}  "
+            f"PRQ(T) {num(m['prq_thing'])}  PRQ(S) {num(m['prq_stuff'])}"
+        )
     return "\n".join(lines)
 
 
@@ -137,13 +155,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         cfg = cfg.with_overrides(_parse_overrides(args.set))
     bars = _StageBars(enabled=not args.quiet)
     try:
-        result = run_pipeline(args.bundle, args.out, cfg, vocabulary=args.vocabulary, on_progress=bars,
-                              resume=not args.no_resume)
+        result = run_pipeline(
+            args.bundle, args.out, cfg, vocabulary=args.vocabulary, on_progress=bars, resume=not args.no_resume
+        )
     finally:
         bars.close()
     total = sum(t.wall_s for t in result.timings)
-    print(f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
-          f"{total:.1f} s -> {result.out_dir}")
+    print(
+        f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
+        f"{total:.1f} s -> {result.out_dir}"
+    )
     print(format_instances(result.instances))
     if result.metrics:
         print("\n" + format_metrics(result.metrics))
@@ -153,8 +174,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     path = Path(args.run) / "metrics.json"
     if not path.is_file():
-        raise PanoGSError(f"{path}: no metrics (the run's bundle had no gt/labels.npz, or used another "
-                          "vocabulary than the bundle's)")
+        raise PanoGSError(
+            f"{path}: no metrics (the run's bundle had no gt/labels.npz, or used another vocabulary than the bundle's)"
+        )
     metrics = json.loads(path.read_text())
     print(json.dumps(metrics, indent=2) if args.json else format_metrics(metrics))
     return 0
@@ -172,8 +194,15 @@ def _cmd_query(args: argparse.Namespace) -> int:
     encoder = None
     if args.model_path and isinstance(query, str):
         encoder = get_text_encoder(loaded.feature_space, model_path=args.model_path)
-    hits = query_instances(loaded.instances, loaded.vocabulary, query, feature_space=loaded.feature_space,
-                           encoder=encoder, top_k=args.top_k, min_score=args.min_score)
+    hits = query_instances(
+        loaded.instances,
+        loaded.vocabulary,
+        query,
+        feature_space=loaded.feature_space,
+        encoder=encoder,
+        top_k=args.top_k,
+        min_score=args.min_score,
+    )
     label = args.vector or repr(query)
     if not hits:
         print(f"query {label}: no instance scored at least {args.min_score}")
@@ -181,15 +210,18 @@ def _cmd_query(args: argparse.Namespace) -> int:
     print(f"query {label}: {len(hits)} instance(s)")
     for hit in hits:
         lo, hi = hit.bbox_min, hit.bbox_max
-        print(f"  instance {hit.instance_id:>4}  {hit.class_name:<16} score {hit.score:.3f}  "
-              f"box [{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}] - [{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}]")
+        print(
+            f"  instance {hit.instance_id:>4}  {hit.class_name:<16} score {hit.score:.3f}  "
+            f"box [{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}] - [{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}]"
+        )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every command."""
-    parser = argparse.ArgumentParser(prog="panogs", description="Open-vocabulary 3D panoptic segmentation "
-                                     "(PanoGS) of posed RGB-D captures.")
+    parser = argparse.ArgumentParser(
+        prog="panogs", description="Open-vocabulary 3D panoptic segmentation (PanoGS) of posed RGB-D captures."
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log stage details")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -198,8 +230,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="tiny", choices=["tiny", "small", "default", "large"])
     p.add_argument("--difficulty", default="default", choices=["easy", "default", "hard"])
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--space", default=None, choices=["minilm-l6", "clip-vit-b32"],
-                   help="feature space of the 2D features (default: the preset's; large is clip-vit-b32)")
+    p.add_argument(
+        "--space",
+        default=None,
+        choices=["minilm-l6", "clip-vit-b32"],
+        help="feature space of the 2D features (default: the preset's; large is clip-vit-b32)",
+    )
     p.add_argument("--no-geometry", action="store_true", help="omit geometry.ply (primitives by TSDF)")
     p.set_defaults(func=_cmd_synth)
 
@@ -222,8 +258,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bundle", help="bundle folder or .zip/.tar(.gz)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML pipeline config (unknown keys are errors)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
-                   help="override one setting, e.g. clustering.thresholds=[0.9,0.7]")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="SECTION.KEY=VALUE",
+        help="override one setting, e.g. clustering.thresholds=[0.9,0.7]",
+    )
     p.add_argument("--vocabulary", help="scannet20 | matterport21 | path to vocabulary.json")
     p.add_argument("--no-resume", action="store_true", help="recompute every stage")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -255,8 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``panogs``; user errors print one clear message and exit 2."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
     try:
         return int(args.func(args) or 0)

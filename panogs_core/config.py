@@ -116,7 +116,7 @@ def _from_plain(cls: type[T], data: Any, *, path: str) -> T:
 
 
 def _coerce(hint: Any, value: Any, *, path: str) -> Any:
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         return _from_plain(hint, value, path=path)
     origin = typing.get_origin(hint)
     if origin is tuple:

@@ -70,23 +70,35 @@ def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> None:
     (out / "vocabulary.json").write_text(json.dumps(doc, indent=1))
 
 
-def write_gaussians(path: Path, prims: Any, colors: np.ndarray, semantic: np.ndarray,
-                    instance: np.ndarray) -> None:
+def write_gaussians(path: Path, prims: Any, colors: np.ndarray, semantic: np.ndarray, instance: np.ndarray) -> None:
     """The 3DGS PLY layout (SH degree 0, identity rotations) plus label fields."""
     n = prims.points.shape[0]
     dc = (colors.astype(np.float32) - 0.5) / SH_C0
     fields: dict[str, np.ndarray] = {
-        "x": prims.points[:, 0], "y": prims.points[:, 1], "z": prims.points[:, 2],
-        "nx": prims.normals[:, 0], "ny": prims.normals[:, 1], "nz": prims.normals[:, 2],
-        "f_dc_0": dc[:, 0], "f_dc_1": dc[:, 1], "f_dc_2": dc[:, 2],
+        "x": prims.points[:, 0],
+        "y": prims.points[:, 1],
+        "z": prims.points[:, 2],
+        "nx": prims.normals[:, 0],
+        "ny": prims.normals[:, 1],
+        "nz": prims.normals[:, 2],
+        "f_dc_0": dc[:, 0],
+        "f_dc_1": dc[:, 1],
+        "f_dc_2": dc[:, 2],
         "opacity": prims.opacities,
-        "scale_0": prims.scales[:, 0], "scale_1": prims.scales[:, 1], "scale_2": prims.scales[:, 2],
-        "rot_0": np.ones(n, np.float32), "rot_1": np.zeros(n, np.float32),
-        "rot_2": np.zeros(n, np.float32), "rot_3": np.zeros(n, np.float32),
-        "semantic": semantic.astype(np.int32), "instance": instance.astype(np.int32),
+        "scale_0": prims.scales[:, 0],
+        "scale_1": prims.scales[:, 1],
+        "scale_2": prims.scales[:, 2],
+        "rot_0": np.ones(n, np.float32),
+        "rot_1": np.zeros(n, np.float32),
+        "rot_2": np.zeros(n, np.float32),
+        "rot_3": np.zeros(n, np.float32),
+        "semantic": semantic.astype(np.int32),
+        "instance": instance.astype(np.int32),
     }
-    write_ply(path, {k: np.ascontiguousarray(v, dtype=v.dtype if v.dtype == np.int32 else np.float32)
-                     for k, v in fields.items()})
+    write_ply(
+        path,
+        {k: np.ascontiguousarray(v, dtype=v.dtype if v.dtype == np.int32 else np.float32) for k, v in fields.items()},
+    )
 
 
 def primitive_colors(prims: Any, fused: Any) -> np.ndarray:  # (N, 3) float32 in [0, 1]
@@ -98,8 +110,9 @@ def primitive_colors(prims: Any, fused: Any) -> np.ndarray:  # (N, 3) float32 in
     return np.full((prims.points.shape[0], 3), 0.5, np.float32)
 
 
-def write_outputs(out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, clusters: Any, labels: Any,
-                  vocab: Vocabulary) -> tuple[dict[str, Path], dict[str, Any] | None]:
+def write_outputs(
+    out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, clusters: Any, labels: Any, vocab: Vocabulary
+) -> tuple[dict[str, Path], dict[str, Any] | None]:
     """Write every output file; returns their paths and the metrics (None without ground truth)."""
     files: dict[str, Path] = {}
     semantic = np.asarray(labels.semantic, dtype=np.int64)
@@ -108,22 +121,37 @@ def write_outputs(out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, c
 
     rgb = panoptic_colors(semantic, instance, vocab.is_thing)
     files["panoptic.ply"] = out / "panoptic.ply"
-    write_ply(files["panoptic.ply"], {
-        "x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
-        "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
-        "semantic": semantic.astype(np.int32), "instance": instance.astype(np.int32),
-    })
+    write_ply(
+        files["panoptic.ply"],
+        {
+            "x": pts[:, 0],
+            "y": pts[:, 1],
+            "z": pts[:, 2],
+            "red": rgb[:, 0],
+            "green": rgb[:, 1],
+            "blue": rgb[:, 2],
+            "semantic": semantic.astype(np.int32),
+            "instance": instance.astype(np.int32),
+        },
+    )
     files["labels.npz"] = out / "labels.npz"
-    np.savez_compressed(files["labels.npz"], semantic=semantic, instance=instance,
-                        superprimitive=np.asarray(graph.superprimitives.labels, dtype=np.int64),
-                        cluster=np.asarray(clusters.labels, dtype=np.int64),
-                        class_names=np.array(vocab.names))
+    np.savez_compressed(
+        files["labels.npz"],
+        semantic=semantic,
+        instance=instance,
+        superprimitive=np.asarray(graph.superprimitives.labels, dtype=np.int64),
+        cluster=np.asarray(clusters.labels, dtype=np.int64),
+        class_names=np.array(vocab.names),
+    )
     instances = [i.to_json() for i in labels.instances]
     files["instances.json"] = out / "instances.json"
     files["instances.json"].write_text(json.dumps(instances, indent=1))
     dim = vocab.embeddings.shape[1] if vocab.embeddings is not None else 0
-    feats = np.stack([np.asarray(i.feature, np.float32) for i in labels.instances]) if instances else \
-        np.zeros((0, dim), np.float32)
+    feats = (
+        np.stack([np.asarray(i.feature, np.float32) for i in labels.instances])
+        if instances
+        else np.zeros((0, dim), np.float32)
+    )
     files["instance_features.npy"] = out / "instance_features.npy"
     np.save(files["instance_features.npy"], feats)
     write_vocabulary(out, vocab, scene.feature_space)
@@ -138,8 +166,9 @@ def write_outputs(out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, c
     return files, metrics
 
 
-def compute_metrics(scene: Scene, points: np.ndarray, semantic: np.ndarray, instance: np.ndarray,
-                    vocab: Vocabulary) -> dict[str, Any] | None:
+def compute_metrics(
+    scene: Scene, points: np.ndarray, semantic: np.ndarray, instance: np.ndarray, vocab: Vocabulary
+) -> dict[str, Any] | None:
     """Standard and paper metrics against ``gt/labels.npz``; None when there is no usable ground truth.
 
     Ground truth indexes the bundle's own vocabulary, so a run with another vocabulary is not scored.

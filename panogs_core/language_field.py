@@ -49,6 +49,10 @@ class LanguageFieldConfig:
     init_scale: float = 0.1  # std of the N(0, s^2) plane initialisation
     hidden_dims: tuple[int, ...] = (128,)  # decoder hidden widths: C -> 128 -> D (ScanNet), no biases
     epochs: int = 4  # passes over the seen primitives (reference: 11)
+    # Small scenes get more passes, so every scene trains at least this many steps: at 4 epochs a 7.7k-point
+    # scene made only 32 steps and its decoded argmax matched the true class on 0.79 of the points (CLIP
+    # space); 16 epochs (128 steps) gave 0.98. Large scenes are unaffected (150k points: 600 steps).
+    min_steps: int = 400
     batch_size: int = 1024  # primitives per step (reference: 256)
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
     plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
@@ -70,6 +74,7 @@ class LanguageFieldConfig:
         _require(all(h >= 1 for h in self.hidden_dims), "hidden_dims", "widths >= 1", self.hidden_dims)
         _require(self.epochs >= 1, "epochs", ">= 1", self.epochs)
         _require(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        _require(self.min_steps >= 0, "min_steps", ">= 0", self.min_steps)
         _require(math.isfinite(self.lr) and self.lr > 0, "lr", "> 0", self.lr)
         _require(math.isfinite(self.plane_lr) and self.plane_lr > 0, "plane_lr", "> 0", self.plane_lr)
         _require(self.weight_decay >= 0, "weight_decay", ">= 0", self.weight_decay)
@@ -369,7 +374,9 @@ def _train(
     optimizer = _optimizer(model, cfg)
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     count = coords.shape[0]
-    for epoch in range(cfg.epochs):
+    steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
+    epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
+    for epoch in range(epochs):
         order = torch.randperm(count, generator=gen).to(coords.device)
         for start in range(0, count, cfg.batch_size):
             idx = order[start : start + cfg.batch_size]
@@ -382,7 +389,7 @@ def _train(
             raise NumericalError(
                 f"language field: the loss became {float(loss.detach())} at epoch {epoch + 1}"
             )
-        report(on_progress, epoch + 1, cfg.epochs)
+        report(on_progress, epoch + 1, epochs)
 
 
 def decode_points(

@@ -144,8 +144,13 @@ class _Runner:
                     self.checkpoints.record(name, key)
             report(1, 1)
         self.timings.append(timer.stats)
-        log.info("stage %s: %.2f s, peak %.0f MB%s", name, timer.stats.wall_s, timer.stats.peak_rss_mb,
-                 " (checkpoint)" if timer.stats.cached else "")
+        log.info(
+            "stage %s: %.2f s, peak %.0f MB%s",
+            name,
+            timer.stats.wall_s,
+            timer.stats.peak_rss_mb,
+            " (checkpoint)" if timer.stats.cached else "",
+        )
         return result
 
 
@@ -206,45 +211,65 @@ def run_pipeline(
     runner = _Runner(out, resume, on_progress)
     t_start = time.perf_counter()
 
-    scene = runner.stage("validate", "", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(
-        bundle, workdir=out / "bundle"))
+    scene = runner.stage(
+        "validate", "", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(bundle, workdir=out / "bundle")
+    )
     input_hash = hash_bundle(scene)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     keys = st.stage_keys(input_hash, cfg, vocab)
 
-    prims = runner.stage("primitives", keys["primitives"], lambda p: st.primitives(scene, cfg, p),
-                         *st.io_for("primitives"))
-    vis = runner.stage("visibility", keys["visibility"], lambda p: st.visibility(scene, prims, cfg, p),
-                       *st.io_for("visibility"))
-    fused = runner.stage("fusion", keys["fusion"], lambda p: st.fusion(scene, vis, prims, cfg, p),
-                         *st.io_for("fusion"))
+    prims = runner.stage(
+        "primitives", keys["primitives"], lambda p: st.primitives(scene, cfg, p), *st.io_for("primitives")
+    )
+    vis = runner.stage(
+        "visibility", keys["visibility"], lambda p: st.visibility(scene, prims, cfg, p), *st.io_for("visibility")
+    )
+    fused = runner.stage("fusion", keys["fusion"], lambda p: st.fusion(scene, vis, prims, cfg, p), *st.io_for("fusion"))
     field_ = None
     if cfg.features_source == "field":
-        field_ = runner.stage("language_field", keys["language_field"],
-                              lambda p: st.language_field(prims, fused, cfg, p), *st.io_for("language_field"))
+        field_ = runner.stage(
+            "language_field",
+            keys["language_field"],
+            lambda p: st.language_field(prims, fused, cfg, p),
+            *st.io_for("language_field"),
+        )
     features = st.primitive_features(field_, fused, cfg)
-    graph = runner.stage("superprimitives", keys["superprimitives"],
-                         lambda p: st.superprimitives(prims, features, cfg, p), *st.io_for("superprimitives"))
+    graph = runner.stage(
+        "superprimitives",
+        keys["superprimitives"],
+        lambda p: st.superprimitives(prims, features, cfg, p),
+        *st.io_for("superprimitives"),
+    )
     masks = runner.stage("masks", keys["masks"], lambda p: st.masks(scene, vis, p), *st.io_for("masks"))
-    clusters = runner.stage("clustering", keys["clustering"],
-                            lambda p: st.clustering(graph, masks, features, cfg, p), *st.io_for("clustering"))
-    labels = runner.stage("labeling", keys["labeling"],
-                          lambda p: st.labeling(prims, features, graph, clusters, vocab, cfg),
-                          *st.io_for("labeling"))
+    clusters = runner.stage(
+        "clustering",
+        keys["clustering"],
+        lambda p: st.clustering(graph, masks, features, cfg, p),
+        *st.io_for("clustering"),
+    )
+    labels = runner.stage(
+        "labeling",
+        keys["labeling"],
+        lambda p: st.labeling(prims, features, graph, clusters, vocab, cfg),
+        *st.io_for("labeling"),
+    )
 
     def export(_: ProgressFn) -> PipelineResult:
         from panogs_core.export import write_outputs
 
         files, metrics = write_outputs(out, scene, prims, fused, graph, clusters, labels, vocab)
         return PipelineResult(
-            out_dir=out, scene_name=scene.name, num_primitives=int(prims.points.shape[0]),
-            instances=[i.to_json() for i in labels.instances], timings=runner.timings, metrics=metrics,
+            out_dir=out,
+            scene_name=scene.name,
+            num_primitives=int(prims.points.shape[0]),
+            instances=[i.to_json() for i in labels.instances],
+            timings=runner.timings,
+            metrics=metrics,
             files=files,
         )
 
     result = runner.stage("export", "", export)
-    _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, time.perf_counter() - t_start,
-                  result)
+    _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, time.perf_counter() - t_start, result)
     return result
 
 

@@ -41,8 +41,12 @@ class StageStats:
 
     def to_json(self) -> dict[str, object]:
         """Plain dict for report.json."""
-        return {"stage": self.name, "wall_s": round(self.wall_s, 3), "peak_rss_mb": round(self.peak_rss_mb, 1),
-                "cached": self.cached}
+        return {
+            "stage": self.name,
+            "wall_s": round(self.wall_s, 3),
+            "peak_rss_mb": round(self.peak_rss_mb, 1),
+            "cached": self.cached,
+        }
 
 
 class StageTimer:

@@ -43,8 +43,9 @@ def load_vocabulary(out_dir: Path) -> tuple[Vocabulary, str]:
     embeddings = None
     if doc.get("embeddings"):
         embeddings = np.load(out_dir / str(doc["embeddings"]), allow_pickle=False).astype(np.float32)
-    vocab = Vocabulary(names=tuple(c["name"] for c in classes), kinds=tuple(c["kind"] for c in classes),
-                       embeddings=embeddings)
+    vocab = Vocabulary(
+        names=tuple(c["name"] for c in classes), kinds=tuple(c["kind"] for c in classes), embeddings=embeddings
+    )
     return vocab, str(doc.get("space", ""))
 
 
@@ -66,10 +67,16 @@ def load_result(out_dir: str | Path) -> LoadedResult:
         raise InputError(f"{feats_path}: {feats.shape[0]} rows but instances.json lists {len(rows)} instances")
     instances = tuple(
         InstanceInfo(
-            id=int(r["id"]), class_index=int(r["class_index"]), class_name=str(r["class_name"]),
-            kind=str(r["kind"]), score=float(r["score"]), num_points=int(r["num_points"]),
-            centroid=np.asarray(r["centroid"], np.float32), bbox_min=np.asarray(r["bbox_min"], np.float32),
-            bbox_max=np.asarray(r["bbox_max"], np.float32), feature=feats[i],
+            id=int(r["id"]),
+            class_index=int(r["class_index"]),
+            class_name=str(r["class_name"]),
+            kind=str(r["kind"]),
+            score=float(r["score"]),
+            num_points=int(r["num_points"]),
+            centroid=np.asarray(r["centroid"], np.float32),
+            bbox_min=np.asarray(r["bbox_min"], np.float32),
+            bbox_max=np.asarray(r["bbox_max"], np.float32),
+            feature=feats[i],
         )
         for i, r in enumerate(rows)
     )

@@ -58,16 +58,16 @@ class GraphStage:
     knn: Any  # KnnGraph
 
     def save(self, path: Path) -> None:
-        np.savez(path, labels=self.superprimitives.labels, neighbors=self.knn.neighbors,
-                 distances=self.knn.distances)
+        np.savez(path, labels=self.superprimitives.labels, neighbors=self.knn.neighbors, distances=self.knn.distances)
 
     @classmethod
     def load(cls, path: Path) -> GraphStage:
         from panogs_core.superprimitives import KnnGraph, SuperPrimitives
 
         with np.load(path, allow_pickle=False) as z:
-            return cls(SuperPrimitives(labels=z["labels"]), KnnGraph(neighbors=z["neighbors"],
-                                                                     distances=z["distances"]))
+            return cls(
+                SuperPrimitives(labels=z["labels"]), KnnGraph(neighbors=z["neighbors"], distances=z["distances"])
+            )
 
 
 def io_for(stage: str) -> tuple[Callable[[Path], Any], Callable[[Any, Path], None]]:
@@ -76,8 +76,7 @@ def io_for(stage: str) -> tuple[Callable[[Path], Any], Callable[[Any, Path], Non
         "primitives": lambda: __import__("panogs_core.primitives", fromlist=["Primitives"]).Primitives,
         "visibility": lambda: __import__("panogs_core.visibility", fromlist=["Visibility"]).Visibility,
         "fusion": lambda: __import__("panogs_core.fusion", fromlist=["FusedFeatures"]).FusedFeatures,
-        "language_field": lambda: __import__("panogs_core.language_field",
-                                             fromlist=["LanguageField"]).LanguageField,
+        "language_field": lambda: __import__("panogs_core.language_field", fromlist=["LanguageField"]).LanguageField,
         "superprimitives": lambda: GraphStage,
         "masks": lambda: __import__("panogs_core.affinity", fromlist=["MaskObservations"]).MaskObservations,
         "clustering": lambda: __import__("panogs_core.clustering", fromlist=["Clusters"]).Clusters,
@@ -127,8 +126,7 @@ def superprimitives(prims: Any, features: np.ndarray, cfg: PipelineConfig, progr
 
     knn = build_knn(prims.points, cfg.superprimitives.k_neighbors)
     feats = features if cfg.superprimitives.use_language else None
-    sp = graph_cut_superprimitives(prims.points, prims.normals, feats, knn, cfg.superprimitives,
-                                   on_progress=progress)
+    sp = graph_cut_superprimitives(prims.points, prims.normals, feats, knn, cfg.superprimitives, on_progress=progress)
     return GraphStage(sp, knn)
 
 
@@ -138,16 +136,25 @@ def masks(scene: Scene, vis: Any, progress: ProgressFn) -> Any:
     return observe_masks(scene, vis, on_progress=progress)
 
 
-def clustering(graph: GraphStage, observations: Any, features: np.ndarray, cfg: PipelineConfig,
-               progress: ProgressFn) -> Any:
+def clustering(
+    graph: GraphStage, observations: Any, features: np.ndarray, cfg: PipelineConfig, progress: ProgressFn
+) -> Any:
     from panogs_core.clustering import progressive_clustering
 
-    return progressive_clustering(graph.superprimitives, graph.knn, observations, cfg.clustering, cfg.affinity,
-                                  features=features, on_progress=progress)
+    return progressive_clustering(
+        graph.superprimitives,
+        graph.knn,
+        observations,
+        cfg.clustering,
+        cfg.affinity,
+        features=features,
+        on_progress=progress,
+    )
 
 
-def labeling(prims: Any, features: np.ndarray, graph: GraphStage, clusters: Any, vocab: Vocabulary,
-             cfg: PipelineConfig) -> Any:
+def labeling(
+    prims: Any, features: np.ndarray, graph: GraphStage, clusters: Any, vocab: Vocabulary, cfg: PipelineConfig
+) -> Any:
     from panogs_core.labeling import assign_panoptic
 
     return assign_panoptic(prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling)

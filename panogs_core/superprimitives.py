@@ -41,6 +41,7 @@ class SuperPrimitiveConfig:
     # DEPARTURE candidate (default off = reference): normals are unoriented, so 1 - n_a . n_b reaches 2 on a
     # flat surface where signs flip; True uses 1 - |n_a . n_b| instead.
     orient_invariant: bool = False
+    small_merge_order: str = "construction"
 
     def __post_init__(self) -> None:
         _require(self.k_neighbors >= 1, "k_neighbors", ">= 1", self.k_neighbors)
@@ -191,7 +192,10 @@ def graph_cut_superprimitives(
     order = np.argsort(weights, kind="stable")  # ties keep construction order (pitfall 12)
     forest = _Forest(n)
     _fh_merge(forest, src[order], dst[order], weights[order], features, cfg, chunk_done)
-    _merge_small(forest, src, dst, cfg.min_size)
+    if cfg.small_merge_order == "weight":
+        _merge_small(forest, src[order], dst[order], cfg.min_size)
+    else:
+        _merge_small(forest, src, dst, cfg.min_size)
     _, labels = np.unique(forest.roots(), return_inverse=True)
     report(on_progress, total, total)
     return SuperPrimitives(labels=labels.astype(np.int64))

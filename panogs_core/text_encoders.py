@@ -79,8 +79,9 @@ class MiniLMEncoder:
     def encode(self, texts: list[str]) -> np.ndarray:
         """Embed raw texts; rows unit length."""
         with self._lock:
-            out = self._model.encode(list(texts), convert_to_numpy=True, normalize_embeddings=True,
-                                     show_progress_bar=False)
+            out = self._model.encode(
+                list(texts), convert_to_numpy=True, normalize_embeddings=True, show_progress_bar=False
+            )
         return _normalise(out)
 
 
@@ -103,9 +104,7 @@ class ClipTextEncoder:
             self._tokenizer = AutoTokenizer.from_pretrained(model_path)
             self._model = CLIPModel.from_pretrained(model_path).eval()
         except (OSError, ValueError) as exc:
-            raise EncoderUnavailableError(
-                f"clip-vit-b32: cannot load a CLIP model from {model_path!r}: {exc}"
-            ) from exc
+            raise EncoderUnavailableError(f"clip-vit-b32: cannot load a CLIP model from {model_path!r}: {exc}") from exc
         self._torch = torch
         self.dim = int(self._model.config.projection_dim)
         # Truncate to the model's context (77 for CLIP): a tokenizer folder without tokenizer_config.json has
@@ -116,8 +115,9 @@ class ClipTextEncoder:
     def encode(self, texts: list[str]) -> np.ndarray:
         """Embed raw texts; rows unit length."""
         with self._lock, self._torch.inference_mode():
-            tokens = self._tokenizer(list(texts), padding=True, truncation=True, max_length=self._max_length,
-                                     return_tensors="pt")
+            tokens = self._tokenizer(
+                list(texts), padding=True, truncation=True, max_length=self._max_length, return_tensors="pt"
+            )
             out = self._model.get_text_features(**tokens)
             if not isinstance(out, self._torch.Tensor):  # newer transformers return a model output
                 out = out.pooler_output if getattr(out, "pooler_output", None) is not None else out[0]

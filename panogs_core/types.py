@@ -55,9 +55,7 @@ class Vocabulary:
         if len(self.names) != len(self.kinds):
             raise ValueError(f"vocabulary: {len(self.names)} names but {len(self.kinds)} kinds")
         if self.embeddings is not None and self.embeddings.shape[0] != len(self.names):
-            raise ValueError(
-                f"vocabulary: {len(self.names)} names but embeddings of shape {self.embeddings.shape}"
-            )
+            raise ValueError(f"vocabulary: {len(self.names)} names but embeddings of shape {self.embeddings.shape}")
 
     @property
     def is_thing(self) -> np.ndarray:  # (L,) bool

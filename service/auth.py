@@ -80,17 +80,25 @@ class KeyVerifier:
         self._cache: dict[str, tuple[float, Tenant | None]] = {}
         self._lock = threading.Lock()
 
+    def cached(self, key: str) -> tuple[bool, Tenant | None]:
+        """(True, tenant or None) when the answer for ``key`` is known without the database."""
+        if KEY_PATTERN.match(key) is None:
+            return True, None
+        with self._lock:
+            hit = self._cache.get(hash_key(key))
+        if hit is not None and hit[0] > time.monotonic():
+            return True, hit[1]
+        return False, None
+
     def verify(self, session: Session, key: str) -> Tenant | None:
         """The tenant of ``key``, or None when the key is malformed, unknown or revoked."""
+        known, tenant = self.cached(key)
+        if known:
+            return tenant
         match = KEY_PATTERN.match(key)
-        if match is None:
-            return None
+        assert match is not None  # cached() answers for malformed keys
         digest = hash_key(key)
         now = time.monotonic()
-        with self._lock:
-            hit = self._cache.get(digest)
-        if hit is not None and hit[0] > now:
-            return hit[1]
         row = session.scalar(select(ApiKey).where(ApiKey.prefix == match.group(1)))
         tenant = None
         if row is not None and row.revoked_at is None and hmac.compare_digest(row.key_hash, digest):

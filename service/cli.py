@@ -30,9 +30,7 @@ def add_service_commands(subparsers: Any) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR; default ./panogs-data)")
-    p.add_argument(
-        "--no-worker", action="store_true", help="API only (the scaled deployment runs workers apart)"
-    )
+    p.add_argument("--no-worker", action="store_true", help="API only (the scaled deployment runs workers apart)")
     p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes")
     p.set_defaults(func=cmd_serve)
 
@@ -88,7 +86,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if not args.no_worker:
         command = [sys.executable, "-m", "service.cli", "worker"]
         # Its own session: the terminal's Ctrl-C reaches only us, and we stop the worker in order.
-        worker = subprocess.Popen(command, start_new_session=True)
+        worker = subprocess.Popen(command, start_new_session=True, preexec_fn=_die_with_parent)
         logger.info("worker started (pid %d)", worker.pid)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # docker stop: same clean path as Ctrl-C
     try:
@@ -106,6 +104,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
         if worker is not None:
             _stop_worker(worker)
     return 0
+
+
+def _die_with_parent() -> None:
+    """In the worker child: get SIGTERM when ``serve`` dies, even by SIGKILL (Linux; elsewhere a no-op)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def _stop_worker(worker: subprocess.Popen[bytes]) -> None:

@@ -59,9 +59,7 @@ class EncoderProcess:
             return self._conn
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(
-            target=_serve, args=(child, self._model_path), name="panogs-text-encoder", daemon=True
-        )
+        self._proc = ctx.Process(target=_serve, args=(child, self._model_path), name="panogs-text-encoder", daemon=True)
         self._proc.start()
         child.close()
         self._conn = parent

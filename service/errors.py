@@ -146,9 +146,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = [
-            f"{_format_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in exc.errors()
-        ]
+        problems = [f"{_format_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in exc.errors()]
         body = {"type": "invalid_input", "message": "the request is not valid", "problems": problems}
         return JSONResponse(body, status_code=422)
 
@@ -160,18 +158,14 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(DBAPIError)
     async def _database_error(request: Request, exc: DBAPIError) -> JSONResponse:
         # A database that is briefly away is the client's cue to retry, not a server bug.
-        logger.warning(
-            "database error on %s %s: %s", request.method, request.url.path, type(exc.orig).__name__
-        )
+        logger.warning("database error on %s %s: %s", request.method, request.url.path, type(exc.orig).__name__)
         body = {"type": "service_unavailable", "message": "the database is unavailable; retry shortly"}
         return JSONResponse(body, status_code=503, headers={"Retry-After": "2"})
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         request_id = uuid.uuid4().hex[:12]
-        logger.exception(
-            "unhandled error on %s %s (request %s)", request.method, request.url.path, request_id
-        )
+        logger.exception("unhandled error on %s %s (request %s)", request.method, request.url.path, request_id)
         body = {
             "type": "internal_error",
             "message": f"internal error (request {request_id}); see the server log",

@@ -9,6 +9,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+from sqlalchemy import Engine, Row
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -95,7 +96,16 @@ def _same_request(session: Session, tenant_id: uuid.UUID, key: str, fingerprint:
     return earlier
 
 
-def to_public(job: Job) -> JobPublic:
+def read_public(engine: Engine, job_id: uuid.UUID, tenant_id: uuid.UUID) -> JobPublic:
+    """A tenant's job as the API shows it: the status-poll path, one autocommit statement and no ORM."""
+    with engine.connect() as conn:
+        row = crud.read_job_row(conn, job_id, tenant_id)
+    if row is None:
+        raise NotFound("job", job_id)
+    return to_public(row)
+
+
+def to_public(job: Job | Row[Any]) -> JobPublic:
     """The API view of a job."""
     error = JobError(type=job.error_type, message=job.error_message or "") if job.error_type else None
     return JobPublic(

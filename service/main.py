@@ -37,9 +37,7 @@ and jobs. Errors are JSON: `{"type": ..., "message": ..., "problems": [...]}`.
 """
 
 
-def create_app(
-    settings: Settings | None = None, *, sender: Sender | None = None, run_reaper: bool = True
-) -> FastAPI:
+def create_app(settings: Settings | None = None, *, sender: Sender | None = None, run_reaper: bool = True) -> FastAPI:
     """The application for ``settings`` (default: from the environment).
 
     Args:

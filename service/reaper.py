@@ -29,9 +29,7 @@ logger = logging.getLogger(__name__)
 DISPATCH_GRACE_S = 2.0  # a new job's own request publishes it; the reaper steps in after this
 
 
-def sweep(
-    settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage
-) -> dict[str, int]:
+def sweep(settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage) -> dict[str, int]:
     """One pass; returns how many jobs were re-queued, failed and published, and uploads deleted."""
     counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0}
     silent_since = crud.stale_cutoff(settings.heartbeat_timeout_s)
@@ -44,17 +42,10 @@ def sweep(
                 )
                 counts["failed"] += crud.fail_lost(session, job, silent_since, "WorkerLost", message)
             elif crud.requeue_lost(session, job, silent_since):
-                logger.warning(
-                    "job %s: worker %s lost (attempt %d); re-queued", job.id, job.worker, job.attempts
-                )
+                logger.warning("job %s: worker %s lost (attempt %d); re-queued", job.id, job.worker, job.attempts)
                 counts["requeued"] += 1
-        pending = [
-            (job.id, job.queue)
-            for job in crud.undispatched_jobs(session, crud.stale_cutoff(DISPATCH_GRACE_S))
-        ]
-        stale = [
-            (u.id, u.path) for u in crud.stale_uploads(session, crud.stale_cutoff(settings.upload_ttl_s))
-        ]
+        pending = [(job.id, job.queue) for job in crud.undispatched_jobs(session, crud.stale_cutoff(DISPATCH_GRACE_S))]
+        stale = [(u.id, u.path) for u in crud.stale_uploads(session, crud.stale_cutoff(settings.upload_ttl_s))]
         for upload_id, rel in stale:
             storage.remove_tree(storage.path(rel).parent)
             crud.delete_upload(session, upload_id)
@@ -67,9 +58,7 @@ def sweep(
 class Reaper:
     """Runs :func:`sweep` every ``reaper_interval_s`` in a daemon thread until stopped."""
 
-    def __init__(
-        self, settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage
-    ) -> None:
+    def __init__(self, settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage) -> None:
         self._args = (settings, factory, sender, storage)
         self._interval = settings.reaper_interval_s
         self._stop = threading.Event()

@@ -49,9 +49,7 @@ def create_scene(
         discard_upload(session, storage, upload)
         raise InvalidBundle(
             "the upload is not a bundle archive; nothing was kept",
-            problems=[
-                f"{upload.filename or 'upload'}: not a .zip, .tar or .tar.gz archive (by its first bytes)"
-            ],
+            problems=[f"{upload.filename or 'upload'}: not a .zip, .tar or .tar.gz archive (by its first bytes)"],
         )
     archive = source.with_name("bundle" + suffix)  # open_bundle tells archive kinds by their suffix
     source.rename(archive)

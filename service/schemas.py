@@ -37,9 +37,7 @@ class ErrorBody(BaseModel):
 
     type: str = Field(description="stable machine-readable error kind, e.g. not_found, invalid_bundle")
     message: str
-    problems: list[str] | None = Field(
-        default=None, description="one line per problem, when there are several"
-    )
+    problems: list[str] | None = Field(default=None, description="one line per problem, when there are several")
 
 
 # Uploads ---------------------------------------------------------------------------------------------------

@@ -44,9 +44,7 @@ class Settings(BaseSettings):
     worker_queues: str = "cpu"  # comma-separated queues a worker consumes
     worker_pool: Literal["solo", "prefork", "threads"] = "solo"  # one job per worker process by default
     worker_concurrency: int = Field(default=1, gt=0)
-    job_time_limit_s: float = Field(
-        default=6 * 3600, gt=0
-    )  # a running job past this fails (checked in progress)
+    job_time_limit_s: float = Field(default=6 * 3600, gt=0)  # a running job past this fails (checked in progress)
     broker_visibility_timeout_s: int = Field(default=12 * 3600, gt=0)  # must exceed job_time_limit_s
     heartbeat_interval_s: float = Field(default=10.0, gt=0)  # how often a running job proves its worker alive
     heartbeat_timeout_s: float = Field(default=60.0, gt=0)  # silent this long: the worker is presumed lost
@@ -80,9 +78,7 @@ class Settings(BaseSettings):
                 if not value:
                     raise ValueError(f"PANOGS_{name.upper()} must be set in production")
                 if PLACEHOLDER_SECRET in value:
-                    raise ValueError(
-                        f"PANOGS_{name.upper()} still holds the placeholder {PLACEHOLDER_SECRET!r}"
-                    )
+                    raise ValueError(f"PANOGS_{name.upper()} still holds the placeholder {PLACEHOLDER_SECRET!r}")
         return self
 
     @property

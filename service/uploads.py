@@ -52,9 +52,7 @@ def tus_headers(**extra: Any) -> dict[str, str]:
 def check_tus_version(value: str | None) -> None:
     """A client that names a tus version must name 1.0.0."""
     if value is not None and value != TUS_VERSION:
-        raise PreconditionFailed(
-            f"Tus-Resumable {value!r} is not supported; this server speaks {TUS_VERSION}"
-        )
+        raise PreconditionFailed(f"Tus-Resumable {value!r} is not supported; this server speaks {TUS_VERSION}")
 
 
 def parse_metadata(header: str | None) -> dict[str, str]:
@@ -65,9 +63,7 @@ def parse_metadata(header: str | None) -> dict[str, str]:
     for pair in header.split(","):
         parts = pair.strip().split(" ")
         if not parts[0] or len(parts) > 2:
-            raise InvalidInput(
-                f"Upload-Metadata: malformed pair {pair.strip()!r}; expected 'key base64value'"
-            )
+            raise InvalidInput(f"Upload-Metadata: malformed pair {pair.strip()!r}; expected 'key base64value'")
         try:
             out[parts[0]] = base64.b64decode(parts[1], validate=True).decode() if len(parts) == 2 else ""
         except (binascii.Error, UnicodeDecodeError) as exc:
@@ -172,9 +168,7 @@ async def receive_body(
         )
     path = storage.path(upload.path)
     running = await anyio.to_thread.run_sync(hashes.take, upload.id, path, upload.offset)
-    writer = await anyio.to_thread.run_sync(
-        ChunkWriter, path, upload.offset, running, checksum and checksum[0]
-    )
+    writer = await anyio.to_thread.run_sync(ChunkWriter, path, upload.offset, running, checksum and checksum[0])
     buffer = bytearray()
     try:
         async for chunk in request.stream():
@@ -222,8 +216,7 @@ def record_bytes(
     if upload.expected_sha256 is not None and upload.expected_sha256 != digest:
         discard_upload(session, storage, upload)
         raise ChecksumMismatch(
-            f"the upload's SHA-256 is {digest}, Upload-Metadata said {upload.expected_sha256}; "
-            "it was discarded"
+            f"the upload's SHA-256 is {digest}, Upload-Metadata said {upload.expected_sha256}; it was discarded"
         )
     upload.sha256 = digest
     upload.state = UploadState.COMPLETE

@@ -184,7 +184,7 @@ PRESETS: dict[str, SyntheticSpec] = {
                            room_width=(3.6, 4.4)),
     "default": SyntheticSpec(name="default"),
     "large": SyntheticSpec(
-        name="large", num_frames=120, num_points=180_000, room_length=(10.0, 12.0), room_width=(7.0, 8.5),
+        name="large", num_frames=120, num_points=152_000, room_length=(10.0, 12.0), room_width=(7.0, 8.5),
         room_height=(2.7, 3.0), zone_length=3.6, feature_space="clip-vit-b32",
     ),
 }  # fmt: skip

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -20,15 +21,16 @@ from service.settings import Settings
 from service.storage import Storage
 
 
-def _settings(request: Request) -> Settings:
+# Plain attribute reads: async, so that FastAPI does not hop to its threadpool for them.
+async def _settings(request: Request) -> Settings:
     return request.app.state.settings  # type: ignore[no-any-return]
 
 
-def _factory(request: Request) -> sessionmaker[Session]:
+async def _factory(request: Request) -> sessionmaker[Session]:
     return request.app.state.session_factory  # type: ignore[no-any-return]
 
 
-def _storage(request: Request) -> Storage:
+async def _storage(request: Request) -> Storage:
     return request.app.state.storage  # type: ignore[no-any-return]
 
 
@@ -47,20 +49,27 @@ SessionDep = Annotated[Session, Depends(_session)]
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer pgs_...`")
 
 
-def _tenant(
+async def _tenant(
     request: Request,
     factory: FactoryDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Tenant:
-    # Its own short session: streaming upload routes must not hold a connection for the whole body.
+    # A key seen in the last api_key_cache_s seconds is answered from memory; otherwise one short session of
+    # its own (streaming upload routes must not hold a connection for the whole body).
     if credentials is None:
         raise Unauthorized("missing API key: send Authorization: Bearer <key>")
     verifier: KeyVerifier = request.app.state.key_verifier
-    with session_scope(factory) as session:
-        tenant = verifier.verify(session, credentials.credentials)
+    known, tenant = verifier.cached(credentials.credentials)
+    if not known:
+        tenant = await run_in_threadpool(_verify, factory, verifier, credentials.credentials)
     if tenant is None:
         raise Unauthorized("invalid or revoked API key")
     return tenant
+
+
+def _verify(factory: sessionmaker[Session], verifier: KeyVerifier, key: str) -> Tenant | None:
+    with session_scope(factory) as session:
+        return verifier.verify(session, key)
 
 
 TenantDep = Annotated[Tenant, Depends(_tenant)]

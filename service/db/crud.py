@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any, TypeVar
 
-from sqlalchemy import ColumnElement, delete, func, or_, select, update
+from sqlalchemy import ColumnElement, Connection, Row, delete, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.db.base import Base, utcnow
@@ -46,6 +46,13 @@ def list_owned(
     return rows, count
 
 
+def read_job_row(conn: Connection, job_id: uuid.UUID, tenant_id: uuid.UUID) -> Row[Any] | None:
+    """A tenant's job as a plain row (attribute access like the model), in one statement."""
+    table = Job.__table__
+    stmt = select(table).where(table.c.id == job_id, table.c.api_key_id == tenant_id)
+    return conn.execute(stmt).first()
+
+
 # Uploads ---------------------------------------------------------------------------------------------------
 
 
@@ -70,9 +77,7 @@ def stale_uploads(session: Session, older_than: datetime) -> list[Upload]:
 def set_upload_state(session: Session, upload_id: uuid.UUID, old: UploadState, new: UploadState) -> bool:
     """Move an upload from ``old`` to ``new``; False when it was not in ``old`` (someone else moved it)."""
     result = session.execute(
-        update(Upload)
-        .where(Upload.id == upload_id, Upload.state == old)
-        .values(state=new, updated_at=utcnow())
+        update(Upload).where(Upload.id == upload_id, Upload.state == old).values(state=new, updated_at=utcnow())
     )
     session.commit()
     return result.rowcount == 1  # type: ignore[attr-defined]
@@ -121,9 +126,7 @@ def request_cancel(session: Session, job: Job) -> Job:
 
 def undispatched_jobs(session: Session, older_than: datetime) -> list[Job]:
     """Queued jobs whose message never reached the broker (it was away when they were created)."""
-    stmt = select(Job).where(
-        Job.state == JobState.QUEUED, Job.enqueued_at.is_(None), Job.created_at < older_than
-    )
+    stmt = select(Job).where(Job.state == JobState.QUEUED, Job.enqueued_at.is_(None), Job.created_at < older_than)
     return list(session.scalars(stmt.limit(100)))
 
 
@@ -165,9 +168,7 @@ def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: st
 # Jobs: worker side -----------------------------------------------------------------------------------------
 
 
-def claim_job(
-    session: Session, job_id: uuid.UUID, lease: str, worker: str, stale_before: datetime
-) -> Job | None:
+def claim_job(session: Session, job_id: uuid.UUID, lease: str, worker: str, stale_before: datetime) -> Job | None:
     """Take a job for this task: a queued job, a re-delivery of our own task, or a running job gone silent.
 
     Returns the job (now ``running`` under ``lease``), or None when it is not ours to run: finished, canceled,

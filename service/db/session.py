@@ -30,8 +30,15 @@ def get_engine(url: str) -> Engine:
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    # pre-ping: a database that restarted is reconnected to on the next checkout instead of failing once.
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20, pool_timeout=10)
+    # No pre-ping (a round trip per checkout): a connection broken by a database restart fails one request with
+    # 503 and SQLAlchemy then invalidates the whole pool; the worker retries (runner.with_db_retry).
+    return create_engine(url, pool_size=10, max_overflow=20, pool_timeout=10, pool_recycle=1800)
+
+
+@functools.cache
+def get_read_engine(url: str) -> Engine:
+    """The engine of ``url`` in autocommit mode, for single-statement reads: no BEGIN/ROLLBACK round trips."""
+    return get_engine(url).execution_options(isolation_level="AUTOCOMMIT")
 
 
 @functools.cache

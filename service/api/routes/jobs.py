@@ -6,11 +6,13 @@ import uuid
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
 
 from service import jobs
 from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, TenantDep
 from service.db import crud
 from service.db.models import Job, JobState
+from service.db.session import get_read_engine
 from service.errors import Conflict
 from service.queue import dispatch
 from service.schemas import MAX_OFFSET, JobCreate, JobPublic, JobsPublic, Page, error_responses
@@ -30,9 +32,7 @@ def create_job(
     settings: SettingsDep,
     idempotency_key: Annotated[
         str | None,
-        Header(
-            alias="Idempotency-Key", min_length=1, max_length=255, description="a retry returns the same job"
-        ),
+        Header(alias="Idempotency-Key", min_length=1, max_length=255, description="a retry returns the same job"),
     ] = None,
 ) -> JobPublic:
     """Queue a pipeline run on a scene. Poll ``GET /v1/jobs/{id}`` for its progress."""
@@ -60,20 +60,21 @@ def list_jobs(
     if scene_id is not None:
         filters.append(Job.scene_id == scene_id)
     rows, count = crud.list_owned(session, Job, tenant.id, filters=filters, limit=limit, offset=offset)
-    return JobsPublic(
-        data=[jobs.to_public(r) for r in rows], count=count, page=Page(limit=limit, offset=offset)
-    )
+    return JobsPublic(data=[jobs.to_public(r) for r in rows], count=count, page=Page(limit=limit, offset=offset))
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=_ERRORS)
-def get_job(job: JobDep) -> JobPublic:
-    """A job's state, stage, progress, per-stage timings and error."""
-    return jobs.to_public(job)
+async def get_job(job_id: uuid.UUID, tenant: TenantDep, settings: SettingsDep) -> Response:
+    """A job's state, stage, progress, per-stage timings and error.
+
+    The status-poll path: one threadpool hop for one autocommit SELECT, and the body serialised once.
+    """
+    engine = get_read_engine(settings.database)
+    public = await run_in_threadpool(jobs.read_public, engine, job_id, tenant.id)
+    return Response(public.model_dump_json(), media_type="application/json")
 
 
-@router.post(
-    "/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic, responses=_ERRORS
-)
+@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic, responses=_ERRORS)
 def cancel_job(job: JobDep, session: SessionDep) -> JobPublic:
     """Cancel a job: a queued one at once, a running one at its next progress step (``cancel_requested``)."""
     if job.state in (JobState.SUCCEEDED, JobState.FAILED):

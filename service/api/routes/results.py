@@ -79,9 +79,7 @@ def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileRespon
 
 
 @router.post("/query", response_model=QueryResult, responses=_ERRORS)
-def query(
-    job: JobDep, body: QueryCreate, request: Request, storage: StorageDep, settings: SettingsDep
-) -> QueryResult:
+def query(job: JobDep, body: QueryCreate, request: Request, storage: StorageDep, settings: SettingsDep) -> QueryResult:
     """Rank the job's instances against a class name, free text or a ``(D,)`` vector; best first."""
     loaded = request.app.state.results.get(job.id, storage.job_dir(_finished(job).id))
     encoder = request.app.state.encoder if settings.query_encoder == "process" else None

@@ -112,12 +112,8 @@ async def append(
     tenant: TenantDep,
     storage: StorageDep,
     factory: FactoryDep,
-    upload_offset: Annotated[
-        int, Header(alias="Upload-Offset", ge=0, description="must equal the current offset")
-    ],
-    upload_checksum: Annotated[
-        str | None, Header(alias="Upload-Checksum", description="sha256 <base64>")
-    ] = None,
+    upload_offset: Annotated[int, Header(alias="Upload-Offset", ge=0, description="must equal the current offset")],
+    upload_checksum: Annotated[str | None, Header(alias="Upload-Checksum", description="sha256 <base64>")] = None,
     tus_resumable: TusVersion = None,
 ) -> Response:
     """Append the body at ``Upload-Offset`` (which must be the offset the server has)."""

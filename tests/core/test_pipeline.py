@@ -1,0 +1,153 @@
+"""End to end: a tiny synthetic scene through every stage, the outputs, resume, queries and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panogs_core.cli import main as cli_main
+from panogs_core.config import PipelineConfig
+from panogs_core.errors import BundleError
+from panogs_core.io.ply import read_ply_vertices
+from panogs_core.pipeline import STAGES, run_pipeline
+from panogs_core.query import query_instances
+from panogs_core.results import load_result
+from panogs_core.synthetic import make_scene
+
+# The CLIP label-set space needs no text encoder, which keeps this module fast.
+SPACE = "clip-vit-b32"
+
+
+@pytest.fixture(scope="module")
+def tiny_bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_scene(
+        tmp_path_factory.mktemp("bundle") / "tiny", preset="tiny", difficulty="easy", seed=0, feature_space=SPACE
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_bundle: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object, list]:
+    out = tmp_path_factory.mktemp("run")
+    seen: list[tuple[str, int, int]] = []
+    result = run_pipeline(tiny_bundle, out, on_progress=lambda s, d, t: seen.append((s, d, t)))
+    return out, result, seen
+
+
+def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> None:
+    out, result, _ = tiny_run
+    for name in (
+        "panoptic.ply",
+        "labels.npz",
+        "instances.json",
+        "instance_features.npy",
+        "gaussians.ply",
+        "report.json",
+        "metrics.json",
+        "vocabulary.json",
+    ):
+        assert (out / name).is_file(), name
+    ply = read_ply_vertices(out / "panoptic.ply")
+    assert set(ply) >= {"x", "y", "z", "red", "green", "blue", "semantic", "instance"}
+    labels = np.load(out / "labels.npz")
+    n = result.num_primitives
+    assert labels["semantic"].shape == labels["instance"].shape == ply["x"].shape == (n,)
+    instances = json.loads((out / "instances.json").read_text())
+    ids = {i["id"] for i in instances}
+    assert set(np.unique(labels["instance"][labels["instance"] >= 0]).tolist()) == ids
+    for inst in instances:  # each instance's points carry its class, and lie in its box
+        member = labels["instance"] == inst["id"]
+        assert member.sum() == inst["num_points"]
+        assert np.all(labels["semantic"][member] == inst["class_index"])
+        pts = np.stack([ply["x"], ply["y"], ply["z"]], 1)[member]
+        assert np.all(pts >= np.array(inst["bbox_min"]) - 1e-5)
+        assert np.all(pts <= np.array(inst["bbox_max"]) + 1e-5)
+    gauss = read_ply_vertices(out / "gaussians.ply")
+    assert {"f_dc_0", "opacity", "scale_0", "rot_0", "semantic"} <= set(gauss)
+
+
+def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:
+    out, _, seen = tiny_run
+    report = json.loads((out / "report.json").read_text())
+    assert [s["stage"] for s in report["stages"]] == list(STAGES)
+    assert all(s["wall_s"] >= 0 and s["peak_rss_mb"] > 0 for s in report["stages"])
+    assert len(report["input_sha256"]) == 64
+    assert PipelineConfig.from_dict(report["config"]) == PipelineConfig()
+    assert {s for s, _, _ in seen} == set(STAGES)  # progress reached the caller for every stage
+
+
+def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None:
+    """Floors well below what the method reaches, so they catch breakage, not noise."""
+    _, result, _ = tiny_run
+    m = result.metrics["standard"]
+    assert m["miou"] >= 0.6
+    assert m["prq_thing"] >= 0.4
+    assert m["prq_stuff"] >= 0.6
+    assert result.metrics["paper"]["miou"] == pytest.approx(m["miou"], abs=0.2)
+
+
+def test_resume_reuses_checkpoints_and_reruns_changed_stages(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list]
+) -> None:
+    out, first, _ = tiny_run
+    cfg = PipelineConfig().with_overrides({"clustering": {"thresholds": [0.9, 0.75, 0.6]}})
+    again = run_pipeline(tiny_bundle, out, cfg)
+    cached = {t.name: t.cached for t in again.timings}
+    assert [cached[s] for s in ("fusion", "language_field", "superprimitives")] == [True] * 3
+    assert [cached[s] for s in ("clustering", "labeling")] == [False, False]
+    restored = run_pipeline(tiny_bundle, out)  # back to the defaults: same labels as the first run
+    assert restored.instances == first.instances
+
+
+def test_query_by_class_name_returns_instances_of_that_class(tiny_run: tuple[Path, object, list]) -> None:
+    out, _, _ = tiny_run
+    loaded = load_result(out)
+    things = [i for i in loaded.instances if i.kind == "thing"]
+    assert things
+    target = things[0].class_name
+    hits = query_instances(
+        loaded.instances, loaded.vocabulary, target, feature_space=loaded.feature_space, top_k=50, min_score=0.5
+    )
+    assert hits
+    assert {h.class_name for h in hits} == {target}
+    expected = {i.id for i in loaded.instances if i.class_name == target}
+    assert {h.instance_id for h in hits} <= expected
+
+
+def test_invalid_bundle_is_refused_before_any_work(tiny_bundle: Path, tmp_path: Path) -> None:
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_bundle, broken)
+    (broken / "depth" / "000003.png").write_bytes(b"not a png")
+    manifest = json.loads((broken / "scene.json").read_text())
+    manifest["frames"][1]["pose"][0][0] = float("nan")
+    (broken / "scene.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError) as info:
+        run_pipeline(broken, tmp_path / "out")
+    assert len(info.value.problems) >= 2
+    assert not (tmp_path / "out" / "labels.npz").exists()
+
+
+def test_cli_run_and_query(tiny_bundle: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "cli-run"
+    assert (
+        cli_main(["run", str(tiny_bundle), "--out", str(out), "-q", "--set", "clustering.thresholds=[0.9,0.8,0.7,0.6]"])
+        == 0
+    )
+    printed = capsys.readouterr().out
+    assert "instances" in printed
+    assert "mIoU" in printed
+    assert cli_main(["query", str(out), "wall"]) == 0
+    assert "wall" in capsys.readouterr().out
+
+
+def test_cli_reports_user_errors_cleanly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "missing" in err
+    assert "Traceback" not in err
+    assert cli_main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "-q", "--set", "clustring.x=1"]) == 2
+    assert "unknown key" in capsys.readouterr().err
