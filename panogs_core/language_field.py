@@ -52,7 +52,7 @@ class LanguageFieldConfig:
     # Small scenes get more passes, so every scene trains at least this many steps: at 4 epochs a 7.7k-point
     # scene made only 32 steps and its decoded argmax matched the true class on 0.79 of the points (CLIP
     # space); 16 epochs (128 steps) gave 0.98. Large scenes are unaffected (150k points: 600 steps).
-    min_steps: int = 400
+    min_steps: int = 150
     batch_size: int = 1024  # primitives per step (reference: 256)
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
     plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)

@@ -157,4 +157,5 @@ def labeling(
 ) -> Any:
     from panogs_core.labeling import assign_panoptic
 
-    return assign_panoptic(prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling)
+    return assign_panoptic(prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling,
+                           neighbors=graph.knn.neighbors)

@@ -16,8 +16,11 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
@@ -41,7 +44,14 @@ class SuperPrimitiveConfig:
     # DEPARTURE candidate (default off = reference): normals are unoriented, so 1 - n_a . n_b reaches 2 on a
     # flat surface where signs flip; True uses 1 - |n_a . n_b| instead.
     orient_invariant: bool = False
-    small_merge_order: str = "construction"
+    # DEPARTURE (reference 4.6 merges a segment under min_size into whichever neighbour comes first in edge
+    # construction order): "language" makes it join the adjacent segment of closest mean language feature.
+    # At 3.7 cm spacing ~46 % of chair normals are off by > 25 deg (legs, thin parts), the FH pass leaves
+    # them in 1-13 point pieces, and the reference merge glued them to the floor: super-primitive purity
+    # 0.92 -> 0.98, mIoU / PRQ(T) easy 0.85 / 0.83 -> 0.93 / 0.91 (small preset, seeds 0-1, measured with
+    # labeling.split_classes off). "weight" (FH-style, ascending edge weight) reaches purity 0.95;
+    # "construction" is the reference. Without language features "language" falls back to "weight".
+    small_merge_order: Literal["construction", "weight", "language"] = "language"
 
     def __post_init__(self) -> None:
         _require(self.k_neighbors >= 1, "k_neighbors", ">= 1", self.k_neighbors)
@@ -55,6 +65,8 @@ class SuperPrimitiveConfig:
         _require(-1.0 <= self.edge_cosine <= 1.0, "edge_cosine", "a cosine in [-1, 1]", self.edge_cosine)
         _require(-1.0 <= self.merge_cosine <= 1.0, "merge_cosine", "a cosine in [-1, 1]", self.merge_cosine)
         _require(self.min_size >= 1, "min_size", ">= 1", self.min_size)
+        _require(self.small_merge_order in ("construction", "weight", "language"), "small_merge_order",
+                 "'construction', 'weight' or 'language'", self.small_merge_order)
 
 
 def _require(ok: bool, name: str, expected: str, value: object) -> None:
@@ -192,11 +204,13 @@ def graph_cut_superprimitives(
     order = np.argsort(weights, kind="stable")  # ties keep construction order (pitfall 12)
     forest = _Forest(n)
     _fh_merge(forest, src[order], dst[order], weights[order], features, cfg, chunk_done)
-    if cfg.small_merge_order == "weight":
-        _merge_small(forest, src[order], dst[order], cfg.min_size)
+    if cfg.small_merge_order == "language" and features is not None:
+        roots = _merge_small_language(forest.roots(), src, dst, features, cfg.min_size)
     else:
-        _merge_small(forest, src, dst, cfg.min_size)
-    _, labels = np.unique(forest.roots(), return_inverse=True)
+        by_weight = cfg.small_merge_order != "construction"
+        _merge_small(forest, src[order] if by_weight else src, dst[order] if by_weight else dst, cfg.min_size)
+        roots = forest.roots()
+    _, labels = np.unique(roots, return_inverse=True)
     report(on_progress, total, total)
     return SuperPrimitives(labels=labels.astype(np.int64))
 
@@ -352,6 +366,51 @@ def _fh_merge(
             if tau[root_b] > tau_max:
                 tau_max = tau[root_b]
         chunk_done(chunk + 1)
+
+
+def _merge_small_language(
+    roots: np.ndarray,  # (N,) int64, FH root of every point
+    src: np.ndarray,  # (E,) int64
+    dst: np.ndarray,  # (E,) int64
+    features: np.ndarray,  # (N, D) float32 unit rows
+    min_size: int,
+) -> np.ndarray:  # (N,) int64, representative point (smallest root of the merged pieces) of every point
+    """Small segments join the adjacent segment whose mean language feature is closest, in rounds.
+
+    Each round, every segment below ``min_size`` picks, among the segments it shares a kNN edge with, the one
+    of highest cosine between mean features (ties: the lowest id); all picks are applied at once (connected
+    components), means are updated from the summed features, and rounds repeat until no small segment has a
+    neighbour left to join.
+    """
+    seg_root, seg = np.unique(roots, return_inverse=True)  # seg (N,) dense ids; seg_root: smallest point id
+    seg = seg.astype(np.int64)
+    sums = np.asarray(sparse.csr_matrix(
+        (np.ones(seg.size, np.float32), (seg, np.arange(seg.size))), shape=(seg_root.size, seg.size)
+    ) @ features, dtype=np.float64)  # (S, D)
+    sizes = np.bincount(seg, minlength=seg_root.size)
+    rep = seg_root.astype(np.int64)  # (S,) representative point of each segment
+    while True:
+        a, b = seg[src], seg[dst]
+        cand = (a != b) & (sizes[a] < min_size)
+        if not cand.any():
+            break
+        pa, pb = np.unique(np.stack([a[cand], b[cand]], axis=1), axis=0).T
+        unit = sums / np.maximum(np.linalg.norm(sums, axis=1, keepdims=True), 1e-12)
+        score = np.einsum("ij,ij->i", unit[pa], unit[pb])
+        order = np.lexsort((pb, -score, pa))  # per small segment: best score first, then lowest id
+        first = order[np.r_[True, pa[order][1:] != pa[order][:-1]]]
+        num = sizes.size
+        graph = sparse.csr_matrix((np.ones(first.size), (pa[first], pb[first])), shape=(num, num))
+        _, comp = csgraph.connected_components(graph, directed=True, connection="weak")
+        count = int(comp.max()) + 1
+        merged = np.full(count, np.iinfo(np.int64).max, np.int64)
+        np.minimum.at(merged, comp, rep)
+        rep = merged
+        sums = np.asarray(sparse.csr_matrix(
+            (np.ones(num), (comp, np.arange(num))), shape=(count, num)) @ sums)
+        sizes = np.bincount(comp, weights=sizes, minlength=count).astype(np.int64)
+        seg = comp[seg].astype(np.int64)
+    return rep[seg]
 
 
 def _merge_small(forest: _Forest, src: np.ndarray, dst: np.ndarray, min_size: int) -> None:

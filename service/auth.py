@@ -1,8 +1,9 @@
 """API keys: each key is a tenant. Keys look like ``pgs_<prefix>_<secret>``; only SHA-256(key) is stored.
 
 The secret has 256 bits of entropy, so a fast hash is enough (no password stretching needed); the prefix finds
-the row and the hash is compared in constant time. Lookups are cached per process for ``api_key_cache_s``
-seconds, which bounds how long a revoked key keeps working on an API process that has just seen it.
+the row and the hash is compared in constant time. Answers are cached per process for
+``api_key_cache_s`` seconds, which bounds how long a revoked key keeps working on an API process that has just
+seen it.
 """
 
 from __future__ import annotations
@@ -11,14 +12,13 @@ import hashlib
 import hmac
 import re
 import secrets
-import threading
-import time
 import uuid
 from dataclasses import dataclass
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from service.cache import TTLCache
 from service.db.base import utcnow
 from service.db.models import ApiKey
 
@@ -73,22 +73,16 @@ def revoke_api_key(session: Session, ident: str) -> ApiKey | None:
 
 
 class KeyVerifier:
-    """Checks bearer keys against the database with a short per-process cache."""
+    """Checks bearer keys against the database, remembering answers for ``ttl_s`` seconds."""
 
     def __init__(self, ttl_s: float) -> None:
-        self._ttl_s = ttl_s
-        self._cache: dict[str, tuple[float, Tenant | None]] = {}
-        self._lock = threading.Lock()
+        self._cache: TTLCache[str, Tenant | None] = TTLCache(ttl_s)
 
     def cached(self, key: str) -> tuple[bool, Tenant | None]:
         """(True, tenant or None) when the answer for ``key`` is known without the database."""
         if KEY_PATTERN.match(key) is None:
             return True, None
-        with self._lock:
-            hit = self._cache.get(hash_key(key))
-        if hit is not None and hit[0] > time.monotonic():
-            return True, hit[1]
-        return False, None
+        return self._cache.get(hash_key(key))
 
     def verify(self, session: Session, key: str) -> Tenant | None:
         """The tenant of ``key``, or None when the key is malformed, unknown or revoked."""
@@ -98,14 +92,8 @@ class KeyVerifier:
         match = KEY_PATTERN.match(key)
         assert match is not None  # cached() answers for malformed keys
         digest = hash_key(key)
-        now = time.monotonic()
         row = session.scalar(select(ApiKey).where(ApiKey.prefix == match.group(1)))
-        tenant = None
         if row is not None and row.revoked_at is None and hmac.compare_digest(row.key_hash, digest):
             tenant = Tenant(id=row.id, name=row.name)
-        if self._ttl_s > 0:
-            with self._lock:
-                if len(self._cache) > 10_000:  # bounded: forget everything rather than grow
-                    self._cache.clear()
-                self._cache[digest] = (now + self._ttl_s, tenant)
+        self._cache.put(digest, tenant)
         return tenant

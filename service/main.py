@@ -15,6 +15,7 @@ from fastapi import FastAPI
 
 from service.api.routes import health, jobs, results, scenes, uploads
 from service.auth import KeyVerifier
+from service.cache import TTLCache
 from service.db.session import get_session_factory
 from service.encoder import EncoderProcess
 from service.errors import install_error_handlers
@@ -77,6 +78,7 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.state.storage = storage
     app.state.sender = sender
     app.state.key_verifier = KeyVerifier(settings.api_key_cache_s)
+    app.state.status_cache = TTLCache(settings.status_cache_s)
     app.state.hashes = HashStates()
     app.state.active_uploads = ActiveUploads()
     app.state.results = ResultCache(settings.result_cache_size)

@@ -12,12 +12,26 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sqlalchemy import Engine
+
+from service.db import crud
+from service.db.models import JobState
 from service.encoder import EncoderFailed, EncoderProcess, RemoteTextEncoder
-from service.errors import InvalidInput, ServiceUnavailable
-from service.schemas import QueryCreate, QueryHitPublic, QueryResult
+from service.errors import Conflict, InvalidInput, NotFound, ServiceUnavailable
+from service.schemas import InstancePublic, InstancesPublic, QueryCreate, QueryHitPublic, QueryResult
+from service.storage import Storage
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """A finished job's result as the API serves it."""
+
+    result: Any  # panogs_core.results.LoadedResult: instances (with features), vocabulary, feature space
+    instances_body: bytes  # the JSON of GET /instances
 
 
 class ResultCache:
@@ -25,18 +39,20 @@ class ResultCache:
 
     def __init__(self, capacity: int) -> None:
         self._capacity = capacity
-        self._items: OrderedDict[uuid.UUID, Any] = OrderedDict()
+        self._items: OrderedDict[uuid.UUID, Loaded] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, job_id: uuid.UUID, out_dir: Path) -> Any:
-        """The loaded result (``instances``, ``vocabulary``, ``feature_space``) of a finished job."""
+    def get(self, job_id: uuid.UUID, out_dir: Path) -> Loaded:
+        """The loaded result of a finished job (read from its folder on first use)."""
         with self._lock:
             if job_id in self._items:
                 self._items.move_to_end(job_id)
                 return self._items[job_id]
         from panogs_core.results import load_result
 
-        loaded = load_result(out_dir)
+        rows = [InstancePublic.model_validate(r) for r in read_instances(out_dir)]
+        body = InstancesPublic(data=rows, count=len(rows)).model_dump_json().encode()
+        loaded = Loaded(result=load_result(out_dir), instances_body=body)
         with self._lock:
             self._items[job_id] = loaded
             while len(self._items) > self._capacity:
@@ -48,6 +64,30 @@ def read_instances(out_dir: Path) -> list[dict[str, Any]]:
     """instances.json of a finished job."""
     data = json.loads((out_dir / "instances.json").read_text())
     return list(data if isinstance(data, list) else data.get("instances", []))
+
+
+def finished(engine: Engine, cache: ResultCache, storage: Storage, job_id: uuid.UUID, tenant_id: uuid.UUID) -> Loaded:
+    """The result of a tenant's succeeded job (one autocommit SELECT, then the cache)."""
+    with engine.connect() as conn:
+        row = crud.read_job_row(conn, job_id, tenant_id)
+    if row is None:
+        raise NotFound("job", job_id)
+    if row.state != JobState.SUCCEEDED:
+        raise Conflict(f"job {job_id} is {row.state.value}; results exist once it has succeeded")
+    return cache.get(job_id, storage.job_dir(job_id))
+
+
+def answer_query(
+    engine: Engine,
+    cache: ResultCache,
+    storage: Storage,
+    job_id: uuid.UUID,
+    tenant_id: uuid.UUID,
+    body: QueryCreate,
+    encoder: EncoderProcess | None,
+) -> QueryResult:
+    """Rank a tenant's succeeded job's instances against ``body``."""
+    return run_query(finished(engine, cache, storage, job_id, tenant_id).result, body, encoder)
 
 
 def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) -> QueryResult:

@@ -56,6 +56,7 @@ class Settings(BaseSettings):
 
     # API.
     api_key_cache_s: float = Field(default=5.0, ge=0)  # a revoked key may work this much longer per process
+    status_cache_s: float = Field(default=0.2, ge=0)  # a job's status may be this stale (< progress_interval_s)
     query_encoder: Literal["process", "off"] = "process"  # free-text queries: encoder in a child process
     text_model_path: str | None = None  # local text-encoder weights (panogs_core.text_encoders)
     result_cache_size: int = Field(default=32, ge=1)  # finished results kept loaded for queries

@@ -223,8 +223,7 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
         message = f"the job was started {job.attempts - 1} times and its worker was lost each time"
         _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
         return JobState.FAILED
-    log = logging.LoggerAdapter(logger, {"job_id": str(job_id)})
-    log.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
+    logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
     tracker = _Tracker(job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}))
     return _run(job, tracker, env)
 

@@ -36,6 +36,7 @@ def _small_cfg(**overrides: object) -> LanguageFieldConfig:
         "hidden_dims": (32,),
         "epochs": 10,
         "batch_size": 256,
+        "min_steps": 0,
         "lr": 1e-2,
         "plane_lr": 3e-2,
         "seed": 0,
@@ -116,8 +117,17 @@ class TestFitLanguageField:
         points, region, anchors = _three_regions(n_per=50, seed=4)
         fused = _fused(anchors[region], np.ones(len(points)))
         calls: list[tuple[int, int]] = []
-        fit_language_field(points, fused, _small_cfg(epochs=3), on_progress=lambda d, t: calls.append((d, t)))
+        cfg = _small_cfg(epochs=3, min_steps=0)
+        fit_language_field(points, fused, cfg, on_progress=lambda d, t: calls.append((d, t)))
         assert calls == [(1, 3), (2, 3), (3, 3)]
+
+    def test_min_steps_adds_epochs_on_small_scenes(self) -> None:
+        points, region, anchors = _three_regions(n_per=50, seed=4)  # 150 points: one step per epoch
+        fused = _fused(anchors[region], np.ones(len(points)))
+        calls: list[tuple[int, int]] = []
+        cfg = _small_cfg(epochs=2, min_steps=5, batch_size=1024)
+        fit_language_field(points, fused, cfg, on_progress=lambda d, t: calls.append((d, t)))
+        assert calls[-1] == (5, 5)
 
         def cancel(done: int, total: int) -> None:
             raise Cancelled("stop")

@@ -82,9 +82,10 @@ def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None
     """Floors well below what the method reaches, so they catch breakage, not noise."""
     _, result, _ = tiny_run
     m = result.metrics["standard"]
-    assert m["miou"] >= 0.6
-    assert m["prq_thing"] >= 0.4
-    assert m["prq_stuff"] >= 0.6
+    # measured on this scene: mIoU 0.86, PRQ(T) 0.81, PRQ(S) 0.97
+    assert m["miou"] >= 0.75
+    assert m["prq_thing"] >= 0.65
+    assert m["prq_stuff"] >= 0.85
     assert result.metrics["paper"]["miou"] == pytest.approx(m["miou"], abs=0.2)
 
 
@@ -131,8 +132,12 @@ def test_invalid_bundle_is_refused_before_any_work(tiny_bundle: Path, tmp_path: 
     assert not (tmp_path / "out" / "labels.npz").exists()
 
 
-def test_cli_run_and_query(tiny_bundle: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_run_and_query(tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path,
+                           capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
     out = tmp_path / "cli-run"
+    shutil.copytree(tiny_run[0] / "stages", out / "stages")  # the CLI resumes from the library run's checkpoints
     assert (
         cli_main(["run", str(tiny_bundle), "--out", str(out), "-q", "--set", "clustering.thresholds=[0.9,0.8,0.7,0.6]"])
         == 0

@@ -221,7 +221,7 @@ class TestGraphCut:
     @pytest.mark.parametrize("language", [True, False])
     def test_matches_plain_oracle(self, language: bool) -> None:
         points, normals, features = _noisy_cloud(1500, 8, seed=6)
-        cfg = SuperPrimitiveConfig(min_size=10)
+        cfg = SuperPrimitiveConfig(min_size=10, small_merge_order="construction")  # the oracle is the reference
         knn = build_knn(points, cfg.k_neighbors)
         feats = features if language else None
         sp = graph_cut_superprimitives(points, normals, feats, knn, cfg)
@@ -231,6 +231,32 @@ class TestGraphCut:
         expected = _oracle_labels(points.shape[0], src, dst, w, feats, cfg)
         assert sp.count > 5
         assert (sp.labels == expected).all()
+
+    @pytest.mark.parametrize("order", ["weight", "language"])
+    def test_small_merge_orders_leave_no_small_segment(self, order: str) -> None:
+        points, normals, features = _noisy_cloud(1500, 8, seed=6)
+        cfg = SuperPrimitiveConfig(min_size=10, small_merge_order=order)  # type: ignore[arg-type]
+        sp = graph_cut_superprimitives(points, normals, features, build_knn(points, cfg.k_neighbors), cfg)
+        assert np.bincount(sp.labels).min() >= cfg.min_size
+        assert (np.unique(sp.labels) == np.arange(sp.count)).all()
+
+    def test_language_small_merge_joins_closest_language(self) -> None:
+        # A 3-point piece (no FH merge: its normals disagree with everything) between a "floor" segment and a
+        # "chair" segment; its features are the chair's, so it joins the chair, whatever the edge order.
+        floor = np.c_[np.arange(10) * 0.05, np.zeros(10), np.zeros(10)]
+        piece = np.c_[0.5 + np.arange(3) * 0.05, np.zeros(3), np.zeros(3)]
+        chair = np.c_[0.65 + np.arange(10) * 0.05, np.zeros(10), np.zeros(10)]
+        points = np.concatenate([floor, piece, chair])
+        normals = np.repeat([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], [10, 3, 10], axis=0)
+        features = np.repeat(np.eye(2, dtype=np.float32), [10, 13], axis=0)
+        knn = build_knn(points, 2)
+        cfg = SuperPrimitiveConfig(k_neighbors=2, min_size=5, small_merge_order="language")
+        labels = graph_cut_superprimitives(points, normals, features, knn, cfg).labels
+        assert labels.tolist() == [0] * 10 + [1] * 13
+
+    def test_small_merge_order_validated(self) -> None:
+        with pytest.raises(ConfigError, match="small_merge_order"):
+            SuperPrimitiveConfig(small_merge_order="random")  # type: ignore[arg-type]
 
     def test_uses_first_k_columns(self) -> None:
         points, normals, features = _noisy_cloud(500, 8, seed=7)

@@ -83,6 +83,7 @@ def make_settings(
             "data_dir": tmp_path / "data",
             "heartbeat_timeout_s": 30,
             "api_key_cache_s": 0,
+            "status_cache_s": 0,
             "pipeline_function": "worker.scripted:run_pipeline",  # API tests run no pipeline
         }
         if backend == "postgres":

@@ -37,8 +37,8 @@ pytestmark = pytest.mark.slow
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
-STAGE_S = 0.5  # the scripted job takes 6 stages x 0.5 s
-HEARTBEAT_TIMEOUT_S = 6.0
+STAGE_S = 0.4  # the scripted job takes 6 stages x 0.4 s
+HEARTBEAT_TIMEOUT_S = 4.0
 
 
 @dataclass
@@ -231,7 +231,7 @@ def test_api_restart_loses_nothing(cluster: Cluster) -> None:
 def test_database_briefly_away(cluster: Cluster) -> None:
     job_id = cluster.new_job()
     cluster.wait_stage(job_id, "primitives")
-    with cluster.pg.outage(3.0):
+    with cluster.pg.outage(2.0):
         time.sleep(0.5)
         with cluster.client() as c:
             response = c.get(f"/v1/jobs/{job_id}")
@@ -245,7 +245,7 @@ def test_database_briefly_away(cluster: Cluster) -> None:
 def test_broker_briefly_away(cluster: Cluster) -> None:
     running = cluster.new_job()
     cluster.wait_stage(running, "primitives")
-    with cluster.redis.outage(3.0):
+    with cluster.redis.outage(2.0):
         created_during = cluster.new_job()  # accepted; published by the reaper once the broker is back
     for job_id in (running, created_during):
         done = cluster.wait_state(job_id, {"succeeded", "failed"}, timeout=90)

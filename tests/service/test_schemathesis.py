@@ -40,6 +40,7 @@ def app_and_auth(
         data_dir=tmp / "data",
         database_url=pg_url,
         api_key_cache_s=0,
+        status_cache_s=0,
         max_upload_bytes=1_000_000,
         pipeline_function="worker.scripted:run_pipeline",
     )

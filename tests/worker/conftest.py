@@ -39,9 +39,7 @@ def settings(tmp_path: Path, sqlite_template: Path) -> Settings:
 
 @pytest.fixture
 def make_env(settings: Settings) -> Callable[..., runner.JobEnv]:
-    def make(
-        pipeline: Any = scripted.run_pipeline, settings_: Settings | None = None, **kw: Any
-    ) -> runner.JobEnv:
+    def make(pipeline: Any = scripted.run_pipeline, settings_: Settings | None = None, **kw: Any) -> runner.JobEnv:
         s = settings_ or settings
         return runner.JobEnv(
             settings=s, session_factory=get_session_factory(s.database), storage=Storage(s.storage),

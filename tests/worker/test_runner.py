@@ -46,9 +46,7 @@ class TestSuccess:
         assert ply.size_bytes == (settings.storage / ply.path).stat().st_size
         assert len(ply.sha256) == 64
 
-    def test_progress_written_while_running(
-        self, make_env: Env, make_job: MakeJob, settings: Settings
-    ) -> None:
+    def test_progress_written_while_running(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         job_id = make_job()
         seen: list[tuple[str | None, float]] = []
 
@@ -68,9 +66,7 @@ class TestSuccess:
         assert progress == sorted(progress)
         assert 0.0 < progress[len(progress) // 2] < 1.0
 
-    def test_heartbeat_inside_a_silent_stage(
-        self, make_env: Env, make_job: MakeJob, settings: Settings
-    ) -> None:
+    def test_heartbeat_inside_a_silent_stage(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         job_id = make_job()
         beats: list[Any] = []
 
@@ -170,18 +166,12 @@ class TestClaimsAndResume:
         assert job.attempts == 2
         assert job.stage_timings["validate"] == first.stage_timings["validate"]
 
-    def test_redelivery_of_the_same_task_resumes(
-        self, make_env: Env, make_job: MakeJob, settings: Settings
-    ) -> None:
+    def test_redelivery_of_the_same_task_resumes(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         job_id = make_job()
-        update_job(
-            settings, job_id, state=JobState.RUNNING, lease="task-1", heartbeat_at=utcnow(), attempts=1
-        )
+        update_job(settings, job_id, state=JobState.RUNNING, lease="task-1", heartbeat_at=utcnow(), attempts=1)
         assert _run(make_env(), job_id, lease="task-1") == JobState.SUCCEEDED
 
-    def test_lease_lost_stops_without_writing(
-        self, make_env: Env, make_job: MakeJob, settings: Settings
-    ) -> None:
+    def test_lease_lost_stops_without_writing(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         job_id = make_job(config={"stage_s": 0.2})
         threading.Timer(0.3, update_job, args=(settings, job_id), kwargs={"lease": "usurper"}).start()
         assert _run(make_env(), job_id, lease="mine") is None
@@ -196,9 +186,7 @@ class TestClaimsAndResume:
 
     def test_too_many_attempts(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         stale = utcnow() - timedelta(seconds=10)
-        job_id = make_job(
-            state=JobState.RUNNING, lease="old", heartbeat_at=stale, attempts=settings.max_attempts
-        )
+        job_id = make_job(state=JobState.RUNNING, lease="old", heartbeat_at=stale, attempts=settings.max_attempts)
         assert _run(make_env(), job_id) == JobState.FAILED
         job = read_job(settings, job_id)
         assert job.error_type == "WorkerLost"

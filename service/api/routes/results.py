@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+import uuid
+
+from fastapi import APIRouter, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from service import results
-from service.api.deps import JobDep, SettingsDep, StorageDep
+from service.api.deps import JobDep, SettingsDep, StorageDep, TenantDep
 from service.db.models import Job, JobState
+from service.db.session import get_read_engine
 from service.errors import Conflict, NotFound
 from service.schemas import (
     ArtifactPublic,
     ArtifactsPublic,
-    InstancePublic,
     InstancesPublic,
     QueryCreate,
     QueryResult,
@@ -30,11 +33,13 @@ def _finished(job: Job) -> Job:
 
 
 @router.get("/instances", response_model=InstancesPublic, responses=_ERRORS)
-def list_instances(job: JobDep, storage: StorageDep) -> InstancesPublic:
+async def list_instances(
+    job_id: uuid.UUID, request: Request, tenant: TenantDep, settings: SettingsDep, storage: StorageDep
+) -> Response:
     """Every instance with its class, score and axis-aligned box."""
-    rows = results.read_instances(storage.job_dir(_finished(job).id))
-    data = [InstancePublic.model_validate(r) for r in rows]
-    return InstancesPublic(data=data, count=len(data))
+    engine = get_read_engine(settings.database)
+    loaded = await run_in_threadpool(results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
+    return Response(loaded.instances_body, media_type="application/json")
 
 
 @router.get("/artifacts", response_model=ArtifactsPublic, responses=_ERRORS)
@@ -79,8 +84,21 @@ def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileRespon
 
 
 @router.post("/query", response_model=QueryResult, responses=_ERRORS)
-def query(job: JobDep, body: QueryCreate, request: Request, storage: StorageDep, settings: SettingsDep) -> QueryResult:
-    """Rank the job's instances against a class name, free text or a ``(D,)`` vector; best first."""
-    loaded = request.app.state.results.get(job.id, storage.job_dir(_finished(job).id))
+async def query(
+    job_id: uuid.UUID,
+    body: QueryCreate,
+    request: Request,
+    tenant: TenantDep,
+    settings: SettingsDep,
+    storage: StorageDep,
+) -> Response:
+    """Rank the job's instances against a class name, free text or a ``(D,)`` vector; best first.
+
+    A class name or a vector needs no text encoder; free text is encoded in the API's encoder process,
+    started on the first such query and warm after it (``PANOGS_QUERY_ENCODER=off`` refuses free text).
+    """
     encoder = request.app.state.encoder if settings.query_encoder == "process" else None
-    return results.run_query(loaded, body, encoder)
+    engine = get_read_engine(settings.database)
+    cache = request.app.state.results
+    answer = await run_in_threadpool(results.answer_query, engine, cache, storage, job_id, tenant.id, body, encoder)
+    return Response(answer.model_dump_json(), media_type="application/json")
