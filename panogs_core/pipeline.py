@@ -105,6 +105,24 @@ class _Checkpoints:
         tmp.replace(self._manifest_path)
 
 
+class _StageProgress:
+    """A stage's ``on_progress(done, total)``, forwarded with the stage name; remembers the stage's units."""
+
+    def __init__(self, stage: str, sink: StageProgressFn | None) -> None:
+        self.stage = stage
+        self.sink = sink
+        self.total = 1
+
+    def __call__(self, done: int, total: int) -> None:
+        self.total = total
+        if self.sink is not None:
+            self.sink(self.stage, done, total)
+
+    def finish(self) -> None:
+        """Report the stage complete, in its own units."""
+        self(self.total, self.total)
+
+
 class _Runner:
     """Runs stages with timing, progress and checkpoints; holds nothing but bookkeeping."""
 
@@ -113,12 +131,8 @@ class _Runner:
         self.on_progress = on_progress
         self.timings: list[StageStats] = []
 
-    def progress_for(self, stage: str) -> ProgressFn:
-        def report(done: int, total: int) -> None:
-            if self.on_progress is not None:
-                self.on_progress(stage, done, total)
-
-        return report
+    def progress_for(self, stage: str) -> _StageProgress:
+        return _StageProgress(stage, self.on_progress)
 
     def stage(
         self,
@@ -142,7 +156,7 @@ class _Runner:
                     save(result, tmp)
                     tmp.replace(self.checkpoints.path(name))
                     self.checkpoints.record(name, key)
-            report(1, 1)
+            report.finish()
         self.timings.append(timer.stats)
         log.info(
             "stage %s: %.2f s, peak %.0f MB%s",
