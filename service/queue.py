@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import uuid
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, cast
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -31,7 +31,7 @@ def celery_sender(settings: Settings) -> Sender:
     """A Celery app for ``settings`` (configuration only; no task code is imported)."""
     from worker.celery_app import create_celery_app
 
-    return create_celery_app(settings)  # type: ignore[return-value]
+    return cast(Sender, create_celery_app(settings))
 
 
 def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, queue: str) -> bool:
@@ -60,10 +60,9 @@ def broker_ping(settings: Settings, timeout_s: float = 1.0) -> None:
             if not folder.is_dir():
                 raise ConnectionError(f"broker folder {folder} is missing")
         return
-    from kombu import Connection
+    from kombu.connection import Connection
 
-    with Connection(
-        settings.broker, transport_options=settings.broker_transport_options(), connect_timeout=timeout_s
-    ) as conn:
+    options = settings.broker_transport_options()
+    with Connection(settings.broker, transport_options=options, connect_timeout=timeout_s) as conn:  # type: ignore[no-untyped-call]
         conn.ensure_connection(max_retries=1, timeout=timeout_s)
         conn.default_channel  # noqa: B018  (opening a channel round-trips to the server)

@@ -14,7 +14,7 @@ import uuid
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import Engine
 
@@ -101,6 +101,7 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
     vocabulary = loaded.vocabulary
     dim = int(np.asarray(vocabulary.embeddings).shape[1])
     query: str | np.ndarray
+    kind: Literal["class", "text", "vector"]
     if body.vector is not None:
         if len(body.vector) != dim:
             raise InvalidInput(f"vector has {len(body.vector)} values; this scene's features have {dim}")

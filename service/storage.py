@@ -152,7 +152,7 @@ class ChunkWriter:
         self._file.seek(offset)
         self._file.truncate(offset)  # bytes past the recorded offset are from an interrupted PATCH
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes | bytearray) -> None:
         """Append ``data`` at the current offset."""
         self._file.write(data)
         self.running.update(data)

@@ -16,7 +16,7 @@ Reliability settings, and why:
 from __future__ import annotations
 
 from celery import Celery
-from kombu import Queue
+from kombu.entity import Queue
 
 from service.settings import Settings, get_settings
 from worker.names import QueueName, TaskName
@@ -43,7 +43,7 @@ def create_celery_app(settings: Settings) -> Celery:
         worker_pool=settings.worker_pool,
         worker_hijack_root_logger=False,
         worker_send_task_events=False,
-        task_queues=[Queue(q.value) for q in QueueName],
+        task_queues=[Queue(q.value) for q in QueueName],  # type: ignore[no-untyped-call]
         task_default_queue=QueueName.CPU.value,
         task_create_missing_queues=False,
         task_routes={TaskName.RUN_JOB.value: {"queue": settings.job_queue}},

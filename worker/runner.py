@@ -203,9 +203,7 @@ class _Tracker:
             except CancelRequested:
                 pass  # the progress callback raises it in the pipeline's thread
             except LeaseLost:
-                logger.warning(
-                    "job %s: lease lost; the pipeline stops at its next progress step", self.job_id
-                )
+                logger.warning("job %s: lease lost; the pipeline stops at its next progress step", self.job_id)
                 return
 
 
@@ -321,9 +319,7 @@ def merge_timings(measured: dict[str, float], reported: Any) -> dict[str, float]
     """
     out = dict(measured)
     items = (
-        reported.items()
-        if isinstance(reported, Mapping)
-        else [(getattr(r, "name", None), r) for r in (reported or [])]
+        reported.items() if isinstance(reported, Mapping) else [(getattr(r, "name", None), r) for r in (reported or [])]
     )
     for stage, value in items:
         seconds = getattr(value, "wall_s", value)

@@ -25,7 +25,7 @@ from worker.names import TaskName
 SHUTDOWN = threading.Event()  # set on warm shutdown; a running job is handed back at its next progress step
 
 
-@worker_shutting_down.connect
+@worker_shutting_down.connect  # type: ignore[untyped-decorator]
 def _on_shutdown(**_kwargs: Any) -> None:
     SHUTDOWN.set()
 
@@ -46,7 +46,7 @@ def job_env() -> runner.JobEnv:
     )
 
 
-@app.task(
+@app.task(  # type: ignore[untyped-decorator]
     name=TaskName.RUN_JOB.value,
     bind=True,
     acks_late=True,
@@ -61,9 +61,7 @@ def run_job(self: Task[Any, Any], job_id: str) -> str | None:
     ident = uuid.UUID(job_id)
     lease = str(self.request.id)
     try:
-        state = runner.execute_job(
-            ident, lease=lease, worker=f"{self.request.hostname}/{os.getpid()}", env=env
-        )
+        state = runner.execute_job(ident, lease=lease, worker=f"{self.request.hostname}/{os.getpid()}", env=env)
     except runner.TransientError:
         raise
     except Exception as exc:  # the task boundary: record the failure on the job, then let Celery log it

@@ -12,13 +12,18 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any, TypeVar
 
-from sqlalchemy import ColumnElement, Connection, Row, delete, func, or_, select, update
+from sqlalchemy import ColumnElement, Connection, Result, Row, delete, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.db.base import Base, utcnow
 from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
 
 M = TypeVar("M", bound=Base)
+
+
+def _one_row(result: Result[Any]) -> bool:
+    """True when an UPDATE or DELETE matched exactly one row (its guard held)."""
+    return getattr(result, "rowcount", 0) == 1
 
 
 def get_owned(session: Session, model: type[M], ident: uuid.UUID, tenant_id: uuid.UUID) -> M | None:
@@ -64,7 +69,7 @@ def advance_upload(session: Session, upload_id: uuid.UUID, old_offset: int, new_
         .values(offset=new_offset, updated_at=utcnow())
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def stale_uploads(session: Session, older_than: datetime) -> list[Upload]:
@@ -80,7 +85,7 @@ def set_upload_state(session: Session, upload_id: uuid.UUID, old: UploadState, n
         update(Upload).where(Upload.id == upload_id, Upload.state == old).values(state=new, updated_at=utcnow())
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def delete_upload(session: Session, upload_id: uuid.UUID) -> None:
@@ -105,7 +110,7 @@ def mark_enqueued(session: Session, job_id: uuid.UUID) -> bool:
         .values(enqueued_at=utcnow())
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def request_cancel(session: Session, job: Job) -> Job:
@@ -144,7 +149,7 @@ def requeue_lost(session: Session, job: Job, silent_since: datetime) -> bool:
         .values(state=JobState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: str, message: str) -> bool:
@@ -162,7 +167,7 @@ def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: st
         )
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 # Jobs: worker side -----------------------------------------------------------------------------------------
@@ -193,7 +198,7 @@ def claim_job(session: Session, job_id: uuid.UUID, lease: str, worker: str, stal
         )
     )
     session.commit()
-    if result.rowcount != 1:  # type: ignore[attr-defined]
+    if not _one_row(result):
         return None
     return session.get(Job, job_id, populate_existing=True)
 
@@ -208,7 +213,7 @@ def update_running(session: Session, job_id: uuid.UUID, lease: str, **values: An
         .values(heartbeat_at=now, updated_at=now, **values)
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def release_job(session: Session, job_id: uuid.UUID, lease: str, **values: Any) -> bool:
@@ -227,7 +232,7 @@ def release_job(session: Session, job_id: uuid.UUID, lease: str, **values: Any) 
         )
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def cancel_requested(session: Session, job_id: uuid.UUID) -> bool:
@@ -251,7 +256,7 @@ def finish_job(
         .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
         .values(state=state, finished_at=now, heartbeat_at=now, updated_at=now, **values)
     )
-    if result.rowcount != 1:  # type: ignore[attr-defined]
+    if not _one_row(result):
         session.rollback()
         return False
     for old in session.scalars(select(Artifact).where(Artifact.job_id == job_id)):
@@ -277,7 +282,7 @@ def fail_unclaimed(session: Session, job_id: uuid.UUID, error_type: str, message
         )
     )
     session.commit()
-    return result.rowcount == 1  # type: ignore[attr-defined]
+    return _one_row(result)
 
 
 def cancel_unclaimed(session: Session, job_id: uuid.UUID) -> None:
