@@ -17,9 +17,13 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from typing import Any
 
 WORKER_STOP_GRACE_S = 20.0  # after Ctrl-C, how long the worker may take to hand its job back
+WORKER_RESTART_DELAY_S = 2.0  # a worker that died is replaced after this (not in a tight loop)
+PARENT_PID_ENV = "PANOGS_SERVE_PID"  # set by serve for its worker, which stops when serve is gone
 
 logger = logging.getLogger("panogs.serve")
 
@@ -82,12 +86,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     logging.basicConfig(level=settings.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     _prepare_database(settings)
-    worker = None
-    if not args.no_worker:
-        command = [sys.executable, "-m", "service.cli", "worker"]
-        # Its own session: the terminal's Ctrl-C reaches only us, and we stop the worker in order.
-        worker = subprocess.Popen(command, start_new_session=True, preexec_fn=_die_with_parent)
-        logger.info("worker started (pid %d)", worker.pid)
+    worker = None if args.no_worker else WorkerSupervisor()
+    if worker is not None:
+        worker.start()
     # The API's own array work is small (queries over a few hundred instances): one BLAS thread per call is
     # fastest, while several spin against each other on a busy machine (measured: 1.4 ms against 8 ms per
     # query). Set after the worker started, which keeps its threads for the pipeline.
@@ -107,30 +108,60 @@ def cmd_serve(args: argparse.Namespace) -> int:
         pass
     finally:
         if worker is not None:
-            _stop_worker(worker)
+            worker.stop()
     return 0
 
 
-def _die_with_parent() -> None:
-    """In the worker child: get SIGTERM when ``serve`` dies, even by SIGKILL (Linux; elsewhere a no-op)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
+def _stop_when_orphaned(parent_pid: int) -> None:
+    """In the embedded worker: warm-shutdown once ``serve`` is gone, even if it was killed with SIGKILL."""
+    while os.getppid() == parent_pid:
+        time.sleep(1.0)
+    logger.warning("serve (pid %d) is gone; stopping this worker", parent_pid)
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
-def _stop_worker(worker: subprocess.Popen[bytes]) -> None:
-    if worker.poll() is not None:
-        return
-    worker.send_signal(signal.SIGTERM)  # warm shutdown: the running job is handed back at its next step
-    try:
-        worker.wait(timeout=WORKER_STOP_GRACE_S)
-    except subprocess.TimeoutExpired:
-        logger.warning("worker did not stop within %.0f s; killing it", WORKER_STOP_GRACE_S)
-        worker.kill()
-        worker.wait()
+class WorkerSupervisor:
+    """The embedded worker: a child process, restarted if it dies while ``serve`` runs, stopped in order."""
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="panogs-worker-supervisor", daemon=True)
+
+    def _spawn(self) -> None:
+        command = [sys.executable, "-m", "service.cli", "worker"]
+        # Its own session: the terminal's Ctrl-C reaches only us, and we stop the worker in order.
+        env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
+        self._proc = subprocess.Popen(command, start_new_session=True, env=env)
+        logger.info("worker started (pid %d)", self._proc.pid)
+
+    def start(self) -> None:
+        """Start the worker and watch it."""
+        self._spawn()
+        self._thread.start()
+
+    def _watch(self) -> None:
+        while not self._stopping.is_set():
+            assert self._proc is not None
+            code = self._proc.wait()
+            if self._stopping.wait(WORKER_RESTART_DELAY_S):
+                return
+            logger.error("worker exited with %s; starting a new one (its job resumes)", code)
+            self._spawn()
+
+    def stop(self) -> None:
+        """Warm shutdown (the running job is handed back at its next step), then kill after a grace period."""
+        self._stopping.set()
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            return
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=WORKER_STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            logger.warning("worker did not stop within %.0f s; killing it", WORKER_STOP_GRACE_S)
+            proc.kill()
+            proc.wait()
 
 
 def worker_argv(settings: Any, queues: str | None, loglevel: str) -> list[str]:
@@ -152,6 +183,9 @@ def cmd_worker(args: argparse.Namespace) -> int:
     """Run a Celery worker in this process until stopped."""
     settings = _settings(args)
     settings.ensure_dirs()
+    parent = os.environ.get(PARENT_PID_ENV)
+    if parent:
+        threading.Thread(target=_stop_when_orphaned, args=(int(parent),), daemon=True).start()
     from worker.celery_app import app
 
     app.worker_main(worker_argv(settings, args.queues, args.loglevel))

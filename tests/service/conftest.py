@@ -73,9 +73,7 @@ def _clean_postgres(url: str) -> None:
 
 
 @pytest.fixture
-def make_settings(
-    tmp_path: Path, sqlite_template: Path, request: pytest.FixtureRequest
-) -> Callable[..., Settings]:
+def make_settings(tmp_path: Path, sqlite_template: Path, request: pytest.FixtureRequest) -> Callable[..., Settings]:
     """Settings for a backend, with everything on disk under this test's tmp_path."""
 
     def make(backend: str = "postgres", **overrides: Any) -> Settings:

@@ -99,7 +99,4 @@ def test_production_refuses_placeholders(tmp_path: Path) -> None:
         Settings(database_url="postgresql+psycopg://panogs:changethis@db/panogs", **common)  # type: ignore[arg-type]
     with pytest.raises(ValidationError, match="must be set in production"):
         Settings(**common)  # type: ignore[arg-type]
-    assert (
-        Settings(database_url="postgresql+psycopg://panogs:s3cret@db/panogs", **common).environment
-        == "production"
-    )  # type: ignore[arg-type]
+    assert Settings(database_url="postgresql+psycopg://panogs:s3cret@db/panogs", **common).environment == "production"  # type: ignore[arg-type]

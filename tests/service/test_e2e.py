@@ -119,9 +119,7 @@ def test_session(deployment: str, request: pytest.FixtureRequest, bundle: tuple[
     folder, archive = bundle
     with httpx.Client(base_url=url, headers=headers, timeout=60) as client:
         scene_id = _upload_scene(client, archive)
-        response = client.post(
-            "/v1/jobs", json={"scene_id": scene_id}, headers={"Idempotency-Key": deployment}
-        )
+        response = client.post("/v1/jobs", json={"scene_id": scene_id}, headers={"Idempotency-Key": deployment})
         assert response.status_code == 202, response.text
         job = _poll(client, response.json()["id"])
         assert job["state"] == "succeeded", job
@@ -152,9 +150,7 @@ def _upload_scene(client: httpx.Client, archive: Path) -> str:
     digest = base64.b64encode(hashlib.sha256(data).hexdigest().encode()).decode()
     metadata = f"filename {base64.b64encode(b'scene.zip').decode()},sha256 {digest}"
     tus = {"Tus-Resumable": "1.0.0"}
-    created = client.post(
-        "/v1/uploads", headers={**tus, "Upload-Length": str(len(data)), "Upload-Metadata": metadata}
-    )
+    created = client.post("/v1/uploads", headers={**tus, "Upload-Length": str(len(data)), "Upload-Metadata": metadata})
     assert created.status_code == 201, created.text
     upload_id, half = created.json()["id"], len(data) // 2
     for start, end in ((0, half), (half, len(data))):
@@ -191,9 +187,7 @@ def _library_query(out_dir: Path, query: str) -> list[int]:
 
     loaded = load_result(out_dir)
     space = loaded.feature_space
-    hits = query_instances(
-        loaded.instances, loaded.vocabulary, query, feature_space=space, top_k=1, min_score=0.0
-    )
+    hits = query_instances(loaded.instances, loaded.vocabulary, query, feature_space=space, top_k=1, min_score=0.0)
     return [h.instance_id for h in hits]
 
 
@@ -221,11 +215,7 @@ def _download(client: httpx.Client, job_id: str, name: str, ranged: bool = False
         assert response.status_code == 200
         path.write_bytes(response.content)
         return path
-    size = next(
-        a["size_bytes"]
-        for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()["data"]
-        if a["name"] == name
-    )
+    size = next(a["size_bytes"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()["data"] if a["name"] == name)
     first = client.get(f"/v1/jobs/{job_id}/artifacts/{name}", headers={"Range": f"bytes=0-{size // 2 - 1}"})
     rest = client.get(f"/v1/jobs/{job_id}/artifacts/{name}", headers={"Range": f"bytes={size // 2}-"})
     assert (first.status_code, rest.status_code) == (206, 206)

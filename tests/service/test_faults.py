@@ -38,7 +38,7 @@ pytestmark = pytest.mark.slow
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 STAGE_S = 0.4  # the scripted job takes 6 stages x 0.4 s
-HEARTBEAT_TIMEOUT_S = 4.0
+HEARTBEAT_TIMEOUT_S = 5.0  # the outages below last 2 s: well inside it
 
 
 @dataclass
@@ -84,9 +84,7 @@ class Cluster:
             seen.update(self.job(job_id))
             return seen["state"] == "running" and seen["stage"] == stage
 
-        wait_for(
-            reached, timeout, f"job {job_id} to run {stage}", lambda: f"last: {seen}\n{self.logs()}", 0.05
-        )
+        wait_for(reached, timeout, f"job {job_id} to run {stage}", lambda: f"last: {seen}\n{self.logs()}", 0.05)
         return seen
 
     def worker_of(self, job_id: str) -> str:
@@ -127,9 +125,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
         pg_proxy = TcpProxy(make_url(db_url).port or 5432)
         redis_proxy = TcpProxy(redis_port)
         env = {
-            "PANOGS_DATABASE_URL": make_url(db_url)
-            .set(port=pg_proxy.port)
-            .render_as_string(hide_password=False),
+            "PANOGS_DATABASE_URL": make_url(db_url).set(port=pg_proxy.port).render_as_string(hide_password=False),
             "PANOGS_DATABASE_URL_DIRECT": db_url,
             "PANOGS_BROKER_URL": f"redis://127.0.0.1:{redis_proxy.port}/{REDIS_URL.rsplit('/', 1)[1]}",
             "PANOGS_BROKER_KEY_PREFIX": prefix,
@@ -209,9 +205,7 @@ def test_api_restart_loses_nothing(cluster: Cluster) -> None:
     with cluster.client() as c:
         upload = c.post("/v1/uploads", headers={"Upload-Length": str(len(data))}).json()
         patch = {"Content-Type": "application/offset+octet-stream", "Upload-Offset": "0"}
-        assert (
-            c.patch(f"/v1/uploads/{upload['id']}", content=data[:1_000_000], headers=patch).status_code == 204
-        )
+        assert c.patch(f"/v1/uploads/{upload['id']}", content=data[:1_000_000], headers=patch).status_code == 204
     cluster.wait_stage(job_id, "primitives")
     port = int(cluster.url.rsplit(":", 1)[1])
     cluster.procs.kill("api")

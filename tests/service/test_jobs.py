@@ -77,16 +77,12 @@ class TestCreate:
         b = _create(client, other, scene_b["id"], headers={"Idempotency-Key": "k"}).json()
         assert a["id"] != b["id"]
 
-    def test_unknown_config_key(
-        self, client: TestClient, auth: dict[str, str], scene: dict[str, Any]
-    ) -> None:
+    def test_unknown_config_key(self, client: TestClient, auth: dict[str, str], scene: dict[str, Any]) -> None:
         response = _create(client, auth, scene["id"], config={"stage_seconds": 1})
         assert response.status_code == 422
         assert "stage_seconds" in response.json()["problems"][0]
 
-    def test_real_pipeline_config_is_checked(
-        self, make_settings: Callable[..., Settings], tiny_zip: bytes
-    ) -> None:
+    def test_real_pipeline_config_is_checked(self, make_settings: Callable[..., Settings], tiny_zip: bytes) -> None:
         pytest.importorskip("panogs_core.config", reason="the core's PipelineConfig is not importable yet")
         settings = make_settings("postgres", pipeline_function="panogs_core.pipeline:run_pipeline")
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
@@ -165,15 +161,10 @@ class TestReadAndCancel:
         for path in ("", "/instances", "/artifacts", "/artifacts/panoptic.ply"):
             assert client.get(f"/v1/jobs/{job_id}{path}", headers=other_auth).status_code == 404
         assert client.post(f"/v1/jobs/{job_id}/cancel", headers=other_auth).status_code == 404
-        assert (
-            client.post(f"/v1/jobs/{job_id}/query", json={"text": "chair"}, headers=other_auth).status_code
-            == 404
-        )
+        assert client.post(f"/v1/jobs/{job_id}/query", json={"text": "chair"}, headers=other_auth).status_code == 404
         assert client.get("/v1/jobs", headers=other_auth).json()["count"] == 0
 
-    def test_results_before_success(
-        self, client: TestClient, auth: dict[str, str], scene: dict[str, Any]
-    ) -> None:
+    def test_results_before_success(self, client: TestClient, auth: dict[str, str], scene: dict[str, Any]) -> None:
         job_id = _create(client, auth, scene["id"]).json()["id"]
         response = client.get(f"/v1/jobs/{job_id}/instances", headers=auth)
         assert response.status_code == 409

@@ -25,9 +25,7 @@ from worker.runner import collect_artifacts
 CLASSES = [("wall", "stuff"), ("chair", "thing"), ("table", "thing")]
 
 
-def write_result(
-    out_dir: Path, embeddings: np.ndarray, space: str, *, per_class: int = 1
-) -> list[dict[str, Any]]:
+def write_result(out_dir: Path, embeddings: np.ndarray, space: str, *, per_class: int = 1) -> list[dict[str, Any]]:
     """A finished run's folder: ``per_class`` instances of each class, features next to their class
     embedding."""
     rng = np.random.default_rng(0)
@@ -85,9 +83,7 @@ class TestInstancesAndDownloads:
         assert len(body["data"][1]["bbox_min"]) == 3
 
     def test_artifact_list_and_download(self, client: TestClient, auth: dict[str, str], job_id: str) -> None:
-        listed = {
-            a["name"]: a for a in client.get(f"/v1/jobs/{job_id}/artifacts", headers=auth).json()["data"]
-        }
+        listed = {a["name"]: a for a in client.get(f"/v1/jobs/{job_id}/artifacts", headers=auth).json()["data"]}
         assert set(listed) == {"panoptic.ply", "instances.json", "report.json", "vocabulary.json"}
         ply = listed["panoptic.ply"]
         assert ply["size_bytes"] == 10240
@@ -108,9 +104,7 @@ class TestInstancesAndDownloads:
         assert tail.content == bytes(range(246, 256))
         assert client.get(url, headers={**auth, "Range": "bytes=20000-"}).status_code == 416
 
-    @pytest.mark.parametrize(
-        "name", ["gaussians.ply", "..%2F..%2Fpanogs.db", "stages", "instance_features.npy"]
-    )
+    @pytest.mark.parametrize("name", ["gaussians.ply", "..%2F..%2Fpanogs.db", "stages", "instance_features.npy"])
     def test_unknown_artifact(self, client: TestClient, auth: dict[str, str], job_id: str, name: str) -> None:
         assert client.get(f"/v1/jobs/{job_id}/artifacts/{name}", headers=auth).status_code == 404
 
@@ -124,9 +118,7 @@ class TestQuery:
 
     def test_vector(self, client: TestClient, auth: dict[str, str], job_id: str) -> None:
         vector = _unit(np.eye(3, 8) + 0.1)[2].tolist()
-        body = client.post(
-            f"/v1/jobs/{job_id}/query", json={"vector": vector, "top_k": 1}, headers=auth
-        ).json()
+        body = client.post(f"/v1/jobs/{job_id}/query", json={"vector": vector, "top_k": 1}, headers=auth).json()
         assert body["query_kind"] == "vector"
         assert [h["instance_id"] for h in body["hits"]] == [2]
 
@@ -141,9 +133,7 @@ class TestQuery:
             ({"text": "something to sit on"}, "free-text"),
         ],
     )
-    def test_refused(
-        self, client: TestClient, auth: dict[str, str], job_id: str, body: Any, needle: str
-    ) -> None:
+    def test_refused(self, client: TestClient, auth: dict[str, str], job_id: str, body: Any, needle: str) -> None:
         response = client.post(f"/v1/jobs/{job_id}/query", json=body, headers=auth)
         assert response.status_code == 422, response.text
         assert needle in json.dumps(response.json())

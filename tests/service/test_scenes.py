@@ -53,17 +53,13 @@ def _zip(members: dict[str, bytes]) -> bytes:
 
 
 def _zip_of(folder: Path, extra: dict[str, bytes]) -> bytes:
-    members = {
-        p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
-    }
+    members = {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
     return _zip({**members, **extra})
 
 
 class TestCreate:
     @BOTH_BACKENDS
-    def test_valid_bundle(
-        self, client: TestClient, auth: dict[str, str], tiny_zip: bytes, settings: Settings
-    ) -> None:
+    def test_valid_bundle(self, client: TestClient, auth: dict[str, str], tiny_zip: bytes, settings: Settings) -> None:
         scene = make_scene(client, auth, tiny_zip)
         assert scene["name"] == "tiny"
         assert scene["feature_dim"] == 8
@@ -81,9 +77,7 @@ class TestCreate:
     def test_tar_gz_and_name(self, client: TestClient, auth: dict[str, str], tmp_path: Path) -> None:
         data = pack(write_tiny_bundle(tmp_path / "b"), "tar.gz")
         upload = upload_bytes(client, auth, data)
-        response = client.post(
-            "/v1/scenes", json={"upload_id": upload["id"], "name": "kitchen"}, headers=auth
-        )
+        response = client.post("/v1/scenes", json={"upload_id": upload["id"], "name": "kitchen"}, headers=auth)
         assert response.status_code == 201, response.text
         assert response.json()["name"] == "kitchen"
 
@@ -115,17 +109,13 @@ class TestBadBundles:
         body = _refused(client, auth, b"just some text, not an archive", settings)
         assert "not a .zip" in body["problems"][0]  # type: ignore[index]
 
-    def test_zip_slip(
-        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
-    ) -> None:
+    def test_zip_slip(self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path) -> None:
         data = _zip_of(write_tiny_bundle(tmp_path / "b"), {"../../escape.txt": b"x"})
         body = _refused(client, auth, data, settings)
         assert any("escape.txt" in p for p in body["problems"])  # type: ignore[union-attr]
         assert not (settings.storage.parent / "escape.txt").exists()
 
-    def test_symlink(
-        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
-    ) -> None:
+    def test_symlink(self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path) -> None:
         folder = write_tiny_bundle(tmp_path / "b")
         buffer = io.BytesIO()
         with tarfile.open(fileobj=buffer, mode="w") as tf:
@@ -137,9 +127,7 @@ class TestBadBundles:
         body = _refused(client, auth, buffer.getvalue(), settings)
         assert any("passwd" in p for p in body["problems"])  # type: ignore[union-attr]
 
-    def test_archive_bomb(
-        self, make_settings: Callable[..., Settings], auth: dict[str, str], tmp_path: Path
-    ) -> None:
+    def test_archive_bomb(self, make_settings: Callable[..., Settings], auth: dict[str, str], tmp_path: Path) -> None:
         settings = make_settings("postgres", bundle_max_bytes=2_000_000)
         data = _zip_of(write_tiny_bundle(tmp_path / "b"), {"padding.bin": bytes(20_000_000)})
         assert len(data) < 200_000  # compresses 100:1
@@ -148,13 +136,9 @@ class TestBadBundles:
             body = _refused(client, key, data, settings)
         assert any("bytes" in p for p in body["problems"])  # type: ignore[union-attr]
 
-    def test_pickled_npy(
-        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
-    ) -> None:
+    def test_pickled_npy(self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path) -> None:
         def pickle_features(root: Path) -> None:
-            np.save(
-                root / "features" / "000000.npy", np.array([{"evil": 1}], dtype=object), allow_pickle=True
-            )
+            np.save(root / "features" / "000000.npy", np.array([{"evil": 1}], dtype=object), allow_pickle=True)
 
         data = pack(write_tiny_bundle(tmp_path / "b", mutate=pickle_features))
         body = _refused(client, auth, data, settings)
@@ -186,9 +170,7 @@ class TestBadBundles:
         assert "000001" in text
 
 
-@pytest.mark.parametrize(
-    "body", [{}, {"upload_id": "not-a-uuid"}, {"upload_id": None}, {"upload_id": 1, "x": 2}]
-)
+@pytest.mark.parametrize("body", [{}, {"upload_id": "not-a-uuid"}, {"upload_id": None}, {"upload_id": 1, "x": 2}])
 def test_bad_request_body(client: TestClient, auth: dict[str, str], body: dict[str, object]) -> None:
     response = client.post("/v1/scenes", json=body, headers=auth)
     assert response.status_code == 422

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import atexit
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,9 +31,7 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
 
 
 @pytest.fixture(scope="module")
-def app_and_auth(
-    pg_url: str, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[tuple[FastAPI, dict[str, str]]]:
+def app_and_auth(pg_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[FastAPI, dict[str, str]]]:
     tmp = tmp_path_factory.mktemp("schemathesis")
     with get_engine(pg_url).begin() as conn:
         conn.execute(text("TRUNCATE artifact, job, scene, upload, api_key CASCADE"))
@@ -59,6 +59,7 @@ class DeferredApp:
 
     def __init__(self) -> None:
         scratch = Path(tempfile.mkdtemp(prefix="panogs-schema-"))
+        atexit.register(shutil.rmtree, scratch, True)
         scratch_settings = Settings(_env_file=None, data_dir=scratch)  # type: ignore[call-arg]
         self.app: Any = create_app(scratch_settings, sender=RecordingSender(), run_reaper=False)
 

@@ -25,9 +25,7 @@ def _create(client: TestClient, auth: dict[str, str], length: int, **extra: str)
     return dict(response.json())
 
 
-def _patch(
-    client: TestClient, auth: dict[str, str], upload_id: str, offset: int, data: bytes, **extra: str
-) -> Any:
+def _patch(client: TestClient, auth: dict[str, str], upload_id: str, offset: int, data: bytes, **extra: str) -> Any:
     headers = {**auth, **OCTET, "Upload-Offset": str(offset), **extra}
     return client.patch(f"/v1/uploads/{upload_id}", content=data, headers=headers)
 
@@ -67,10 +65,7 @@ class TestUpload:
         path = settings.storage / "uploads" / uid / "data"
         with path.open("ab") as f:
             f.write(b"garbage")
-        assert (
-            _patch(client, auth, uid, 1_000_000, data[1_000_000:2_000_000]).headers["upload-offset"]
-            == "2000000"
-        )
+        assert _patch(client, auth, uid, 1_000_000, data[1_000_000:2_000_000]).headers["upload-offset"] == "2000000"
         last = _patch(client, auth, uid, 2_000_000, data[2_000_000:])
         assert last.status_code == 204
         assert last.headers["upload-offset"] == str(len(data))
@@ -86,10 +81,7 @@ class TestUpload:
             assert _patch(first, auth, uid, 0, data[:1000]).status_code == 204
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as second:
             assert _patch(second, auth, uid, 1000, data[1000:]).status_code == 204
-            assert (
-                second.get(f"/v1/uploads/{uid}", headers=auth).json()["sha256"]
-                == hashlib.sha256(data).hexdigest()
-            )
+            assert second.get(f"/v1/uploads/{uid}", headers=auth).json()["sha256"] == hashlib.sha256(data).hexdigest()
 
     def test_chunk_checksum(self, client: TestClient, auth: dict[str, str], settings: Settings) -> None:
         uid = _create(client, auth, 8)["id"]
@@ -116,18 +108,14 @@ class TestUpload:
 
 
 class TestLimits:
-    def test_declared_length_over_limit(
-        self, make_settings: Callable[..., Settings], auth: dict[str, str]
-    ) -> None:
+    def test_declared_length_over_limit(self, make_settings: Callable[..., Settings], auth: dict[str, str]) -> None:
         settings = make_settings("postgres", max_upload_bytes=1000)
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
             auth = new_key(settings)
             response = client.post("/v1/uploads", headers={**auth, "Upload-Length": "1001"})
             assert response.status_code == 413
             assert response.json()["type"] == "payload_too_large"
-            assert not (settings.storage / "uploads").exists() or not any(
-                (settings.storage / "uploads").iterdir()
-            )
+            assert not (settings.storage / "uploads").exists() or not any((settings.storage / "uploads").iterdir())
 
     def test_body_longer_than_declared(self, client: TestClient, auth: dict[str, str]) -> None:
         uid = _create(client, auth, 10)["id"]
@@ -152,9 +140,7 @@ class TestLimits:
             ({"Upload-Length": "5", "Upload-Metadata": f"sha256 {_b64(b'not-hex')}"}, 422),
         ],
     )
-    def test_bad_headers(
-        self, client: TestClient, auth: dict[str, str], headers: dict[str, str], status: int
-    ) -> None:
+    def test_bad_headers(self, client: TestClient, auth: dict[str, str], headers: dict[str, str], status: int) -> None:
         response = client.post("/v1/uploads", headers={**auth, **headers})
         assert response.status_code == status, response.text
         assert response.json()["message"]
@@ -170,9 +156,7 @@ class TestLimits:
 
 
 class TestOwnership:
-    def test_other_tenant_sees_404(
-        self, client: TestClient, auth: dict[str, str], other_auth: dict[str, str]
-    ) -> None:
+    def test_other_tenant_sees_404(self, client: TestClient, auth: dict[str, str], other_auth: dict[str, str]) -> None:
         uid = _create(client, auth, 4)["id"]
         for method in ("get", "head", "delete"):
             assert getattr(client, method)(f"/v1/uploads/{uid}", headers=other_auth).status_code == 404
