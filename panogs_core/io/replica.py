@@ -26,14 +26,13 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.writer import (
-    BundleWriter,
     ImportReport,
     SourceFrame,
     feature_dim_of,
     png_info,
     require_empty,
     scale_camera,
-    write_source_frames,
+    write_import,
 )
 from panogs_core.progress import ProgressFn
 from panogs_core.types import Camera, Vocabulary
@@ -98,26 +97,23 @@ def import_replica(
     poses = _read_trajectory(src / "traj.txt")
     frames = [_source_frame(src, d, depth_by_digits[d], poses) for d in digits]
     dim = feature_dim_of([f.features for f in frames if f.features is not None], src / "features")
-    writer = BundleWriter(
+    result = write_import(
         dst,
+        frames,
         name=name or src.name,
         camera=target_cam,
         depth_scale=scale,
         feature_dim=dim,
         feature_space=feature_space,
+        geometry=geometry,
+        vocabulary=vocabulary,
+        on_progress=on_progress,
     )
-    if geometry is not None:
-        writer.write_geometry_file(geometry)
-    if vocabulary is not None:
-        writer.write_vocabulary(vocabulary)
-    result = write_source_frames(writer, frames, on_progress=on_progress)
     logger.info("import_replica: %s", result.summary())
     return result
 
 
-def _target_camera(
-    source: Camera, first_depth: Path, resize: tuple[int, int] | None, *, explicit: bool
-) -> Camera:
+def _target_camera(source: Camera, first_depth: Path, resize: tuple[int, int] | None, *, explicit: bool) -> Camera:
     """The bundle camera: ``resize`` if given, else an explicit camera's size, else the depth images' size."""
     if resize is not None:
         width, height = resize

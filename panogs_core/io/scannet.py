@@ -22,14 +22,13 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.writer import (
-    BundleWriter,
     ImportReport,
     SourceFrame,
     feature_dim_of,
     png_info,
     read_matrix,
     require_empty,
-    write_source_frames,
+    write_import,
 )
 from panogs_core.progress import ProgressFn
 from panogs_core.types import Camera, Vocabulary
@@ -84,19 +83,18 @@ def import_scannet(
     cam = camera if camera is not None else _read_intrinsics(src, first_depth)
     frames = [_source_frame(src, i, depth_by_index[i]) for i in indices]
     dim = feature_dim_of([f.features for f in frames if f.features is not None], src / "features")
-    writer = BundleWriter(
+    result = write_import(
         dst,
+        frames,
         name=name or src.name,
         camera=cam,
         depth_scale=SCANNET_DEPTH_SCALE,
         feature_dim=dim,
         feature_space=feature_space,
+        geometry=geometry,
+        vocabulary=vocabulary,
+        on_progress=on_progress,
     )
-    if geometry is not None:
-        writer.write_geometry_file(geometry)
-    if vocabulary is not None:
-        writer.write_vocabulary(vocabulary)
-    result = write_source_frames(writer, frames, on_progress=on_progress)
     logger.info("import_scannet: %s", result.summary())
     return result
 

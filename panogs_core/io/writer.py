@@ -219,15 +219,12 @@ class BundleWriter:
         Raises:
             InputError: if the embeddings are not ``(L, feature_dim)``.
         """
-        doc: dict[str, Any] = {
-            "classes": [{"name": n, "kind": k} for n, k in zip(vocabulary.names, vocabulary.kinds)]
-        }
+        doc: dict[str, Any] = {"classes": [{"name": n, "kind": k} for n, k in zip(vocabulary.names, vocabulary.kinds)]}
         if vocabulary.embeddings is not None:
             emb = np.asarray(vocabulary.embeddings, dtype=np.float32)
             if emb.shape != (len(vocabulary.names), self.feature_dim):
                 raise InputError(
-                    f"write_vocabulary: embeddings {emb.shape}, expected "
-                    f"({len(vocabulary.names)}, {self.feature_dim})"
+                    f"write_vocabulary: embeddings {emb.shape}, expected ({len(vocabulary.names)}, {self.feature_dim})"
                 )
             np.save(self.root / "vocabulary.npy", np.ascontiguousarray(emb), allow_pickle=False)
             doc["embeddings"] = "vocabulary.npy"
@@ -250,9 +247,7 @@ class BundleWriter:
         sem, ins = np.asarray(semantic), np.asarray(instance)
         for arr, what in ((sem, "semantic"), (ins, "instance")):
             if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
-                raise InputError(
-                    f"write_ground_truth: {what} must be (G,) integers, got {arr.dtype} {arr.shape}"
-                )
+                raise InputError(f"write_ground_truth: {what} must be (G,) integers, got {arr.dtype} {arr.shape}")
         if len(sem) != len(ins):
             raise InputError(f"write_ground_truth: semantic has {len(sem)} values, instance {len(ins)}")
         arrays = {"semantic": sem.astype(np.int64), "instance": ins.astype(np.int64)}
@@ -299,9 +294,7 @@ class BundleWriter:
             raise InputError(f"BundleWriter: frame id {frame_id!r} used twice")
         pose = np.asarray(T_world_cam, dtype=np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise InputError(
-                f"BundleWriter: frame {frame_id}: pose must be a finite (4, 4), got {pose.shape}"
-            )
+            raise InputError(f"BundleWriter: frame {frame_id}: pose must be a finite (4, 4), got {pose.shape}")
         return {"id": frame_id, "pose": pose.tolist()}
 
     def _commit(self, frame_id: str, entry: dict[str, Any]) -> None:
@@ -312,9 +305,7 @@ class BundleWriter:
         depth = np.asarray(depth_m, dtype=np.float64)
         expected = (self.camera.height, self.camera.width)
         if depth.shape != expected:
-            raise InputError(
-                f"add_frame: depth shape {depth.shape}, expected {expected} (camera height, width)"
-            )
+            raise InputError(f"add_frame: depth shape {depth.shape}, expected {expected} (camera height, width)")
         valid = np.isfinite(depth) & (depth > 0)
         raw = np.where(valid, np.round(np.where(valid, depth, 0.0) * self.depth_scale), 0.0)
         return np.clip(raw, 0, _UINT16_MAX).astype(np.uint16)
@@ -331,9 +322,7 @@ class BundleWriter:
     def _write_features(self, frame_id: str, features: np.ndarray) -> str:
         feat = np.asarray(features)
         if feat.ndim != 3 or feat.dtype not in (np.float16, np.float32):
-            raise InputError(
-                f"add_frame: features must be (Hf, Wf, D) float16/32, got {feat.dtype} {feat.shape}"
-            )
+            raise InputError(f"add_frame: features must be (Hf, Wf, D) float16/32, got {feat.dtype} {feat.shape}")
         if feat.shape[2] != self.feature_dim:
             raise InputError(f"add_frame: features last dim {feat.shape[2]}, expected {self.feature_dim}")
         rel = f"features/{frame_id}.npy"
@@ -426,8 +415,7 @@ class ImportReport:
                 + _id_list(self.frames_skipped_missing)
             )
         lines.append(
-            f"{self.frames_without_features} frames without features, "
-            f"{self.frames_without_masks} without masks"
+            f"{self.frames_without_features} frames without features, {self.frames_without_masks} without masks"
         )
         return "\n".join(lines)
 
@@ -607,11 +595,7 @@ def npy_shape(path: Path) -> tuple[tuple[int, ...], np.dtype[Any], bool]:
     try:
         with Path(path).open("rb") as fh:
             version = np.lib.format.read_magic(fh)
-            read = (
-                np.lib.format.read_array_header_1_0
-                if version == (1, 0)
-                else np.lib.format.read_array_header_2_0
-            )
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             shape, fortran, dtype = read(fh)
     except (ValueError, OSError) as exc:
         raise InputError(f"import: {path}: not a .npy file ({exc})") from exc
@@ -679,3 +663,27 @@ def _read_image(path: Path) -> np.ndarray:
 def _id_list(ids: tuple[str, ...], limit: int = 10) -> str:
     shown = ", ".join(ids[:limit])
     return shown + (f" ... (+{len(ids) - limit})" if len(ids) > limit else "")
+
+
+def write_import(
+    dst: str | Path,
+    frames: list[SourceFrame],
+    *,
+    name: str,
+    camera: Camera,
+    depth_scale: float,
+    feature_dim: int,
+    feature_space: str,
+    geometry: str | Path | None = None,
+    vocabulary: Vocabulary | None = None,
+    on_progress: ProgressFn | None = None,
+) -> ImportReport:
+    """The end every importer shares: a bundle with optional geometry and vocabulary, then the frames."""
+    writer = BundleWriter(
+        dst, name=name, camera=camera, depth_scale=depth_scale, feature_dim=feature_dim, feature_space=feature_space
+    )
+    if geometry is not None:
+        writer.write_geometry_file(geometry)
+    if vocabulary is not None:
+        writer.write_vocabulary(vocabulary)
+    return write_source_frames(writer, frames, on_progress=on_progress)
