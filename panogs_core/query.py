@@ -121,8 +121,12 @@ def query_instances(
         raise InputError(f"query: temperature must be > 0, found {temp}")
     feats = _instance_features(instances, emb.shape[1])
     scores = query_scores(feats, q, competitors, temp, allies=allies)
-    order = np.lexsort((np.array([i.id for i in instances]), -scores))
-    hits = [_hit(instances[k], float(scores[k])) for k in order if scores[k] >= min_score]
+    # A class-name query answers with every instance labelled with that class, whatever its softmax score:
+    # labelling decided per primitive (and split clusters by class), while the score here uses the instance's
+    # mean feature, which can fall just under min_score for a correctly labelled instance.
+    labelled = np.array([own_class is not None and i.class_index == own_class for i in instances])
+    order = np.lexsort((np.array([i.id for i in instances]), -scores, ~labelled))
+    hits = [_hit(instances[k], float(scores[k])) for k in order if labelled[k] or scores[k] >= min_score]
     return hits[:top_k]
 
 

@@ -137,7 +137,8 @@ class TestQueryInstances:
         assert vocab.embeddings is not None
         instances = [_instance(c, vocab, c) for c in range(len(vocab.names))]
         for temperature, all_found in ((SPACE_TEMPERATURES[CLIP], True), (0.015, False)):
-            found = [any(h.instance_id == c for h in query_instances(
+            # instances labelled with the queried class are always returned; the calibration is their score
+            found = [any(h.instance_id == c and h.score >= 0.5 for h in query_instances(
                 instances, vocab, name, feature_space=CLIP, temperature=temperature, top_k=30))
                 for c, name in enumerate(vocab.names)]
             assert all(found) is all_found
@@ -181,3 +182,23 @@ def test_minilm_free_text_synonyms(monkeypatch: pytest.MonkeyPatch) -> None:
     for text, expected in (("couch", [0]), ("chairs", [1]), ("fridge", [3]), ("sofa", [0])):
         hits = query_instances(instances, vocab, text, feature_space="minilm-l6")
         assert [h.instance_id for h in hits] == expected, text
+
+
+def test_class_name_query_returns_every_instance_labelled_with_it() -> None:
+    """An instance labelled 'b' whose mean feature is ambiguous still answers the query 'b', ranked first."""
+    from panogs_core.labeling import InstanceInfo
+    from panogs_core.types import Vocabulary
+
+    emb = np.eye(3, dtype=np.float32)
+    vocab = Vocabulary(("a", "b", "c"), ("thing", "thing", "thing"), emb)
+    box = np.zeros(3, np.float32)
+
+    def inst(i: int, cls: int, feature: list[float]) -> InstanceInfo:
+        f = np.asarray(feature, np.float32)
+        return InstanceInfo(id=i, class_index=cls, class_name=vocab.names[cls], kind="thing", score=0.5,
+                            num_points=10, centroid=box, bbox_min=box, bbox_max=box, feature=f / np.linalg.norm(f))
+
+    instances = [inst(0, 1, [0.7, 0.71, 0.0]), inst(1, 0, [1.0, 0.0, 0.0]), inst(2, 1, [0.0, 1.0, 0.0])]
+    hits = query_instances(instances, vocab, "b", feature_space="test", top_k=10, min_score=0.9, temperature=0.05)
+    assert [h.instance_id for h in hits] == [2, 0]
+    assert hits[1].score < 0.9  # kept for its label, not for its score
