@@ -74,7 +74,10 @@ class PrimitivesConfig:
     depth_min: float = 0.1  # m, nearer depth is dropped (sensor minimum range, invalid near readings)
     depth_max: float = 4.5  # m, farther depth is dropped (structured-light noise grows with depth^2)
     frame_stride: int = 1  # integrate every n-th frame of the manifest
-    min_weight: float = 2.0  # frames that must see a voxel for it to be extracted (drops 1-frame outliers)
+    # Integration weight a voxel needs to be extracted. 2.0 dropped most surfaces of a sparse capture (tiny
+    # synthetic scene, 12 frames: no ceiling, 29 % of the true surface > 5 cm from any primitive, mIoU 0.49);
+    # 0.5 keeps every observed surface (0.4 % > 5 cm; mIoU 0.83, PRQ(S) 0.83 after ground-truth transfer).
+    min_weight: float = 0.5
     target_spacing: float = 0.02  # m, voxel-downsampling cell of the extracted cloud
     max_primitives: int = 200_000  # cap on N for the TSDF path (the geometry path is never capped: pitfall 1)
     spacing_growth: float = 1.2  # factor on the spacing per retry while the cloud is above max_primitives
