@@ -68,9 +68,7 @@ class AffinityConfig:
         if self.mode not in ("jsd", "language"):
             raise ConfigError(f"affinity.mode: expected 'jsd' or 'language', found {self.mode!r}")
         if not math.isfinite(self.min_covisibility) or self.min_covisibility < 0:
-            raise ConfigError(
-                f"affinity.min_covisibility: expected a number >= 0, found {self.min_covisibility}"
-            )
+            raise ConfigError(f"affinity.min_covisibility: expected a number >= 0, found {self.min_covisibility}")
         if not math.isfinite(self.eps) or self.eps <= 0:
             raise ConfigError(f"affinity.eps: expected a number > 0, found {self.eps}")
         if isinstance(self.chunk_rows, bool) or not isinstance(self.chunk_rows, int) or self.chunk_rows < 1:
@@ -119,9 +117,7 @@ class MaskObservations:
             )
 
 
-def observe_masks(
-    scene: Scene, visibility: Visibility, *, on_progress: ProgressFn | None = None
-) -> MaskObservations:
+def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: ProgressFn | None = None) -> MaskObservations:
     """Look up the mask id under every primitive that a mask frame sees; keep those inside a mask.
 
     Streams the frames of ``visibility`` that have a mask, one at a time (reference 5.1). The mask may have
@@ -142,9 +138,7 @@ def observe_masks(
     by_id = {frame.id: frame for frame in scene.frames}
     missing = [fid for fid in visibility.frame_ids if fid not in by_id]
     if missing:
-        raise InputError(
-            f"observe_masks: visibility names frame(s) {missing[:5]} that the scene does not have"
-        )
+        raise InputError(f"observe_masks: visibility names frame(s) {missing[:5]} that the scene does not have")
     views = [v for v, fid in enumerate(visibility.frame_ids) if by_id[fid].masks is not None]
     height, width = scene.camera.height, scene.camera.width
     index_parts: list[np.ndarray] = []
@@ -209,8 +203,7 @@ def segment_adjacency(
     neighbors = np.asarray(knn.neighbors, dtype=np.int64)
     if neighbors.ndim != 2 or neighbors.shape[0] != labels.size:
         raise ShapeError(
-            f"segment_adjacency: knn.neighbors must be ({labels.size}, K) to match labels, "
-            f"found {neighbors.shape}"
+            f"segment_adjacency: knn.neighbors must be ({labels.size}, K) to match labels, found {neighbors.shape}"
         )
     src = np.broadcast_to(labels[:, None], neighbors.shape)
     dst = np.where(neighbors >= 0, labels[np.maximum(neighbors, 0)], -1)
@@ -284,8 +277,7 @@ def _check_pairs(pairs: np.ndarray, num_segments: int) -> np.ndarray:  # (E, 2) 
         raise ShapeError(f"edge_affinity: pairs must be (E, 2) integers, found {pairs.shape} {pairs.dtype}")
     if pairs.min() < 0 or pairs.max() >= num_segments:
         raise InputError(
-            f"edge_affinity: pairs name segments in [{pairs.min()}, {pairs.max()}], "
-            f"labels have [0, {num_segments})"
+            f"edge_affinity: pairs name segments in [{pairs.min()}, {pairs.max()}], labels have [0, {num_segments})"
         )
     return pairs.astype(np.int64, copy=False)
 

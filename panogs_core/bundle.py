@@ -226,9 +226,7 @@ def _validate(root: Path, source: str | None = None) -> Scene:
     """Check every rule of SCENE_FORMAT.md; return the Scene or raise one BundleError listing all problems."""
     problems: list[str] = []
     manifest = _load_manifest(root, problems)
-    header = (
-        _check_header(manifest, problems) if manifest is not None else _Header(None, None, None, None, None)
-    )
+    header = _check_header(manifest, problems) if manifest is not None else _Header(None, None, None, None, None)
     frames = _check_frames(root, manifest, header, problems) if manifest is not None else []
     num_vertices = _check_geometry(root, problems)
     vocabulary = _check_vocabulary(root, header.feature_dim, problems)
@@ -308,9 +306,7 @@ def _check_header(doc: dict[str, Any], problems: list[str]) -> _Header:
 def _check_camera(cam: Any, problems: list[str]) -> tuple[Camera | None, tuple[int, int] | None]:
     """The camera, and its (height, width) on its own so that depth sizes are checked even if fx is bad."""
     if not isinstance(cam, dict):
-        problems.append(
-            f"scene.json: camera {_short(cam)}, expected an object with width, height, fx, fy, cx, cy"
-        )
+        problems.append(f"scene.json: camera {_short(cam)}, expected an object with width, height, fx, fy, cx, cy")
         return None, None
     width, height = _integer(cam.get("width")), _integer(cam.get("height"))
     fx, fy, cx, cy = (_number(cam.get(k)) for k in ("fx", "fy", "cx", "cy"))
@@ -404,17 +400,13 @@ def _check_pose(value: Any, where: str, problems: list[str]) -> np.ndarray | Non
     return pose
 
 
-def _check_rel_path(
-    root: Path, value: Any, where: str, exts: tuple[str, ...], problems: list[str]
-) -> str | None:
+def _check_rel_path(root: Path, value: Any, where: str, exts: tuple[str, ...], problems: list[str]) -> str | None:
     """A referenced path must be relative, stay in the root, avoid links, exist and be a regular file."""
     if not isinstance(value, str) or not value:
         problems.append(f"{where}: {value!r}, expected a relative path")
         return None
     if value.startswith("/") or "\\" in value or (len(value) > 1 and value[1] == ":"):
-        problems.append(
-            f"{value}: absolute or non-posix path ({where}), expected a path relative to the root"
-        )
+        problems.append(f"{value}: absolute or non-posix path ({where}), expected a path relative to the root")
         return None
     parts = value.split("/")
     if ".." in parts or "" in parts:
@@ -449,9 +441,7 @@ def _check_frame_files(root: Path, frame: Frame, header: _Header, problems: list
             problems.append(f"{frame.depth}: {_describe(depth)}, expected 16-bit single channel")
         size = header.size
         if size is not None and depth.shape[:2] != size:
-            problems.append(
-                f"{frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {size[1]}x{size[0]} (camera)"
-            )
+            problems.append(f"{frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {size[1]}x{size[0]} (camera)")
     if frame.color is not None:
         color = _decode(root, frame.color, problems)
         if color is not None and (color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] != 3):
@@ -520,9 +510,7 @@ def _check_features(root: Path, rel: str, dim: int | None, problems: list[str]) 
         problems.append(f"{rel}: file size does not match its header {shape} {dtype} (truncated?)")
 
 
-def _npy_header(
-    path: Path, rel: str, problems: list[str]
-) -> tuple[tuple[int, ...], bool, np.dtype[Any], bool] | None:
+def _npy_header(path: Path, rel: str, problems: list[str]) -> tuple[tuple[int, ...], bool, np.dtype[Any], bool] | None:
     """(shape, fortran order, dtype, data size matches the file) of a .npy, without reading the data."""
     try:
         with path.open("rb") as fh:
@@ -616,9 +604,7 @@ def _load_embeddings(
     emb = np.load(root / rel, allow_pickle=False).astype(np.float32)
     norms = np.linalg.norm(emb, axis=1, keepdims=True)
     if not np.all(np.isfinite(emb)) or np.any(norms == 0):
-        problems.append(
-            f"{rel}: contains NaN, infinite or all-zero rows, expected finite non-zero embeddings"
-        )
+        problems.append(f"{rel}: contains NaN, infinite or all-zero rows, expected finite non-zero embeddings")
         return None
     return emb / norms
 
@@ -654,9 +640,7 @@ def _check_ground_truth(
     if vocabulary is None:
         problems.append(f"{rel}: semantic labels need vocabulary.json, which is missing or invalid")
     elif g and (sem.min() < -1 or sem.max() >= len(vocabulary.names)):
-        problems.append(
-            f"{rel}: semantic in [{sem.min()}, {sem.max()}], expected [-1, {len(vocabulary.names)})"
-        )
+        problems.append(f"{rel}: semantic in [{sem.min()}, {sem.max()}], expected [-1, {len(vocabulary.names)})")
     if pts is not None:
         if pts.shape != (g, 3) or pts.dtype.kind != "f" or not np.all(np.isfinite(pts)):
             problems.append(f"{rel}: points {pts.dtype} {pts.shape}, expected ({g}, 3) finite floats")

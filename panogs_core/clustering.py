@@ -69,25 +69,20 @@ class ClusteringConfig:
     def __post_init__(self) -> None:
         values = tuple(self.thresholds)
         if not values or not all(isinstance(t, int | float) and math.isfinite(t) for t in values):
-            raise ConfigError(
-                f"clustering.thresholds: expected one or more numbers, found {self.thresholds!r}"
-            )
+            raise ConfigError(f"clustering.thresholds: expected one or more numbers, found {self.thresholds!r}")
         if any(not -1.0 <= t <= 1.0 for t in values):
             raise ConfigError(f"clustering.thresholds: expected values in [-1, 1], found {list(values)}")
         if any(later > earlier for earlier, later in itertools.pairwise(values)):
             raise ConfigError(f"clustering.thresholds: expected non-increasing values, found {list(values)}")
         if not math.isfinite(self.two_hop_weight) or not 0.0 <= self.two_hop_weight <= 1.0:
-            raise ConfigError(
-                f"clustering.two_hop_weight: expected a number in [0, 1], found {self.two_hop_weight}"
-            )
+            raise ConfigError(f"clustering.two_hop_weight: expected a number in [0, 1], found {self.two_hop_weight}")
         for name in ("small_cluster_max_parts", "small_cluster_max_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"clustering.{name}: expected an integer >= 0, found {value!r}")
         if self.unmerged_small not in ("adjacent", "void", "keep"):
             raise ConfigError(
-                "clustering.unmerged_small: expected 'adjacent', 'void' or 'keep', "
-                f"found {self.unmerged_small!r}"
+                f"clustering.unmerged_small: expected 'adjacent', 'void' or 'keep', found {self.unmerged_small!r}"
             )
 
 

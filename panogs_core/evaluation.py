@@ -123,8 +123,9 @@ def evaluate(
         ShapeError: arrays of different lengths or not 1-D.
         InputError: labels outside ``[-1, L)``, unknown ignored class, unknown mode, threshold not in [0, 1).
     """
-    ps, pi, gs, gi = _check_labels(pred_semantic, pred_instance, gt_semantic, gt_instance,
-                                   num_classes=len(vocabulary.names))
+    ps, pi, gs, gi = _check_labels(
+        pred_semantic, pred_instance, gt_semantic, gt_instance, num_classes=len(vocabulary.names)
+    )
     if mode not in ("standard", "paper"):
         raise InputError(f"evaluate: mode must be 'standard' or 'paper', found {mode!r}")
     if not 0.0 <= iou_threshold < 1.0:
@@ -135,24 +136,34 @@ def evaluate(
         excluded |= {i for i, n in enumerate(vocabulary.names) if n.lower() in PAPER_EXCLUDED_NAMES}
         things, stuff = _paper_split(vocabulary, excluded)
         iou, acc, present = semantic_scores(ps, gs, num)
-        pq = [_paper_pq(ps, pi, gs, gi, classes, t)
-              for t in (iou_threshold, 0.5) for classes in (things, stuff)]
+        pq = [_paper_pq(ps, pi, gs, gi, classes, t) for t in (iou_threshold, 0.5) for classes in (things, stuff)]
         points = len(gs)
     else:
         annotated = gs >= 0
         iou, acc, present = semantic_scores(ps[annotated], gs[annotated], num)
         things = [c for c in range(num) if vocabulary.is_thing[c] and c not in excluded]
         stuff = [c for c in range(num) if not vocabulary.is_thing[c] and c not in excluded]
-        pq = [_standard_pq(ps, pi, gs, gi, classes, t, thing=classes is things)
-              for t in (iou_threshold, 0.5) for classes in (things, stuff)]
+        pq = [
+            _standard_pq(ps, pi, gs, gi, classes, t, thing=classes is things)
+            for t in (iou_threshold, 0.5)
+            for classes in (things, stuff)
+        ]
         points = int(annotated.sum())
     valid = [c for c in range(num) if present[c] and c not in excluded]
     names = vocabulary.names
     return Metrics(
-        mode=mode, iou_threshold=iou_threshold,
-        miou=_mean(iou[valid]), macc=_mean(acc[valid]),
-        prq_thing=pq[0].pq, prq_stuff=pq[1].pq, sq_thing=pq[0].sq, rq_thing=pq[0].rq, sq_stuff=pq[1].sq,
-        rq_stuff=pq[1].rq, prq_thing_50=pq[2].pq, prq_stuff_50=pq[3].pq,
+        mode=mode,
+        iou_threshold=iou_threshold,
+        miou=_mean(iou[valid]),
+        macc=_mean(acc[valid]),
+        prq_thing=pq[0].pq,
+        prq_stuff=pq[1].pq,
+        sq_thing=pq[0].sq,
+        rq_thing=pq[0].rq,
+        sq_stuff=pq[1].sq,
+        rq_stuff=pq[1].rq,
+        prq_thing_50=pq[2].pq,
+        prq_stuff_50=pq[3].pq,
         class_iou={names[c]: float(iou[c]) for c in valid},
         class_acc={names[c]: float(acc[c]) for c in valid},
         class_pq={names[c]: v for part in pq[:2] for c, v in part.per_class.items()},
@@ -160,8 +171,7 @@ def evaluate(
     )
 
 
-def semantic_scores(pred: np.ndarray, gt: np.ndarray,
-                    num_classes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def semantic_scores(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per class IoU, accuracy (recall) and presence in the ground truth; ``(L,)`` each.
 
     IoU_c = |pred=c and gt=c| / |pred=c or gt=c| (0 when the union is empty),
@@ -205,14 +215,14 @@ def transfer_to_points(
         raise ShapeError(f"query_points: expected (G, 3), found {query.shape}")
     for k, v in enumerate(values):
         if np.shape(v)[:1] != (len(prim),):
-            raise ShapeError(f"values[{k}]: expected {len(prim)} rows (one per primitive), "
-                             f"found {np.shape(v)}")
+            raise ShapeError(f"values[{k}]: expected {len(prim)} rows (one per primitive), found {np.shape(v)}")
     _, nearest = cKDTree(prim).query(query, k=1, workers=1)
     return tuple(np.asarray(v)[nearest] for v in values)
 
 
-def _standard_pq(ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int],
-                 threshold: float, *, thing: bool) -> _PQ:
+def _standard_pq(
+    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float, *, thing: bool
+) -> _PQ:
     """Per-class PQ with per-class counters; see the module docstring."""
     void = gs < 0
     if thing:  # a thing point without a ground-truth instance cannot be matched: void for things
@@ -235,8 +245,9 @@ def _standard_pq(ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray,
     return _PQ(_mean(list(per_class.values())), _mean(sq), _mean(rq), per_class)
 
 
-def _match_class(g_ids: np.ndarray, p_ids: np.ndarray, void: np.ndarray,
-                 threshold: float) -> tuple[int, int, int, float]:
+def _match_class(
+    g_ids: np.ndarray, p_ids: np.ndarray, void: np.ndarray, threshold: float
+) -> tuple[int, int, int, float]:
     """(TP, FP, FN, sum IoU of TP) of one class; ids -1 = not in a segment of this class."""
     g_mask, p_mask = (g_ids >= 0) & ~void, (p_ids >= 0) & ~void
     g_u, g_size = np.unique(g_ids[g_mask], return_counts=True)
@@ -258,8 +269,15 @@ def _match_class(g_ids: np.ndarray, p_ids: np.ndarray, void: np.ndarray,
     return tp, fp, len(g_u) - tp, iou_sum
 
 
-def _iou_matrix(g_ids: np.ndarray, p_ids: np.ndarray, both: np.ndarray, g_u: np.ndarray, g_size: np.ndarray,
-                p_u: np.ndarray, p_size: np.ndarray) -> np.ndarray:  # (len(g_u), len(p_u)) float64
+def _iou_matrix(
+    g_ids: np.ndarray,
+    p_ids: np.ndarray,
+    both: np.ndarray,
+    g_u: np.ndarray,
+    g_size: np.ndarray,
+    p_u: np.ndarray,
+    p_size: np.ndarray,
+) -> np.ndarray:  # (len(g_u), len(p_u)) float64
     inter = np.zeros((len(g_u), len(p_u)))
     if both.any():
         pair, count = np.unique(np.stack([g_ids[both], p_ids[both]], 1), axis=0, return_counts=True)
@@ -268,8 +286,9 @@ def _iou_matrix(g_ids: np.ndarray, p_ids: np.ndarray, both: np.ndarray, g_u: np.
     return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
 
 
-def _paper_pq(ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int],
-              threshold: float) -> _PQ:
+def _paper_pq(
+    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float
+) -> _PQ:
     """Reference 8.2 ``panoptic()``, quirks included (cumulative TP / FN / IoU sum, per-class FP)."""
     tp = fn = n_valid = 0
     iou_sum = pq = sq = rq = 0.0
@@ -335,15 +354,13 @@ def _check_labels(*arrays: np.ndarray, num_classes: int) -> tuple[np.ndarray, ..
     out = tuple(np.asarray(a) for a in arrays)
     for name, a in zip(names, out):
         if a.ndim != 1 or a.shape != out[2].shape:
-            raise ShapeError(f"{name}: expected 1-D of the ground truth's length {out[2].shape}, "
-                             f"found {a.shape}")
+            raise ShapeError(f"{name}: expected 1-D of the ground truth's length {out[2].shape}, found {a.shape}")
         if len(a) and not np.all(np.equal(np.mod(a, 1), 0)):
             raise InputError(f"{name}: expected integer labels")
     out = tuple(a.astype(np.int64) for a in out)
     for name, a in ((names[0], out[0]), (names[2], out[2])):
         if len(a) and (a.min() < -1 or a.max() >= num_classes):
-            raise InputError(f"{name}: class ids must be in [-1, {num_classes}), "
-                             f"found [{a.min()}, {a.max()}]")
+            raise InputError(f"{name}: class ids must be in [-1, {num_classes}), found [{a.min()}, {a.max()}]")
     return out
 
 

@@ -73,9 +73,7 @@ class FusionConfig:
 
     def __post_init__(self) -> None:
         if self.confidence not in _CONFIDENCE_MODES:
-            raise ConfigError(
-                f"fusion.confidence: expected one of {_CONFIDENCE_MODES}, got {self.confidence!r}"
-            )
+            raise ConfigError(f"fusion.confidence: expected one of {_CONFIDENCE_MODES}, got {self.confidence!r}")
         if not (math.isfinite(self.weight_scale) and self.weight_scale > 0):
             raise ConfigError(f"fusion.weight_scale: expected a finite value > 0, got {self.weight_scale!r}")
         if not (math.isfinite(self.paper_variance_eps) and self.paper_variance_eps > 0):
@@ -83,18 +81,14 @@ class FusionConfig:
                 f"fusion.paper_variance_eps: expected a finite value > 0, got {self.paper_variance_eps!r}"
             )
         if not (math.isfinite(self.min_feature_norm) and self.min_feature_norm >= 0):
-            raise ConfigError(
-                f"fusion.min_feature_norm: expected a finite value >= 0, got {self.min_feature_norm!r}"
-            )
+            raise ConfigError(f"fusion.min_feature_norm: expected a finite value >= 0, got {self.min_feature_norm!r}")
 
 
 @dataclass(frozen=True)
 class FusedFeatures:
     """Per-primitive fused 2D features, their confidence, and (optionally) fused colours."""
 
-    features: (
-        np.ndarray
-    )  # (N, D) float32, mean of unit-normalised pixel features over seeing frames; 0 if unseen
+    features: np.ndarray  # (N, D) float32, mean of unit-normalised pixel features over seeing frames; 0 if unseen
     weights: np.ndarray  # (N,) float32, confidence >= 0; 0 where unseen
     seen_count: np.ndarray  # (N,) int32, number of feature frames that see the primitive
     colors: np.ndarray | None  # (N, 3) float32 in [0, 1], mean colour over seeing frames (None: no colour)
@@ -161,9 +155,7 @@ def fuse_features(
     """
     frames = _frames_by_id(scene, visibility)
     if visibility.point_index.size and int(visibility.point_index.max()) >= num_points:
-        raise ShapeError(
-            f"visibility: point index {int(visibility.point_index.max())} >= num_points ({num_points})"
-        )
+        raise ShapeError(f"visibility: point index {int(visibility.point_index.max())} >= num_points ({num_points})")
     start = time.perf_counter()
     features = _FeatureSum(num_points, scene.feature_dim)
     colors = _ColorSum(num_points) if cfg.fuse_colors and any(f.color for f in frames) else None
@@ -333,9 +325,7 @@ class _ColorSum:
         self.total = np.zeros((num_points, 3), dtype=np.float32)  # (N, 3)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
 
-    def add(
-        self, scene: Scene, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray
-    ) -> None:
+    def add(self, scene: Scene, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
         image = scene.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
         if image is None:
             return

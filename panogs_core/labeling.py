@@ -82,19 +82,13 @@ class LabelingConfig:
         if self.vote not in ("superprimitive", "none"):
             raise ConfigError(f"labeling.vote: expected 'superprimitive' or 'none', found {self.vote!r}")
         if not 0.0 <= self.vote_min_fraction <= 1.0:
-            raise ConfigError(
-                f"labeling.vote_min_fraction: expected a value in [0, 1], found {self.vote_min_fraction}"
-            )
+            raise ConfigError(f"labeling.vote_min_fraction: expected a value in [0, 1], found {self.vote_min_fraction}")
         if self.split_neighbors < 1:
             raise ConfigError(f"labeling.split_neighbors: expected >= 1, found {self.split_neighbors}")
         if self.min_instance_points < 1:
-            raise ConfigError(
-                f"labeling.min_instance_points: expected >= 1, found {self.min_instance_points}"
-            )
+            raise ConfigError(f"labeling.min_instance_points: expected >= 1, found {self.min_instance_points}")
         if self.score_temperature is not None and not self.score_temperature > 0:
-            raise ConfigError(
-                f"labeling.score_temperature: expected > 0 or None, found {self.score_temperature}"
-            )
+            raise ConfigError(f"labeling.score_temperature: expected > 0 or None, found {self.score_temperature}")
 
 
 @dataclass(frozen=True)
@@ -119,9 +113,14 @@ class InstanceInfo:
     def to_json(self, *, with_feature: bool = False) -> dict[str, Any]:
         """Plain dict (ints, floats, lists); the ``(D,)`` feature only when asked."""
         out: dict[str, Any] = {
-            "id": int(self.id), "class_index": int(self.class_index), "class_name": self.class_name,
-            "kind": self.kind, "score": float(self.score), "num_points": int(self.num_points),
-            "centroid": [float(v) for v in self.centroid], "bbox_min": [float(v) for v in self.bbox_min],
+            "id": int(self.id),
+            "class_index": int(self.class_index),
+            "class_name": self.class_name,
+            "kind": self.kind,
+            "score": float(self.score),
+            "num_points": int(self.num_points),
+            "centroid": [float(v) for v in self.centroid],
+            "bbox_min": [float(v) for v in self.bbox_min],
             "bbox_max": [float(v) for v in self.bbox_max],
         }
         if with_feature:
@@ -144,7 +143,9 @@ class PanopticLabels:
         text = json.dumps([[i.class_name, i.kind] for i in inst])
         with open(path, "wb") as fh:
             np.savez(
-                fh, semantic=self.semantic, instance=self.instance,
+                fh,
+                semantic=self.semantic,
+                instance=self.instance,
                 inst_id=np.array([i.id for i in inst], np.int64),
                 inst_class=np.array([i.class_index for i in inst], np.int64),
                 inst_score=np.array([i.score for i in inst], np.float64),
@@ -163,15 +164,22 @@ class PanopticLabels:
             text = json.loads(str(z["inst_text"]))
             instances = tuple(
                 InstanceInfo(
-                    id=int(z["inst_id"][k]), class_index=int(z["inst_class"][k]), class_name=name, kind=kind,
-                    score=float(z["inst_score"][k]), num_points=int(z["inst_num_points"][k]),
-                    centroid=z["inst_centroid"][k], bbox_min=z["inst_bbox_min"][k],
-                    bbox_max=z["inst_bbox_max"][k], feature=z["inst_feature"][k],
+                    id=int(z["inst_id"][k]),
+                    class_index=int(z["inst_class"][k]),
+                    class_name=name,
+                    kind=kind,
+                    score=float(z["inst_score"][k]),
+                    num_points=int(z["inst_num_points"][k]),
+                    centroid=z["inst_centroid"][k],
+                    bbox_min=z["inst_bbox_min"][k],
+                    bbox_max=z["inst_bbox_max"][k],
+                    feature=z["inst_feature"][k],
                 )
                 for k, (name, kind) in enumerate(text)
             )
-            return cls(semantic=z["semantic"].astype(np.int64), instance=z["instance"].astype(np.int64),
-                       instances=instances)
+            return cls(
+                semantic=z["semantic"].astype(np.int64), instance=z["instance"].astype(np.int64), instances=instances
+            )
 
 
 def assign_panoptic(
@@ -227,13 +235,13 @@ def assign_panoptic(
             from panogs_core.superprimitives import build_knn
 
             neighbors = build_knn(points, min(cfg.split_neighbors, max(len(cls) - 1, 1))).neighbors
-        semantic, instance, inst_class = _assemble_split(cls, cluster, vocabulary.is_thing,
-                                                         cfg.min_instance_points, np.asarray(neighbors))
+        semantic, instance, inst_class = _assemble_split(
+            cls, cluster, vocabulary.is_thing, cfg.min_instance_points, np.asarray(neighbors)
+        )
     else:
         semantic, instance, inst_class = _assemble(cls, cluster, vocabulary.is_thing, cfg.min_instance_points)
     temperature = cfg.score_temperature or default_temperature(None, emb)
-    infos = _instance_infos(np.asarray(points, np.float32), feats, sims / temperature, instance, inst_class,
-                            vocabulary)
+    infos = _instance_infos(np.asarray(points, np.float32), feats, sims / temperature, instance, inst_class, vocabulary)
     return PanopticLabels(semantic=semantic, instance=instance, instances=infos)
 
 
@@ -262,8 +270,7 @@ def vote_in_segments(
     return np.where(voted >= 0, voted, classes)
 
 
-def _majority(groups: np.ndarray,
-              classes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _majority(groups: np.ndarray, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per group present: (group id, majority class, its count, group size); ties -> smallest class."""
     span = int(classes.max()) + 1
     keys, counts = np.unique(groups * span + classes, return_counts=True)
@@ -284,24 +291,24 @@ def instances_to_json(labels: PanopticLabels, vocabulary: Vocabulary) -> list[di
     for info in labels.instances:
         c = info.class_index
         if not 0 <= c < len(vocabulary.names) or vocabulary.names[c] != info.class_name:
-            raise InputError(f"instance {info.id}: class {info.class_name!r} is not class {info.class_index} "
-                             "of this vocabulary")
+            raise InputError(
+                f"instance {info.id}: class {info.class_name!r} is not class {info.class_index} of this vocabulary"
+            )
         out.append(info.to_json())
     return out
 
 
-def _check_inputs(points: np.ndarray, features: np.ndarray, sp_labels: np.ndarray, cl_labels: np.ndarray,
-                  vocabulary: Vocabulary) -> np.ndarray:  # (L, D) float32 unit
+def _check_inputs(
+    points: np.ndarray, features: np.ndarray, sp_labels: np.ndarray, cl_labels: np.ndarray, vocabulary: Vocabulary
+) -> np.ndarray:  # (L, D) float32 unit
     if vocabulary.embeddings is None:
-        raise InputError("assign_panoptic: the vocabulary has no embeddings "
-                         "(call labelsets.ensure_embeddings)")
+        raise InputError("assign_panoptic: the vocabulary has no embeddings (call labelsets.ensure_embeddings)")
     n = np.shape(points)[0] if np.ndim(points) == 2 else -1
     if np.shape(points) != (n, 3) or n < 0:
         raise ShapeError(f"points: expected (N, 3), found {np.shape(points)}")
     emb = np.asarray(vocabulary.embeddings, np.float32)
     if np.shape(features) != (n, emb.shape[1]):
-        raise ShapeError(f"features: expected ({n}, {emb.shape[1]}) (N, vocabulary D), "
-                         f"found {np.shape(features)}")
+        raise ShapeError(f"features: expected ({n}, {emb.shape[1]}) (N, vocabulary D), found {np.shape(features)}")
     for name, lab in (("superprimitives.labels", sp_labels), ("clusters.labels", cl_labels)):
         if np.shape(lab) != (n,):
             raise ShapeError(f"{name}: expected ({n},), found {np.shape(lab)}")
@@ -310,8 +317,9 @@ def _check_inputs(points: np.ndarray, features: np.ndarray, sp_labels: np.ndarra
     return emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
 
 
-def _assemble(cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray,
-              min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _assemble(
+    cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray, min_points: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Semantic (N,), instance (N,) and the class of each instance (I,); see ``assign_panoptic``."""
     thing = (cls >= 0) & is_thing[np.maximum(cls, 0)]
     semantic = cls.copy()
@@ -340,8 +348,9 @@ def _assemble(cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray,
     return semantic, instance, np.concatenate([thing_classes, stuff_classes]).astype(np.int64)
 
 
-def _assemble_split(cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray, min_points: int,
-                    neighbors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _assemble_split(
+    cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray, min_points: int, neighbors: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``_assemble`` with thing instances split by class inside a cluster.
 
     1. The thing primitives of one (cluster, class) are cut into kNN-connected components; a component of at
@@ -421,8 +430,14 @@ def _assemble_split(cls: np.ndarray, cluster: np.ndarray, is_thing: np.ndarray, 
     return semantic, instance, np.concatenate([thing_classes, stuff_classes]).astype(np.int64)
 
 
-def _instance_infos(points: np.ndarray, feats: np.ndarray, logits: np.ndarray, instance: np.ndarray,
-                    inst_class: np.ndarray, vocabulary: Vocabulary) -> tuple[InstanceInfo, ...]:
+def _instance_infos(
+    points: np.ndarray,
+    feats: np.ndarray,
+    logits: np.ndarray,
+    instance: np.ndarray,
+    inst_class: np.ndarray,
+    vocabulary: Vocabulary,
+) -> tuple[InstanceInfo, ...]:
     num = len(inst_class)
     if num == 0:
         return ()
@@ -445,10 +460,16 @@ def _instance_infos(points: np.ndarray, feats: np.ndarray, logits: np.ndarray, i
     lo, hi = np.minimum.reduceat(sorted_pts, starts), np.maximum.reduceat(sorted_pts, starts)
     return tuple(
         InstanceInfo(
-            id=k, class_index=int(c), class_name=vocabulary.names[c], kind=vocabulary.kinds[c],
-            score=float(np.clip(score[k], 0.0, 1.0)), num_points=int(counts[k]),
-            centroid=centroid[k].astype(np.float32), bbox_min=lo[k].astype(np.float32),
-            bbox_max=hi[k].astype(np.float32), feature=mean_feat[k].astype(np.float32),
+            id=k,
+            class_index=int(c),
+            class_name=vocabulary.names[c],
+            kind=vocabulary.kinds[c],
+            score=float(np.clip(score[k], 0.0, 1.0)),
+            num_points=int(counts[k]),
+            centroid=centroid[k].astype(np.float32),
+            bbox_min=lo[k].astype(np.float32),
+            bbox_max=hi[k].astype(np.float32),
+            feature=mean_feat[k].astype(np.float32),
         )
         for k, c in enumerate(inst_class)
     )

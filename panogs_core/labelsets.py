@@ -23,8 +23,25 @@ from panogs_core.types import ClassKind, Vocabulary
 
 _LABEL_DIR = Path(__file__).parent / "data" / "label_sets"
 _SCANNET20 = (
-    "wall", "floor", "cabinet", "bed", "chair", "sofa", "table", "door", "window", "bookshelf", "picture",
-    "counter", "desk", "curtain", "refrigerator", "shower curtain", "toilet", "sink", "bathtub",
+    "wall",
+    "floor",
+    "cabinet",
+    "bed",
+    "chair",
+    "sofa",
+    "table",
+    "door",
+    "window",
+    "bookshelf",
+    "picture",
+    "counter",
+    "desk",
+    "curtain",
+    "refrigerator",
+    "shower curtain",
+    "toilet",
+    "sink",
+    "bathtub",
     "otherfurniture",
 )
 _MATTERPORT21 = (*_SCANNET20[:19], "other", "ceiling")
@@ -68,9 +85,7 @@ def builtin_vocabulary(name: str, *, feature_space: str | None = None) -> Vocabu
     """
     key = name.strip().lower()
     if key not in BUILTIN_VOCABULARIES:
-        raise InputError(
-            f"vocabulary {name!r}: unknown built-in label set (known: {', '.join(BUILTIN_VOCABULARIES)})"
-        )
+        raise InputError(f"vocabulary {name!r}: unknown built-in label set (known: {', '.join(BUILTIN_VOCABULARIES)})")
     names, filename = BUILTIN_VOCABULARIES[key]
     kinds = tuple(_default_kind(n) for n in names)
     if feature_space is not None and feature_space != BUILTIN_SPACE:
@@ -101,9 +116,7 @@ def load_vocabulary_file(path: str | Path) -> Vocabulary:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: cannot read a vocabulary: {exc}") from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("classes"), list) or not doc["classes"]:
-        raise InputError(
-            f"{path}: expected {{'classes': [{{'name': ..., 'kind': ...}}, ...]}} with >= 1 class"
-        )
+        raise InputError(f"{path}: expected {{'classes': [{{'name': ..., 'kind': ...}}, ...]}} with >= 1 class")
     names, kinds = _parse_classes(doc["classes"], source=str(path))
     embeddings = None
     if doc.get("embeddings") is not None:
@@ -126,8 +139,7 @@ def resolve_vocabulary(spec: str, *, feature_space: str | None = None) -> Vocabu
     path = Path(spec)
     if not path.is_file():
         raise InputError(
-            f"vocabulary {spec!r}: not a built-in label set ({', '.join(BUILTIN_VOCABULARIES)}) "
-            "and no such file"
+            f"vocabulary {spec!r}: not a built-in label set ({', '.join(BUILTIN_VOCABULARIES)}) and no such file"
         )
     return load_vocabulary_file(path)
 
@@ -210,9 +222,7 @@ def _parse_classes(entries: list[Any], *, source: str) -> tuple[tuple[str, ...],
             raise InputError(f"{source}: classes[{i}] needs a non-empty string 'name', found {entry!r}")
         kind = entry.get("kind", _default_kind(name))
         if kind not in ("thing", "stuff"):
-            raise InputError(
-                f"{source}: classes[{i}] ({name!r}) kind must be 'thing' or 'stuff', found {kind!r}"
-            )
+            raise InputError(f"{source}: classes[{i}] ({name!r}) kind must be 'thing' or 'stuff', found {kind!r}")
         names.append(name.strip())
         kinds.append(kind)
     lowered = [n.lower() for n in names]
@@ -231,8 +241,7 @@ def _load_embeddings(folder: Path, rel: Any, num_classes: int, *, source: str) -
         raise InputError(f"{source}: cannot read embeddings {rel!r}: {exc}") from exc
     if emb.ndim != 2 or emb.shape[0] != num_classes or not np.issubdtype(emb.dtype, np.floating):
         raise InputError(
-            f"{source}: embeddings {rel!r} must be a float ({num_classes}, D) array, "
-            f"found {emb.dtype} {emb.shape}"
+            f"{source}: embeddings {rel!r} must be a float ({num_classes}, D) array, found {emb.dtype} {emb.shape}"
         )
     return _unit_rows(emb, source=f"{source}: embeddings {rel!r}")
 

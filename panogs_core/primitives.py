@@ -107,8 +107,7 @@ class PrimitivesConfig:
                 raise ConfigError(f"primitives.{name}: expected an integer >= 1, got {count!r}")
         if not (math.isfinite(self.depth_min) and 0 <= self.depth_min < self.depth_max):
             raise ConfigError(
-                f"primitives.depth_min: expected 0 <= depth_min < depth_max ({self.depth_max}), "
-                f"got {self.depth_min!r}"
+                f"primitives.depth_min: expected 0 <= depth_min < depth_max ({self.depth_max}), got {self.depth_min!r}"
             )
         if not (math.isfinite(self.min_weight) and self.min_weight >= 0):
             raise ConfigError(f"primitives.min_weight: expected a finite value >= 0, got {self.min_weight!r}")
@@ -172,9 +171,7 @@ class Primitives:
             )
 
 
-def build_primitives(
-    scene: Scene, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None
-) -> Primitives:
+def build_primitives(scene: Scene, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None) -> Primitives:
     """Build the primitives of a scene: ``geometry.ply`` vertices, or a TSDF reconstruction of the depth.
 
     Args:
@@ -203,9 +200,7 @@ def build_primitives(
     scales = gaussian_log_scales(points, cfg.scale_neighbors, cfg.min_sq_distance, cfg.point_size)
     opacities = np.zeros(points.shape[0], dtype=np.float32)  # logit(0.5) = 0; reference 2
     log.info("primitives: %d from %s", points.shape[0], source)
-    return Primitives(
-        points=points, normals=normals, colors=colors, scales=scales, opacities=opacities, source=source
-    )
+    return Primitives(points=points, normals=normals, colors=colors, scales=scales, opacities=opacities, source=source)
 
 
 def gaussian_log_scales(
@@ -422,9 +417,7 @@ def _integrate_frame(grid: Any, scene: Scene, frame: Frame, cfg: PrimitivesConfi
     color = scene.read_color(frame) if with_color else None
     if color is not None:
         color_img = o3d.t.geometry.Image(_tensor(np.asarray(color, dtype=np.float32) / 255.0))
-        grid.integrate(
-            coords, depth, color_img, lookup, lookup, extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels
-        )
+        grid.integrate(coords, depth, color_img, lookup, lookup, extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels)
     else:
         grid.integrate(coords, depth, lookup, extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels)
     return True

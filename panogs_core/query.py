@@ -61,8 +61,11 @@ class QueryHit:
     def to_json(self) -> dict[str, Any]:
         """Plain dict (ints, floats, lists)."""
         return {
-            "instance_id": int(self.instance_id), "class_name": self.class_name, "score": float(self.score),
-            "centroid": [float(v) for v in self.centroid], "bbox_min": [float(v) for v in self.bbox_min],
+            "instance_id": int(self.instance_id),
+            "class_name": self.class_name,
+            "score": float(self.score),
+            "centroid": [float(v) for v in self.centroid],
+            "bbox_min": [float(v) for v in self.bbox_min],
             "bbox_max": [float(v) for v in self.bbox_max],
         }
 
@@ -170,8 +173,9 @@ def default_synonym_cos(feature_space: str, embeddings: np.ndarray) -> float:
     return max(DEFAULT_SYNONYM_COS, float(sims.max()) + 0.01)
 
 
-def _query_vector(query: str | np.ndarray, vocabulary: Vocabulary, emb: np.ndarray, feature_space: str,
-                  encoder: TextEncoder | None) -> tuple[np.ndarray, int | None]:
+def _query_vector(
+    query: str | np.ndarray, vocabulary: Vocabulary, emb: np.ndarray, feature_space: str, encoder: TextEncoder | None
+) -> tuple[np.ndarray, int | None]:
     """(unit query (D,), index of the vocabulary class it names or None)."""
     if isinstance(query, str):
         text = query.strip()
@@ -202,9 +206,7 @@ def _query_vector(query: str | np.ndarray, vocabulary: Vocabulary, emb: np.ndarr
 def _instance_features(instances: Sequence[InstanceInfo], dim: int) -> np.ndarray:  # (I, D) float32
     feats = np.stack([np.asarray(i.feature, np.float32).reshape(-1) for i in instances])
     if feats.shape[1] != dim:
-        raise ShapeError(
-            f"instance features: expected {dim}-d (the vocabulary's D), found {feats.shape[1]}-d"
-        )
+        raise ShapeError(f"instance features: expected {dim}-d (the vocabulary's D), found {feats.shape[1]}-d")
     norms = np.linalg.norm(feats, axis=1, keepdims=True)
     return feats / np.maximum(norms, 1e-12)
 
@@ -218,7 +220,10 @@ def _unit(x: np.ndarray, *, name: str) -> np.ndarray:
 
 def _hit(info: InstanceInfo, score: float) -> QueryHit:
     return QueryHit(
-        instance_id=int(info.id), class_name=info.class_name, score=min(max(score, 0.0), 1.0),
-        centroid=np.asarray(info.centroid, np.float32), bbox_min=np.asarray(info.bbox_min, np.float32),
+        instance_id=int(info.id),
+        class_name=info.class_name,
+        score=min(max(score, 0.0), 1.0),
+        centroid=np.asarray(info.centroid, np.float32),
+        bbox_min=np.asarray(info.bbox_min, np.float32),
         bbox_max=np.asarray(info.bbox_max, np.float32),
     )

@@ -157,5 +157,6 @@ def labeling(
 ) -> Any:
     from panogs_core.labeling import assign_panoptic
 
-    return assign_panoptic(prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling,
-                           neighbors=graph.knn.neighbors)
+    return assign_panoptic(
+        prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling, neighbors=graph.knn.neighbors
+    )

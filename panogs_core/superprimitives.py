@@ -65,8 +65,12 @@ class SuperPrimitiveConfig:
         _require(-1.0 <= self.edge_cosine <= 1.0, "edge_cosine", "a cosine in [-1, 1]", self.edge_cosine)
         _require(-1.0 <= self.merge_cosine <= 1.0, "merge_cosine", "a cosine in [-1, 1]", self.merge_cosine)
         _require(self.min_size >= 1, "min_size", ">= 1", self.min_size)
-        _require(self.small_merge_order in ("construction", "weight", "language"), "small_merge_order",
-                 "'construction', 'weight' or 'language'", self.small_merge_order)
+        _require(
+            self.small_merge_order in ("construction", "weight", "language"),
+            "small_merge_order",
+            "'construction', 'weight' or 'language'",
+            self.small_merge_order,
+        )
 
 
 def _require(ok: bool, name: str, expected: str, value: object) -> None:
@@ -234,13 +238,9 @@ def _check_inputs(
     if neighbors.ndim != 2 or neighbors.shape[0] != n:
         raise ShapeError(f"knn.neighbors: expected shape ({n}, K), found {neighbors.shape}")
     if neighbors.size and (neighbors.min() < 0 or neighbors.max() >= n):
-        raise InputError(
-            f"knn.neighbors: expected indices in [0, {n}), found [{neighbors.min()}, {neighbors.max()}]"
-        )
+        raise InputError(f"knn.neighbors: expected indices in [0, {n}), found [{neighbors.min()}, {neighbors.max()}]")
     if neighbors.shape[1] < cfg.k_neighbors:
-        raise InputError(
-            f"knn: has {neighbors.shape[1]} neighbours per point, cfg.k_neighbors is {cfg.k_neighbors}"
-        )
+        raise InputError(f"knn: has {neighbors.shape[1]} neighbours per point, cfg.k_neighbors is {cfg.k_neighbors}")
     if not (np.isfinite(points).all() and np.isfinite(normals).all()):
         raise InputError("points / normals: contain NaN or infinite values")
     if features is None or not cfg.use_language:
@@ -384,9 +384,11 @@ def _merge_small_language(
     """
     seg_root, seg = np.unique(roots, return_inverse=True)  # seg (N,) dense ids; seg_root: smallest point id
     seg = seg.astype(np.int64)
-    sums = np.asarray(sparse.csr_matrix(
-        (np.ones(seg.size, np.float32), (seg, np.arange(seg.size))), shape=(seg_root.size, seg.size)
-    ) @ features, dtype=np.float64)  # (S, D)
+    sums = np.asarray(
+        sparse.csr_matrix((np.ones(seg.size, np.float32), (seg, np.arange(seg.size))), shape=(seg_root.size, seg.size))
+        @ features,
+        dtype=np.float64,
+    )  # (S, D)
     sizes = np.bincount(seg, minlength=seg_root.size)
     rep = seg_root.astype(np.int64)  # (S,) representative point of each segment
     while True:
@@ -406,8 +408,7 @@ def _merge_small_language(
         merged = np.full(count, np.iinfo(np.int64).max, np.int64)
         np.minimum.at(merged, comp, rep)
         rep = merged
-        sums = np.asarray(sparse.csr_matrix(
-            (np.ones(num), (comp, np.arange(num))), shape=(count, num)) @ sums)
+        sums = np.asarray(sparse.csr_matrix((np.ones(num), (comp, np.arange(num))), shape=(count, num)) @ sums)
         sizes = np.bincount(comp, weights=sizes, minlength=count).astype(np.int64)
         seg = comp[seg].astype(np.int64)
     return rep[seg]

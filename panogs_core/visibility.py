@@ -221,9 +221,7 @@ def _empty_part() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return empty, empty, empty
 
 
-def _assemble(
-    frame_ids: tuple[str, ...], parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-) -> Visibility:
+def _assemble(frame_ids: tuple[str, ...], parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Visibility:
     counts = np.array([p[0].shape[0] for p in parts], dtype=np.int64)  # (V,)
     offsets = np.concatenate([np.zeros(1, dtype=np.int64), np.cumsum(counts)])  # (V + 1,)
     if not parts:
@@ -232,6 +230,4 @@ def _assemble(
     def cat(i: int) -> np.ndarray:
         return np.concatenate([p[i] for p in parts]).astype(np.int32, copy=False)
 
-    return Visibility(
-        frame_ids=frame_ids, offsets=offsets, point_index=cat(0), pixel_row=cat(1), pixel_col=cat(2)
-    )
+    return Visibility(frame_ids=frame_ids, offsets=offsets, point_index=cat(0), pixel_row=cat(1), pixel_col=cat(2))

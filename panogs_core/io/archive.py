@@ -174,9 +174,7 @@ def _check_all(listing: _Listing, max_bytes: int, max_files: int, source: str) -
         seen.add(name)
         total += size
         if total > max_bytes:
-            problems.append(
-                f"{source}: declared uncompressed size {total} bytes exceeds the limit of {max_bytes}"
-            )
+            problems.append(f"{source}: declared uncompressed size {total} bytes exceeds the limit of {max_bytes}")
             break
         members.append(_Member(name, raw, is_dir, size))
     problems += _file_folder_clashes(members)
@@ -229,7 +227,5 @@ def _extract(members: list[_Member], open_member: _Opener, dest: Path, max_bytes
             while chunk := src.read(_CHUNK):
                 total += len(chunk)
                 if total > max_bytes:
-                    raise BundleError(
-                        [f"{m.name}: archive expands past the limit of {max_bytes} bytes"], source=source
-                    )
+                    raise BundleError([f"{m.name}: archive expands past the limit of {max_bytes} bytes"], source=source)
                 out.write(chunk)

@@ -313,9 +313,7 @@ def _read_ascii(fh: BinaryIO, header: _Header, path: Path) -> dict[str, np.ndarr
     raise InputError(f"{path.name}: PLY has no vertex element")  # unreachable: the header checked it
 
 
-def _ascii_row(
-    tokens: list[str], pos: int, element: _Element, path: Path
-) -> tuple[list[float | list[float]], int]:
+def _ascii_row(tokens: list[str], pos: int, element: _Element, path: Path) -> tuple[list[float | list[float]], int]:
     row: list[float | list[float]] = []
     try:
         for prop in element.properties:

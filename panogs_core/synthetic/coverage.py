@@ -28,9 +28,7 @@ def _coarse(camera: Camera, factor: int = 4) -> Camera:
                   cx=(camera.cx + 0.5) / factor - 0.5, cy=(camera.cy + 0.5) / factor - 0.5)  # fmt: skip
 
 
-def _counts(
-    scene: o3d.t.geometry.RaycastingScene, layout: Layout, camera: Camera, pose: np.ndarray
-) -> np.ndarray:
+def _counts(scene: o3d.t.geometry.RaycastingScene, layout: Layout, camera: Camera, pose: np.ndarray) -> np.ndarray:
     """Pixels per instance in one coarse view ``(I,)``."""
     box = render_view(scene, layout, camera, pose).box
     return np.bincount(layout.box_instance[box[box >= 0]], minlength=len(layout.instance_class))
@@ -42,10 +40,7 @@ def _instance_centres(layout: Layout) -> np.ndarray:  # (I, 3)
     n = len(layout.instance_class)
     weight = np.bincount(layout.box_instance, weights=vol, minlength=n)
     centre = np.stack(
-        [
-            np.bincount(layout.box_instance, weights=vol * layout.boxes.centers[:, k], minlength=n)
-            for k in range(3)
-        ],
+        [np.bincount(layout.box_instance, weights=vol * layout.boxes.centers[:, k], minlength=n) for k in range(3)],
         1,
     )
     return centre / np.maximum(weight, 1e-12)[:, None]

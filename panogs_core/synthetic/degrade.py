@@ -25,9 +25,7 @@ def smooth_field(shape: tuple[int, int], rng: np.random.Generator, cell: int = 1
     return (field - field.mean()) / max(float(field.std()), 1e-6)
 
 
-def blob_mask(
-    shape: tuple[int, int], fraction: float, rng: np.random.Generator, cell: int = 16
-) -> np.ndarray:
+def blob_mask(shape: tuple[int, int], fraction: float, rng: np.random.Generator, cell: int = 16) -> np.ndarray:
     """Boolean ``(H, W)`` mask of smooth blobs covering about ``fraction`` of the image."""
     if fraction <= 0:
         return np.zeros(shape, dtype=bool)

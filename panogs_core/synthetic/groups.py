@@ -20,9 +20,7 @@ def dining(rng: np.random.Generator, coffee: bool = False) -> Group:
     A coffee table is low and gets no chairs.
     """
     if coffee:
-        return Group(
-            [shapes.table(rng, rng.uniform(0.8, 1.2), rng.uniform(0.5, 0.7), rng.uniform(0.4, 0.46))]
-        )
+        return Group([shapes.table(rng, rng.uniform(0.8, 1.2), rng.uniform(0.5, 0.7), rng.uniform(0.4, 0.46))])
     w, d = rng.uniform(1.0, 1.9), rng.uniform(0.8, 1.0)
     top = shapes.table(rng, w, d)
     models, contacts = [top], []

@@ -83,9 +83,7 @@ class _Builder:
         self.instance_class: list[int] = [CLASS_ID[c] for c in _STUFF]
         self.contacts: list[tuple[int, int]] = []
 
-    def try_add(
-        self, group: Group, poses: Iterator[np.ndarray], clearance: float, margin: float = 0.0
-    ) -> bool:
+    def try_add(self, group: Group, poses: Iterator[np.ndarray], clearance: float, margin: float = 0.0) -> bool:
         """Place ``group`` at the first pose that fits; False if none does."""
         parts = group.parts()
         for pose in poses:

@@ -59,9 +59,7 @@ def rotation_z(yaw: np.ndarray) -> np.ndarray:  # (..., 3, 3)
 
 def to_world(parts: np.ndarray, pose: np.ndarray) -> Boxes:
     """Local ``(P, 7)`` parts under a pose ``(x, y, z, yaw)`` as world boxes."""
-    centre = (
-        np.stack([parts[:, 0] + parts[:, 1], parts[:, 2] + parts[:, 3], parts[:, 4] + parts[:, 5]], 1) / 2
-    )
+    centre = np.stack([parts[:, 0] + parts[:, 1], parts[:, 2] + parts[:, 3], parts[:, 4] + parts[:, 5]], 1) / 2
     half = np.stack([parts[:, 1] - parts[:, 0], parts[:, 3] - parts[:, 2], parts[:, 5] - parts[:, 4]], 1) / 2
     rot = rotation_z(np.asarray(pose[3]))
     return Boxes(centre @ rot.T + pose[:3], half, np.full(len(parts), pose[3]))
@@ -98,14 +96,10 @@ def inside_room(boxes: Boxes, room: np.ndarray, margin: float = 0.0) -> bool:
     """True if every box lies within the room (x, y inset by ``margin``; z between floor and ceiling)."""
     rot = rotation_z(boxes.yaw)[:, :2, :2]  # (B, 2, 2)
     signs = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=np.float64)
-    corners = boxes.centers[:, None, :2] + np.einsum(
-        "bij,bkj->bki", rot, signs[None] * boxes.half[:, None, :2]
-    )
+    corners = boxes.centers[:, None, :2] + np.einsum("bij,bkj->bki", rot, signs[None] * boxes.half[:, None, :2])
     lo = margin - _EPS
     ok_xy = (
-        (corners >= lo).all()
-        and (corners[..., 0] <= room[0] - lo).all()
-        and (corners[..., 1] <= room[1] - lo).all()
+        (corners >= lo).all() and (corners[..., 0] <= room[0] - lo).all() and (corners[..., 1] <= room[1] - lo).all()
     )
     z0, z1 = boxes.centers[:, 2] - boxes.half[:, 2], boxes.centers[:, 2] + boxes.half[:, 2]
     return bool(ok_xy and (z0 >= -_EPS).all() and (z1 <= room[2] + _EPS).all())

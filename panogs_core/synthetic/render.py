@@ -61,9 +61,7 @@ def make_raycaster(layout: Layout) -> o3d.t.geometry.RaycastingScene:
 def camera_rays(camera: Camera, T_world_cam: np.ndarray) -> np.ndarray:  # (H, W, 6) float32
     """Ray origins and directions in the world; directions have camera-frame z = 1 (OpenCV axes)."""
     u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
-    dirs_cam = np.stack(
-        [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u, float)], -1
-    )
+    dirs_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u, float)], -1)
     dirs = dirs_cam @ T_world_cam[:3, :3].T
     origins = np.broadcast_to(T_world_cam[:3, 3], dirs.shape)
     return np.concatenate([origins, dirs], -1).astype(np.float32)
@@ -106,9 +104,7 @@ def face_normals(layout: Layout, box: np.ndarray, face: np.ndarray) -> np.ndarra
     return n * sign[..., None]
 
 
-def _shade(
-    layout: Layout, box: np.ndarray, face: np.ndarray, dirs: np.ndarray, hit: np.ndarray
-) -> np.ndarray:
+def _shade(layout: Layout, box: np.ndarray, face: np.ndarray, dirs: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """Albedo times ambient + sun + head-light terms (enough shading for faces to read apart)."""
     n = face_normals(layout, box, face)
     view = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)

@@ -58,9 +58,7 @@ def _faces(layout: Layout) -> _Faces:
     faces = _Faces(*(np.concatenate(x) for x in (origin, u, v, normal, box)))
     keep = faces.box >= NUM_STUFF
     stuff = _slab_faces(layout.room)
-    return _Faces(
-        *(np.concatenate([getattr(stuff, k), getattr(faces, k)[keep]]) for k in _Faces.__annotations__)
-    )
+    return _Faces(*(np.concatenate([getattr(stuff, k), getattr(faces, k)[keep]]) for k in _Faces.__annotations__))
 
 
 def _slab_faces(room: np.ndarray) -> _Faces:

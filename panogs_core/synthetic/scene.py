@@ -107,9 +107,7 @@ def make_scene(
     surface = sample_surfaces(layout, spec.num_points, rng.points)
     camera, scene = spec_camera(spec), make_raycaster(layout)
     poses = make_trajectory(layout, spec.num_frames, level.trajectory, rng.trajectory)
-    poses = ensure_coverage(
-        scene, layout, camera, poses, np.arange(0, spec.num_frames, spec.key_frame_stride)
-    )
+    poses = ensure_coverage(scene, layout, camera, poses, np.arange(0, spec.num_frames, spec.key_frame_stride))
     model = make_feature_model(embeddings, layout.instance_class, level.features, rng.features)
     writer = BundleWriter(
         out_dir,
@@ -119,8 +117,7 @@ def make_scene(
         feature_dim=embeddings.shape[1],
         feature_space=space,
     )
-    observed = _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, surface.points,
-                             on_progress)
+    observed = _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, surface.points, on_progress)
     _write_static(writer, _subset(surface, observed), embeddings, with_geometry)
     return writer.close()
 
@@ -143,8 +140,9 @@ def _write_frames(
     for i, (pose, seq) in enumerate(zip(poses, seeds)):
         rng = np.random.default_rng(seq)
         view = render_view(scene, layout, camera, pose)
-        seen, _, _ = frame_visibility(surface_points, np.linalg.inv(pose), camera,
-                                      view.depth.astype(np.float32), vis_cfg)
+        seen, _, _ = frame_visibility(
+            surface_points, np.linalg.inv(pose), camera, view.depth.astype(np.float32), vis_cfg
+        )
         observed[seen] = True
         instance = np.where(view.box >= 0, layout.box_instance[np.maximum(view.box, 0)], -1)
         features = masks = None
@@ -160,14 +158,17 @@ def _write_frames(
 
 def _subset(surface: SurfacePoints, keep: np.ndarray) -> SurfacePoints:
     """The surface points where ``keep`` is True, every field alike."""
-    return SurfacePoints(points=surface.points[keep], normals=surface.normals[keep],
-                         colors=surface.colors[keep], semantic=surface.semantic[keep],
-                         instance=surface.instance[keep], box=surface.box[keep])
+    return SurfacePoints(
+        points=surface.points[keep],
+        normals=surface.normals[keep],
+        colors=surface.colors[keep],
+        semantic=surface.semantic[keep],
+        instance=surface.instance[keep],
+        box=surface.box[keep],
+    )
 
 
-def _write_static(
-    writer: BundleWriter, surface: SurfacePoints, embeddings: np.ndarray, with_geometry: bool
-) -> None:
+def _write_static(writer: BundleWriter, surface: SurfacePoints, embeddings: np.ndarray, with_geometry: bool) -> None:
     """Geometry, ground truth and vocabulary."""
     if with_geometry:
         writer.write_geometry(surface.points, colors=surface.colors, normals=surface.normals)
