@@ -7,6 +7,7 @@ Kept apart from ``pipeline.py`` so the orchestration reads as the list of stages
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -70,20 +71,27 @@ class GraphStage:
             )
 
 
+# Checkpoint class of each stage, as (module, class name): imported only when that stage is loaded or saved.
+_CHECKPOINT_CLASSES = {
+    "primitives": ("panogs_core.primitives", "Primitives"),
+    "visibility": ("panogs_core.visibility", "Visibility"),
+    "fusion": ("panogs_core.fusion", "FusedFeatures"),
+    "language_field": ("panogs_core.language_field", "LanguageField"),
+    "superprimitives": ("panogs_core.stages", "GraphStage"),
+    "masks": ("panogs_core.affinity", "MaskObservations"),
+    "clustering": ("panogs_core.clustering", "Clusters"),
+    "labeling": ("panogs_core.labeling", "PanopticLabels"),
+}
+
+
 def io_for(stage: str) -> tuple[Callable[[Path], Any], Callable[[Any, Path], None]]:
     """(load, save) of a stage's checkpoint."""
-    classes: dict[str, Callable[[], Any]] = {
-        "primitives": lambda: __import__("panogs_core.primitives", fromlist=["Primitives"]).Primitives,
-        "visibility": lambda: __import__("panogs_core.visibility", fromlist=["Visibility"]).Visibility,
-        "fusion": lambda: __import__("panogs_core.fusion", fromlist=["FusedFeatures"]).FusedFeatures,
-        "language_field": lambda: __import__("panogs_core.language_field", fromlist=["LanguageField"]).LanguageField,
-        "superprimitives": lambda: GraphStage,
-        "masks": lambda: __import__("panogs_core.affinity", fromlist=["MaskObservations"]).MaskObservations,
-        "clustering": lambda: __import__("panogs_core.clustering", fromlist=["Clusters"]).Clusters,
-        "labeling": lambda: __import__("panogs_core.labeling", fromlist=["PanopticLabels"]).PanopticLabels,
-    }
-    cls_factory = classes[stage]
-    return (lambda path: cls_factory().load(path)), (lambda obj, path: obj.save(path))
+    module, name = _CHECKPOINT_CLASSES[stage]
+
+    def load(path: Path) -> Any:
+        return getattr(importlib.import_module(module), name).load(path)
+
+    return load, (lambda obj, path: obj.save(path))
 
 
 def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Any:
