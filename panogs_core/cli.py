@@ -35,11 +35,12 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_import(args: argparse.Namespace) -> int:
     from panogs_core.labelsets import resolve_vocabulary
 
-    vocabulary = resolve_vocabulary(args.vocabulary) if args.vocabulary else None
+    vocabulary = resolve_vocabulary(args.vocabulary, feature_space=args.feature_space) if args.vocabulary else None
     common: dict[str, Any] = {
         "stride": args.stride,
         "vocabulary": vocabulary,
         "geometry": args.geometry,
+        "ground_truth": args.gt,
         "feature_space": args.feature_space,
     }
     if args.layout == "scannet":
@@ -51,6 +52,11 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
         report = import_replica(args.src, args.dst, depth_scale=args.depth_scale, **common)
     print(report.summary())
+    if args.gt:
+        from panogs_core.io.ground_truth import is_scannet_annotation
+
+        brought = " with vocabulary scannet20" if vocabulary is None and is_scannet_annotation(args.gt) else ""
+        print(f"ground truth from {args.gt} written to gt/labels.npz{brought}")
     return 0
 
 
@@ -172,6 +178,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.gt:
+        return _eval_against(args.run, args.gt, as_json=args.json)
     path = Path(args.run) / "metrics.json"
     if not path.is_file():
         raise PanoGSError(
@@ -179,6 +187,27 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         )
     metrics = json.loads(path.read_text())
     print(json.dumps(metrics, indent=2) if args.json else format_metrics(metrics))
+    return 0
+
+
+def _eval_against(run_dir: str, gt_file: str, *, as_json: bool) -> int:
+    """Score a finished run against a ground-truth file (``.npz`` or ScanNet annotations)."""
+    from panogs_core.evaluation import evaluate_ground_truth
+    from panogs_core.io.ground_truth import load_ground_truth
+    from panogs_core.results import load_run_labels
+
+    run = load_run_labels(run_dir)
+    gt = load_ground_truth(gt_file, run.vocabulary, vertices=run.points, vertices_name="the run's primitives")
+    metrics = {
+        m: v.to_json()
+        for m, v in evaluate_ground_truth(run.points, run.semantic, run.instance, gt, run.vocabulary).items()
+    }
+    if as_json:
+        print(json.dumps(metrics, indent=2))
+        return 0
+    how = "per primitive" if gt.points is None else "each from its nearest primitive"
+    print(f"{gt_file}: {len(gt.semantic)} labelled points, predictions {how} of {run_dir}")
+    print(format_metrics(metrics))
     return 0
 
 
@@ -248,6 +277,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry", help="mesh or point cloud whose vertices become the primitives")
     p.add_argument("--feature-space", default="clip-vit-b32")
     p.add_argument("--depth-scale", type=float, default=6553.5, help="replica only")
+    p.add_argument(
+        "--gt",
+        metavar="FILE",
+        help="ground truth for evaluation: .npz (semantic, instance[, points]) or ScanNet's "
+        "<scene>_vh_clean_2.labels.ply (+ aggregation.json and segs.json beside it; vocabulary scannet20)",
+    )
     p.set_defaults(func=_cmd_import)
 
     p = sub.add_parser("validate", help="check a bundle against the format and list every problem")
@@ -269,8 +304,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("eval", help="print the metrics of a run")
+    p = sub.add_parser("eval", help="print the metrics of a run, or score it against a ground-truth file")
     p.add_argument("run", help="the --out folder of a run")
+    p.add_argument(
+        "--gt",
+        metavar="FILE",
+        help="score against this ground truth instead of the bundle's: .npz (semantic, instance[, points]) or "
+        "ScanNet's <scene>_vh_clean_2.labels.ply (+ aggregation.json and segs.json beside it)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_eval)
 

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from panogs_core.errors import InputError, ShapeError
 from panogs_core.labelsets import BUILTIN_VOCABULARIES
-from panogs_core.types import Vocabulary
+from panogs_core.types import GroundTruth, Vocabulary
 
 PAPER_EXCLUDED_NAMES = ("other", "otherfurniture")
 # Reference 8.2 effective thing / stuff sets, 0-based (ScanNet's 1-based lists minus one).
@@ -218,6 +218,42 @@ def transfer_to_points(
             raise ShapeError(f"values[{k}]: expected {len(prim)} rows (one per primitive), found {np.shape(v)}")
     _, nearest = cKDTree(prim).query(query, k=1, workers=1)
     return tuple(np.asarray(v)[nearest] for v in values)
+
+
+def evaluate_ground_truth(
+    primitive_points: np.ndarray,  # (N, 3) float
+    pred_semantic: np.ndarray,  # (N,) int64, -1 void
+    pred_instance: np.ndarray,  # (N,) int64, -1 none
+    gt: GroundTruth,
+    vocabulary: Vocabulary,
+    *,
+    modes: Sequence[Literal["standard", "paper"]] = ("standard", "paper"),
+) -> dict[str, Metrics]:
+    """Metrics of a per-primitive prediction against ground truth, one entry per mode.
+
+    Ground truth with points takes the prediction of the nearest primitive (:func:`transfer_to_points`);
+    ground truth without points is per primitive, in order.
+
+    Args:
+        primitive_points: Positions of the primitives. ``(N, 3)``.
+        pred_semantic: Predicted class per primitive. ``(N,)``.
+        pred_instance: Predicted instance per primitive. ``(N,)``.
+        gt: Labels, with ``points`` ``(G, 3)`` or per primitive (``G == N``).
+        vocabulary: The classes both label arrays index.
+        modes: Evaluation modes to compute (see :func:`evaluate`).
+
+    Raises:
+        ShapeError: per-primitive ground truth whose length is not ``N``, or prediction arrays not ``N`` long.
+        InputError: labels outside the vocabulary (see :func:`evaluate`).
+    """
+    pred_sem, pred_ins = np.asarray(pred_semantic), np.asarray(pred_instance)
+    if gt.points is not None:
+        pred_sem, pred_ins = transfer_to_points(primitive_points, gt.points, pred_sem, pred_ins)
+    elif len(gt.semantic) != len(pred_sem):
+        raise ShapeError(
+            f"ground truth: {len(gt.semantic)} labels without points, expected one per primitive ({len(pred_sem)})"
+        )
+    return {mode: evaluate(pred_sem, pred_ins, gt.semantic, gt.instance, vocabulary, mode=mode) for mode in modes}
 
 
 def _standard_pq(

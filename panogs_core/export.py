@@ -174,18 +174,12 @@ def compute_metrics(
     Ground truth indexes the bundle's own vocabulary, so a run with another vocabulary is not scored.
     Ground truth on other points than the primitives takes the prediction of the nearest primitive.
     """
-    from panogs_core.evaluation import evaluate, transfer_to_points
+    from panogs_core.evaluation import evaluate_ground_truth
 
     gt = scene.read_ground_truth() if scene.has_ground_truth else None
     if gt is None or scene.vocabulary is None or tuple(scene.vocabulary.names) != tuple(vocab.names):
         return None
-    pred_sem, pred_ins = semantic, instance
-    if gt.points is not None:
-        pred_sem, pred_ins = transfer_to_points(points, gt.points, semantic, instance)
-    elif gt.semantic.shape[0] != semantic.shape[0]:
+    if gt.points is None and gt.semantic.shape[0] != semantic.shape[0]:
         return None  # per-vertex ground truth but the primitives are not the geometry's vertices
-    result: dict[str, Any] = {}
-    for mode in ("standard", "paper"):
-        m = evaluate(pred_sem, pred_ins, gt.semantic, gt.instance, vocab, mode=mode)
-        result[mode] = m.to_json()
-    return result
+    metrics = evaluate_ground_truth(points, semantic, instance, gt, vocab)
+    return {mode: m.to_json() for mode, m in metrics.items()}

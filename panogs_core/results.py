@@ -1,7 +1,8 @@
-"""Read a finished run's folder back for queries, without the pipeline and without torch.
+"""Read a finished run's folder back for queries and evaluation, without the pipeline and without torch.
 
-Needs ``instances.json``, ``instance_features.npy`` and ``vocabulary.json`` (+ ``vocabulary.npy``), all written by
-:func:`panogs_core.export.write_outputs`.
+Queries need ``instances.json``, ``instance_features.npy`` and ``vocabulary.json`` (+ ``vocabulary.npy``);
+evaluation needs ``labels.npz``, ``panoptic.ply`` (the primitive positions) and ``vocabulary.json``. All are written
+by :func:`panogs_core.export.write_outputs`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from panogs_core.errors import InputError
+from panogs_core.io.ply import read_ply_vertices
 from panogs_core.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
 
@@ -24,6 +26,16 @@ class LoadedResult:
     instances: tuple[InstanceInfo, ...]
     vocabulary: Vocabulary
     feature_space: str
+
+
+@dataclass(frozen=True)
+class RunLabels:
+    """What evaluation needs from a run: the labelled primitives and the classes their labels index."""
+
+    points: np.ndarray  # (N, 3) float32, primitive positions
+    semantic: np.ndarray  # (N,) int64, -1 void
+    instance: np.ndarray  # (N,) int64, -1 none
+    vocabulary: Vocabulary
 
 
 def _read_json(path: Path) -> object:
@@ -81,3 +93,32 @@ def load_result(out_dir: str | Path) -> LoadedResult:
         for i, r in enumerate(rows)
     )
     return LoadedResult(instances=instances, vocabulary=vocab, feature_space=space)
+
+
+def load_run_labels(out_dir: str | Path) -> RunLabels:
+    """Primitive positions (``panoptic.ply``), labels (``labels.npz``) and vocabulary of a finished run.
+
+    Raises:
+        InputError: a file is missing, unreadable, or does not match the others.
+    """
+    out = Path(out_dir)
+    vocab, _ = load_vocabulary(out)
+    labels_path, ply_path = out / "labels.npz", out / "panoptic.ply"
+    for path in (labels_path, ply_path):
+        if not path.is_file():
+            raise InputError(f"{path}: missing; is {out} the --out folder of a finished run?")
+    try:
+        with np.load(labels_path, allow_pickle=False) as npz:
+            semantic, instance = npz["semantic"].astype(np.int64), npz["instance"].astype(np.int64)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"{labels_path}: expected semantic and instance arrays ({exc})") from exc
+    vertices = read_ply_vertices(ply_path)
+    if not {"x", "y", "z"} <= vertices.keys():
+        raise InputError(f"{ply_path}: vertex properties {sorted(vertices)}, expected x, y, z")
+    points = np.stack([vertices[k] for k in "xyz"], axis=1).astype(np.float32)
+    if not (len(points) == len(semantic) == len(instance)):
+        raise InputError(
+            f"{labels_path}: semantic {semantic.shape}, instance {instance.shape}, expected ({len(points)},) "
+            f"(the vertices of {ply_path.name})"
+        )
+    return RunLabels(points=points, semantic=semantic, instance=instance, vocabulary=vocab)

@@ -54,6 +54,7 @@ def import_replica(
     depth_scale: float | None = None,
     vocabulary: Vocabulary | None = None,
     geometry: str | Path | None = None,
+    ground_truth: str | Path | None = None,
     feature_space: str = "clip-vit-b32",
     name: str | None = None,
     resize: tuple[int, int] | None = None,
@@ -70,6 +71,10 @@ def import_replica(
         depth_scale: Depth PNG value per metre; default the ``scale`` of ``cam_params.json``, else 6553.5.
         vocabulary: Label set to write as ``vocabulary.json`` (+ embeddings), or None.
         geometry: Mesh or point cloud (e.g. ``<scene>_trimesh.ply``) copied as ``geometry.ply``, or None.
+        ground_truth: Labels for evaluation written as ``gt/labels.npz``: an ``.npz`` (``semantic``,
+            ``instance``, optional ``points``) or ScanNet's ``<scene>_vh_clean_2.labels.ply`` with its
+            aggregation and segments files beside it (then the vocabulary must be, or defaults to, ScanNet-20).
+            See :mod:`panogs_core.io.ground_truth`.
         feature_space: ``features.space`` id of the feature maps.
         name: Scene name; the source folder name by default.
         resize: ``(width, height)`` to resample depth to (nearest neighbour), intrinsics scaled to match.
@@ -79,8 +84,8 @@ def import_replica(
         What was written and skipped.
 
     Raises:
-        InputError: for a missing ``results/`` or ``traj.txt``, no feature maps, unreadable files, or ``dst``
-            not empty.
+        InputError: for a missing ``results/`` or ``traj.txt``, no feature maps, unreadable files, ``dst`` not
+            empty, or ground truth that does not match the vocabulary or the geometry.
     """
     src, dst = Path(src), Path(dst)
     if stride < 1:
@@ -107,6 +112,7 @@ def import_replica(
         feature_space=feature_space,
         geometry=geometry,
         vocabulary=vocabulary,
+        ground_truth=ground_truth,
         on_progress=on_progress,
     )
     logger.info("import_replica: %s", result.summary())

@@ -45,6 +45,7 @@ def import_scannet(
     stride: int = 1,
     vocabulary: Vocabulary | None = None,
     geometry: str | Path | None = None,
+    ground_truth: str | Path | None = None,
     name: str | None = None,
     feature_space: str = "clip-vit-b32",
     camera: Camera | None = None,
@@ -59,6 +60,10 @@ def import_scannet(
         stride: Keep every ``stride``-th frame of the sorted list (ScanNet reference: 20).
         vocabulary: Label set to write as ``vocabulary.json`` (+ embeddings), or None.
         geometry: Mesh or point cloud (e.g. ``<scene>_vh_clean_2.ply``) copied as ``geometry.ply``, or None.
+        ground_truth: Labels for evaluation written as ``gt/labels.npz``: an ``.npz`` (``semantic``,
+            ``instance``, optional ``points``) or ScanNet's ``<scene>_vh_clean_2.labels.ply`` with its
+            aggregation and segments files beside it (then the vocabulary must be, or defaults to, ScanNet-20).
+            See :mod:`panogs_core.io.ground_truth`.
         name: Scene name; the source folder name by default.
         feature_space: ``features.space`` id of the feature maps.
         camera: Override of ``intrinsic_depth.txt`` (its size must be the depth size).
@@ -68,8 +73,8 @@ def import_scannet(
         What was written and skipped.
 
     Raises:
-        InputError: for a missing folder or intrinsics, no feature maps, unreadable files, or ``dst`` not
-            empty.
+        InputError: for a missing folder or intrinsics, no feature maps, unreadable files, ``dst`` not empty,
+            or ground truth that does not match the vocabulary or the geometry.
     """
     src, dst = Path(src), Path(dst)
     if stride < 1:
@@ -93,6 +98,7 @@ def import_scannet(
         feature_space=feature_space,
         geometry=geometry,
         vocabulary=vocabulary,
+        ground_truth=ground_truth,
         on_progress=on_progress,
     )
     logger.info("import_scannet: %s", result.summary())

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from panogs_core.errors import InputError
+from panogs_core.io.ground_truth import load_ground_truth, vocabulary_for_ground_truth
 from panogs_core.io.ply import read_ply_vertices, write_ply
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Vocabulary
@@ -676,9 +677,28 @@ def write_import(
     feature_space: str,
     geometry: str | Path | None = None,
     vocabulary: Vocabulary | None = None,
+    ground_truth: str | Path | None = None,
     on_progress: ProgressFn | None = None,
 ) -> ImportReport:
-    """The end every importer shares: a bundle with optional geometry and vocabulary, then the frames."""
+    """The end every importer shares: a bundle with optional geometry, vocabulary and ground truth, then frames.
+
+    Ground truth (``.npz`` or ScanNet annotations, see :mod:`panogs_core.io.ground_truth`) is read and checked
+    before anything is written; it brings ScanNet-20 as the vocabulary when it comes from ScanNet annotations and
+    no vocabulary was given.
+
+    Raises:
+        InputError: for ground truth that is unreadable, inconsistent, or does not match the vocabulary or the
+            geometry, and for any problem of the frames (see :func:`write_source_frames`).
+    """
+    gt = None
+    if ground_truth is not None:
+        vocabulary = vocabulary_for_ground_truth(ground_truth, vocabulary, feature_space=feature_space)
+        vertices = None
+        if geometry is not None:
+            ply = read_ply_vertices(geometry)
+            if {"x", "y", "z"} <= ply.keys():
+                vertices = np.stack([ply[k] for k in "xyz"], axis=1)
+        gt = load_ground_truth(ground_truth, vocabulary, vertices=vertices, vertices_name=f"geometry {geometry}")
     writer = BundleWriter(
         dst, name=name, camera=camera, depth_scale=depth_scale, feature_dim=feature_dim, feature_space=feature_space
     )
@@ -686,4 +706,6 @@ def write_import(
         writer.write_geometry_file(geometry)
     if vocabulary is not None:
         writer.write_vocabulary(vocabulary)
+    if gt is not None:
+        writer.write_ground_truth(gt.semantic, gt.instance, gt.points)
     return write_source_frames(writer, frames, on_progress=on_progress)
