@@ -5,7 +5,8 @@ to the other class embeddings (``catalog.class_noise_scale``); a perturbation of
 class, along the line to it, flips the argmax, so one set of numbers gives about the same pixel error rate in
 the CLIP space, whose rows are 0.35-0.7 apart, and in MiniLM, whose rows are 0.9-1.2 apart):
 
-1. instance: each instance i of class c gets ``v_i = e_c + instance_sigma * s_c * g_i`` (fixed for the scene);
+1. instance: each instance i of class c gets ``v_i = e_c + instance_spread * s_c * g_i / sqrt(D)`` (fixed
+   for the scene; a length, not a per-dimension sigma, so instances of one class stay alike in any D);
    a fraction ``confused_instances`` of instances lean towards a confusable class c':
    ``v_i <- (1 - w) v_i + w e_c'``, with w drawn from ``confusion_weight`` (w > 0.5 flips the instance);
 2. view: per frame, ``v_i + view_sigma * s_c * g_if`` (appearance changes with the view);
@@ -60,7 +61,7 @@ def make_feature_model(
     scale = class_noise_scale(emb)
     cls = np.asarray(instance_class, dtype=np.int64)
     g = rng.standard_normal((len(cls), emb.shape[1])).astype(np.float32)
-    vec = emb[cls] + noise.instance_sigma * scale[cls, None] * g
+    vec = emb[cls] + noise.instance_spread * scale[cls, None] * g / np.sqrt(emb.shape[1])
     confused = rng.random(len(cls)) < noise.confused_instances
     targets = _pick_confusable(cls, rng)
     weight = rng.uniform(*noise.confusion_weight, len(cls)) * confused

@@ -70,6 +70,28 @@ def desk(rng: np.random.Generator, hutch: bool) -> Group:
     return Group(models, contacts)
 
 
+def side_by_side(members: list[Group], rng: np.random.Generator) -> Group:
+    """Groups in a row along local x, backs aligned, each touching the next (0-1 cm apart).
+
+    Same-class objects that touch are everyday scenes (a run of bookshelves, chairs along a wall, a bench of
+    desks) and the case where only the 2D masks can tell instances apart: their language features agree. The
+    first model of each member touches the first model of the next (they are listed as contacts).
+    """
+    models: list[Model] = []
+    contacts: list[tuple[int, int]] = []
+    cursor, anchors = 0.0, list[int]()
+    for member in members:
+        (x0, x1), (y0, _) = member.bounds()[0], member.bounds()[1]
+        first = len(models)
+        models += [m.moved(dx=cursor - x0, dy=-y0) for m in member.models]
+        contacts += [(first + i, first + j) for i, j in member.contacts]
+        if anchors:
+            contacts.append((anchors[-1], first))
+        anchors.append(first)
+        cursor += (x1 - x0) + rng.uniform(0.0, 0.01)
+    return Group([m.moved(dx=-cursor / 2) for m in models], contacts)
+
+
 def bed(rng: np.random.Generator) -> Group:
     """A bed with its headboard on the wall and zero to two night stands touching its sides."""
     frame = shapes.bed(rng)

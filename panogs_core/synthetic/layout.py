@@ -6,7 +6,8 @@ table), ``kitchen`` (counter run with sinks, refrigerator and wall cabinets, din
 (toilet, bathtub, vanity). Every room gets doors, windows (some with curtains) and pictures on its walls.
 Objects never interpenetrate (oriented-box separating-axis tests on every part); some touch on purpose
 (chairs pulled up under tables, sinks on counters, hutches on desks, night stands against beds, curtains
-beside windows) and are listed as contacts.
+beside windows, runs of bookshelves, rows of chairs along a wall, benches of desks pushed together) and are
+listed as contacts. Same-class objects that touch are where only the 2D masks separate instances.
 
 Stuff instances come first: 0 floor, 1 ceiling, 2-5 the walls y = 0, x = Lx, y = Ly, x = 0 (one instance per
 wall piece); things follow from 6.
@@ -168,9 +169,29 @@ def _free(b: _Builder, group: Group, zone: Zone) -> bool:
 # -- families --
 
 
-def _shelf(rng: np.random.Generator, room_height: float) -> Group:
-    h = min(rng.uniform(1.5, 2.1), room_height - 0.15)
-    return groups.single(shapes.bookshelf(rng, rng.uniform(0.7, 1.2), rng.uniform(0.28, 0.4), h))
+def _shelf(rng: np.random.Generator, room_height: float, count: int = 1) -> Group:
+    """One bookshelf, or a run of ``count`` of one height and depth standing side by side."""
+    h, d = min(rng.uniform(1.5, 2.1), room_height - 0.15), rng.uniform(0.28, 0.4)
+    shelves = [groups.single(shapes.bookshelf(rng, rng.uniform(0.6, 1.0 if count > 1 else 1.2), d, h))
+               for _ in range(count)]  # fmt: skip
+    return shelves[0] if count == 1 else groups.side_by_side(shelves, rng)
+
+
+def _run_on_wall(b: _Builder, make: Callable[[int], Group], count: int, zone: Zone) -> None:
+    """Place a run of ``count`` touching objects on a wall; if it does not fit, a shorter run, down to one."""
+    for n in range(count, 0, -1):
+        if _on_wall(b, make(n), zone):
+            return
+
+
+def _chairs(rng: np.random.Generator, count: int) -> Group:
+    """Chairs standing side by side along a wall (a waiting area, the spare chairs of a meeting room)."""
+    return groups.side_by_side([groups.single(shapes.chair(rng)) for _ in range(count)], rng)
+
+
+def _desks(rng: np.random.Generator, count: int) -> Group:
+    """Desks pushed together into a bench, each with its chair (and maybe a hutch)."""
+    return groups.side_by_side([groups.desk(rng, hutch=rng.random() < 0.5) for _ in range(count)], rng)
 
 
 def _cabinet(rng: np.random.Generator, room_height: float, kind: str) -> Group:
@@ -196,11 +217,10 @@ def _fill_living(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
     for _ in range(rng.integers(1, 3)):
         _on_wall(b, groups.single(shapes.sofa(rng)), zone)
     for _ in range(rng.integers(1, 3)):
-        _on_wall(b, _shelf(rng, b.room[2]), zone)
+        _run_on_wall(b, lambda n: _shelf(rng, b.room[2], n), int(rng.integers(1, 4)), zone)
     for _ in range(rng.integers(1, 3)):
         _on_wall(b, _cabinet(rng, b.room[2], "sideboard"), zone)
-    for _ in range(rng.integers(0, 3)):
-        _on_wall(b, groups.single(shapes.chair(rng)), zone)
+    _run_on_wall(b, lambda n: _chairs(rng, n), int(rng.integers(0, 4)), zone)
 
 
 def _fill_bedroom(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
@@ -218,10 +238,11 @@ def _fill_bedroom(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
 def _fill_office(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
     if rng.random() < 0.6:
         _free(b, groups.dining(rng), zone)
-    for _ in range(rng.integers(2, 4)):
-        _on_wall(b, groups.desk(rng, hutch=rng.random() < 0.5), zone)
     for _ in range(rng.integers(1, 3)):
-        _on_wall(b, _shelf(rng, b.room[2]), zone)
+        _run_on_wall(b, lambda n: _desks(rng, n), int(rng.integers(1, 4)), zone)
+    for _ in range(rng.integers(1, 3)):
+        _run_on_wall(b, lambda n: _shelf(rng, b.room[2], n), int(rng.integers(1, 4)), zone)
+    _run_on_wall(b, lambda n: _chairs(rng, n), int(rng.integers(0, 3)), zone)
     for _ in range(rng.integers(1, 3)):
         _on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
 

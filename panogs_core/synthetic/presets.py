@@ -98,10 +98,13 @@ class FeatureNoise:
     """2D language-feature model.
 
     Every sigma is per dimension, in units of the class's median distance to the other classes
-    (``catalog.class_noise_scale``).
+    (``catalog.class_noise_scale``); ``instance_spread`` is a length in the same unit.
 
     Attributes:
-        instance_sigma: Fixed perturbation of each instance's direction (shared by all its views).
+        instance_spread: Length of the fixed perturbation of each instance's direction (shared by all its
+            views), not per dimension: a per-dimension sigma grows with sqrt(D) and gave two chairs of a
+            384-d scene feature cosines near 0.2, an instance fingerprint that real LSeg / OpenSeg maps do not
+            have (instances of one class look alike to them; telling them apart is the masks' job).
         view_sigma: Extra perturbation of each instance per frame (view-dependent appearance).
         pixel_sigma: Independent noise per feature-map cell.
         confused_instances: Fraction of instances that lean towards a confusable class.
@@ -111,7 +114,7 @@ class FeatureNoise:
         blur_cells: Gaussian blur of the feature map after area averaging, in cells (0 = none).
     """
 
-    instance_sigma: float = 0.1
+    instance_spread: float = 0.25
     view_sigma: float = 0.08
     pixel_sigma: float = 0.18
     confused_instances: float = 0.1
@@ -194,7 +197,7 @@ DIFFICULTIES: dict[str, Difficulty] = {
         name="easy",
         depth=DepthNoise(sigma_base_m=0.0005, sigma_quad=0.0005, dropout=0.002, hole_fraction=0.0,
                          edge_dropout=0.05, max_depth_m=10.0),
-        features=FeatureNoise(instance_sigma=0.035, view_sigma=0.025, pixel_sigma=0.07,
+        features=FeatureNoise(instance_spread=0.1, view_sigma=0.025, pixel_sigma=0.07,
                               confused_instances=0.0, confused_area=0.0, blur_cells=0.0),
         masks=MaskNoise(stuff_split=0.0, part_split=0.05, merge_touching=0.02, jitter_px=0.5, gap_px=0,
                         min_area=0.0005, miss=0.0),
@@ -206,7 +209,7 @@ DIFFICULTIES: dict[str, Difficulty] = {
         name="hard",
         depth=DepthNoise(sigma_base_m=0.002, sigma_quad=0.005, dropout=0.04, hole_fraction=0.06,
                          edge_dropout=0.6, max_depth_m=4.5),
-        features=FeatureNoise(instance_sigma=0.15, view_sigma=0.1, pixel_sigma=0.25,
+        features=FeatureNoise(instance_spread=0.4, view_sigma=0.1, pixel_sigma=0.25,
                               confused_instances=0.25, confusion_weight=(0.3, 0.7), confused_area=0.1,
                               area_weight=0.65, blur_cells=1.0),
         masks=MaskNoise(stuff_split=0.8, stuff_pieces=(3, 6), part_split=0.5, merge_touching=0.3,

@@ -22,7 +22,7 @@ from panogs_core.synthetic.features import FeatureModel, make_feature_model, syn
 from panogs_core.synthetic.layout import Layout, build_layout
 from panogs_core.synthetic.masks import synthesize_masks
 from panogs_core.synthetic.presets import Difficulty, SyntheticSpec, get_difficulty, get_preset
-from panogs_core.synthetic.render import make_raycaster, render_view
+from panogs_core.synthetic.render import face_normals, make_raycaster, render_view
 from panogs_core.synthetic.sampling import SurfacePoints, sample_surfaces
 from panogs_core.synthetic.trajectory import make_trajectory
 from panogs_core.types import Camera
@@ -117,7 +117,7 @@ def make_scene(
         feature_dim=embeddings.shape[1],
         feature_space=space,
     )
-    observed = _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, surface.points, on_progress)
+    observed = _write_frames(writer, scene, layout, model, poses, spec, level, rng.frames, surface, on_progress)
     _write_static(writer, _subset(surface, observed), embeddings, with_geometry)
     return writer.close()
 
@@ -125,25 +125,32 @@ def make_scene(
 def _write_frames(
     writer: BundleWriter, scene: o3d.t.geometry.RaycastingScene, layout: Layout, model: FeatureModel,
     poses: np.ndarray, spec: SyntheticSpec, level: Difficulty, seeds: list[np.random.SeedSequence],
-    surface_points: np.ndarray, on_progress: ProgressFn | None,
+    surface: SurfacePoints, on_progress: ProgressFn | None,
 ) -> np.ndarray:  # fmt: skip
     """Render, degrade and write every frame; key frames also get features and masks.
 
-    Returns which surface points any frame observes (clean depth, 2 % tolerance): a real capture's
-    geometry holds only surfaces the camera saw, so the scene keeps only those (floor under a cabinet,
-    the back of a bookshelf against a wall and the underside of a table top are not in a scan).
+    Returns which surface points any frame observes: a real capture's geometry holds only surfaces the
+    camera saw, so the scene keeps only those (floor under a cabinet, the back of a bookshelf against a wall,
+    the underside of a table top, the sides of two cabinets standing 5 mm apart are not in a scan). A point
+    is observed when a ray hits its own face there: the pixel it projects to shows its box, through a face
+    facing the same way, at its depth (clean depth, 2 % tolerance). A depth test alone would count hidden
+    faces a few centimetres behind a visible one as seen.
     """
     camera = writer.camera
-    observed = np.zeros(surface_points.shape[0], dtype=bool)
+    observed = np.zeros(surface.points.shape[0], dtype=bool)
     vis_cfg = VisibilityConfig(depth_rtol=0.02)
     feature_shape = (spec.height // spec.feature_stride, spec.width // spec.feature_stride)
     for i, (pose, seq) in enumerate(zip(poses, seeds)):
         rng = np.random.default_rng(seq)
         view = render_view(scene, layout, camera, pose)
-        seen, _, _ = frame_visibility(
-            surface_points, np.linalg.inv(pose), camera, view.depth.astype(np.float32), vis_cfg
+        seen, row, col = frame_visibility(
+            surface.points, np.linalg.inv(pose), camera, view.depth.astype(np.float32), vis_cfg
         )
-        observed[seen] = True
+        own_face = (view.box[row, col] == surface.box[seen]) & (
+            np.einsum("ij,ij->i", face_normals(layout, view.box[row, col], view.face[row, col]),
+                      surface.normals[seen]) > 0.5
+        )  # fmt: skip
+        observed[seen[own_face]] = True
         instance = np.where(view.box >= 0, layout.box_instance[np.maximum(view.box, 0)], -1)
         features = masks = None
         if i % spec.key_frame_stride == 0:
