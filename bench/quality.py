@@ -5,11 +5,16 @@ Usage:
 
 Prints one markdown table (mean and standard deviation over seeds, standard-mode metrics). Variants:
 
-- full: the method as configured by default (tri-plane field, language-guided graph cut, JSD affinity; no vote)
-- lang-affinity: affinity from language-feature similarity instead of the SAM-mask JSD
-- no-lang-cut: graph cuts without the language criteria
-- vote: the reference's semantic voting within super-primitives (off by default: it measured worse)
-- fused-features: per-primitive fused features instead of the tri-plane field
+- full: the method as configured by default (tri-plane field, language-guided graph cut with the mask split,
+  JSD affinity aggregated by weighted median, the reference's vote inside super-primitives)
+- no-vote: per-primitive classes, no vote inside super-primitives
+- lang-affinity: affinity from language-feature similarity instead of the SAM-mask JSD (the paper's ablation)
+- no-lang-cut: graph cuts without the language criteria (the paper's ablation)
+- fused-features: per-primitive fused features instead of the tri-plane field (the paper's ablation)
+- no-mask-split: super-primitives the masks keep dividing are not cut in two
+- mean-affinity: per-frame similarities averaged (the reference) instead of their weighted median
+- depth-filter: mask ids read only where the depth residual is within 3 robust spreads of the frame's
+- reference-grouping: no mask split and mean aggregation: the reference's grouping on our features
 
 Variants run in one output folder per scene in an order that lets the stage checkpoints be reused.
 """
@@ -32,10 +37,14 @@ from panogs_core.synthetic import make_scene
 
 VARIANTS: dict[str, dict] = {
     "full": {},
-    "vote": {"labeling": {"vote": "superprimitive"}},
+    "no-vote": {"labeling": {"vote": "none"}},
     "lang-affinity": {"affinity": {"mode": "language"}},
     "no-lang-cut": {"superprimitives": {"use_language": False}},
     "fused-features": {"features_source": "fused"},
+    "no-mask-split": {"superprimitives": {"split_purity": 0.0}},
+    "mean-affinity": {"affinity": {"aggregate": "mean"}},
+    "depth-filter": {"affinity": {"mask_depth_mad": 3.0}},
+    "reference-grouping": {"superprimitives": {"split_purity": 0.0}, "affinity": {"aggregate": "mean"}},
 }
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff")
 

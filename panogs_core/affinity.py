@@ -57,20 +57,46 @@ class AffinityConfig:
             get affinity 0, as if never seen together. 0 reproduces the reference (5.4: ``C_ij != 0``).
         eps: Floor of the norm of a mean language feature before normalising (mode ``"language"``).
         chunk_rows: (pair, frame) rows joined at once; bounds memory (about 100 bytes a row), not the result.
+        mask_depth_mad: A seen primitive reads its mask id only if its relative depth residual is within this
+            many robust standard deviations (1.4826 MAD) of the frame's median residual; 0 turns it off.
+        mask_depth_floor: The smallest tolerance of that test, relative depth.
+        aggregate: How the per-frame similarities of a pair are combined, both weighted by ``r_i r_j``:
+            ``"mean"`` (the paper and reference) or ``"median"``.
     """
 
     mode: Literal["jsd", "language"] = "jsd"
     min_covisibility: float = 0.0
     eps: float = 1e-8
     chunk_rows: int = 2_000_000
+    # Option, off by default (reference 5.1 reads masks with the visibility test, rtol 0.07): 7 % of depth is
+    # 20 cm at 3 m, so a surface hidden a few centimetres behind another (the inside of a bookshelf behind
+    # its neighbour's side) passes and reads the mask of the object in front. The residuals of one frame are
+    # mostly true surfaces, so their spread measures that frame's depth noise: with mask_depth_mad = 3,
+    # observations off by more than 3 spreads are left out of the mask lookups (fusion keeps the reference's
+    # test). On a synthetic easy room true residuals spread +-1 % and leaked ones sat at 3-6 %, yet the
+    # quality bench measured no gain (docs/benchmarks.md, "depth-filter"), so it stays off.
+    mask_depth_mad: float = 0.0
+    mask_depth_floor: float = 0.01
+    # DEPARTURE (aggregate, reference 5.4 averages): SAM's mistakes are per-frame outliers, an occasional merge
+    # of two touching objects (similarity 1 in that frame) or split of one object into parts (1 - ln 2). A
+    # weighted mean lets one merged frame in five lift two touching bookshelves from 0.31 to 0.45 and, with a
+    # few straddling primitives, past the last threshold (0.6); the weighted median follows the majority of
+    # views. Measured in docs/benchmarks.md ("mean-affinity").
+    aggregate: Literal["mean", "median"] = "median"
 
     def __post_init__(self) -> None:
+        if self.aggregate not in ("mean", "median"):
+            raise ConfigError(f"affinity.aggregate: expected 'mean' or 'median', found {self.aggregate!r}")
         if self.mode not in ("jsd", "language"):
             raise ConfigError(f"affinity.mode: expected 'jsd' or 'language', found {self.mode!r}")
         if not math.isfinite(self.min_covisibility) or self.min_covisibility < 0:
             raise ConfigError(f"affinity.min_covisibility: expected a number >= 0, found {self.min_covisibility}")
         if not math.isfinite(self.eps) or self.eps <= 0:
             raise ConfigError(f"affinity.eps: expected a number > 0, found {self.eps}")
+        if not math.isfinite(self.mask_depth_mad) or self.mask_depth_mad < 0:
+            raise ConfigError(f"affinity.mask_depth_mad: expected a number >= 0, found {self.mask_depth_mad}")
+        if not math.isfinite(self.mask_depth_floor) or self.mask_depth_floor <= 0:
+            raise ConfigError(f"affinity.mask_depth_floor: expected a number > 0, found {self.mask_depth_floor}")
         if isinstance(self.chunk_rows, bool) or not isinstance(self.chunk_rows, int) or self.chunk_rows < 1:
             raise ConfigError(f"affinity.chunk_rows: expected an integer >= 1, found {self.chunk_rows!r}")
 
@@ -117,7 +143,13 @@ class MaskObservations:
             )
 
 
-def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: ProgressFn | None = None) -> MaskObservations:
+def observe_masks(
+    scene: Scene,
+    visibility: Visibility,
+    cfg: AffinityConfig | None = None,
+    *,
+    on_progress: ProgressFn | None = None,
+) -> MaskObservations:
     """Look up the mask id under every primitive that a mask frame sees; keep those inside a mask.
 
     Streams the frames of ``visibility`` that have a mask, one at a time (reference 5.1). The mask may have
@@ -126,6 +158,8 @@ def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: Progress
     Args:
         scene: The bundle; ``read_masks(frame)`` gives an ``(Hm, Wm)`` int32 id map, 0 = no mask.
         visibility: Stage 2 output; its ``frame_ids`` name scene frames.
+        cfg: ``mask_depth_mad`` / ``mask_depth_floor`` (when ``visibility`` has depth residuals); default
+            :class:`AffinityConfig`.
         on_progress: Called ``(done, total)`` after each mask frame.
 
     Returns:
@@ -135,6 +169,7 @@ def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: Progress
         InputError: if ``visibility`` names a frame the scene does not have.
         ShapeError: if a mask is not a 2D array.
     """
+    cfg = cfg if cfg is not None else AffinityConfig()
     by_id = {frame.id: frame for frame in scene.frames}
     missing = [fid for fid in visibility.frame_ids if fid not in by_id]
     if missing:
@@ -147,7 +182,7 @@ def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: Progress
         frame = by_id[visibility.frame_ids[v]]
         point_index, row, col = visibility.frame(v)
         label = _mask_lookup(np.asarray(scene.read_masks(frame)), row, col, height, width, frame.id)
-        inside = label > 0
+        inside = (label > 0) & _depth_consistent(visibility, v, cfg)
         index_parts.append(np.asarray(point_index, dtype=np.int32)[inside])
         label_parts.append(label[inside])
         report(on_progress, done, len(views))
@@ -158,6 +193,20 @@ def observe_masks(scene: Scene, visibility: Visibility, *, on_progress: Progress
         point_index=np.concatenate(index_parts) if index_parts else empty,
         label=np.concatenate(label_parts) if label_parts else empty,
     )
+
+
+def _depth_consistent(visibility: Visibility, v: int, cfg: AffinityConfig) -> np.ndarray | bool:  # (T_v,) bool
+    """Seen pairs of frame ``v`` whose depth residual is within the frame's own noise (``mask_depth_mad``)."""
+    if visibility.depth_residual is None or cfg.mask_depth_mad <= 0:
+        return True
+    lo, hi = int(visibility.offsets[v]), int(visibility.offsets[v + 1])
+    residual = visibility.depth_residual[lo:hi].astype(np.float32)
+    if residual.size == 0:
+        return True
+    centre = float(np.median(residual))
+    spread = 1.4826 * float(np.median(np.abs(residual - centre)))  # robust standard deviation
+    tolerance = max(cfg.mask_depth_mad * spread, cfg.mask_depth_floor)
+    return np.abs(residual - centre) <= tolerance
 
 
 def _mask_lookup(
@@ -446,10 +495,13 @@ class MaskHistograms:
         pair_row, group_a, group_b = self._co_observed(a, b, rows)
         similarity = 1.0 - self._jsd(group_a, group_b)  # (R,) per (pair, frame)
         weight = self.group_ratio[group_a] * self.group_ratio[group_b]  # c = r_i r_j
-        num = np.bincount(pair_row, weights=similarity * weight, minlength=a.size)
         den = np.bincount(pair_row, weights=weight, minlength=a.size)
         seen = den > cfg.min_covisibility
-        return np.where(seen, num / np.where(seen, den, 1.0), 0.0)
+        if cfg.aggregate == "median":
+            value = weighted_median(pair_row, similarity, weight, a.size)
+        else:
+            value = np.bincount(pair_row, weights=similarity * weight, minlength=a.size) / np.where(seen, den, 1.0)
+        return np.where(seen, value, 0.0)
 
     def _co_observed(
         self, a: np.ndarray, b: np.ndarray, rows: np.ndarray
@@ -509,6 +561,33 @@ class MaskHistograms:
         outside = 2.0 - p_common - q_common  # mass of each side on labels the other side lacks
         jsd = 0.5 * np.bincount(row, weights=inside, minlength=x.size) + 0.5 * LN2 * outside
         return np.clip(jsd, 0.0, LN2)  # rounding only
+
+
+def weighted_median(
+    group: np.ndarray,  # (R,) int64 group of each value, in [0, G)
+    values: np.ndarray,  # (R,) float64
+    weights: np.ndarray,  # (R,) float64, >= 0
+    num_groups: int,
+) -> np.ndarray:  # (G,) float64; 0 for a group without weight
+    """Per group, the smallest value at which the cumulative weight reaches half the group's weight.
+
+    Example:
+        >>> weighted_median(np.array([0, 0, 0, 1]), np.array([0.3, 1.0, 0.4, 0.9]), np.ones(4), 2).tolist()
+        [0.4, 0.9]
+    """
+    out = np.zeros(num_groups)
+    if values.size == 0:
+        return out
+    order = np.lexsort((values, group))
+    group, values, weights = group[order], values[order], weights[order]
+    cumulative = np.cumsum(weights)
+    total = np.bincount(group, weights=weights, minlength=num_groups)
+    first = np.searchsorted(group, np.arange(num_groups))
+    before = np.where(first > 0, cumulative[np.maximum(first - 1, 0)], 0.0)
+    at = np.searchsorted(cumulative, before + 0.5 * total, side="left")
+    inside = (total > 0) & (at < values.size)
+    out[inside] = values[np.minimum(at[inside], values.size - 1)]
+    return out
 
 
 def _chunks(rows: np.ndarray, limit: int) -> list[tuple[int, int]]:

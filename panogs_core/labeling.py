@@ -60,11 +60,10 @@ class LabelingConfig:
     # DEPARTURE (reference 7.3 always votes): reference 13 measured voting inside coarse segments lowering
     # mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment of another majority class; a segment
     # whose majority holds less than half of it is such a mixed segment, so it is left alone.
-    # DEPARTURE (default off): voting still moved boundary points (wall/ceiling/door) to the wrong class inside
-    # impure super-primitives. bench/quality.py, small preset, seeds 0-1, mean (mIoU / PRQ(T) / PRQ(S)):
-    # easy 0.945 / 0.934 / 0.968 with the vote, 0.955 / 0.938 / 0.980 without; default 0.853 / 0.833 / 0.959
-    # with, 0.866 / 0.832 / 0.971 without. The reference's vote stays one setting away.
-    vote: Literal["superprimitive", "none"] = "none"
+    # On by default, as the reference. It was off for a while: with synthetic features that carried a random
+    # per-instance code (fixed since) and straddling super-primitives (now cut by the masks) it measured worse.
+    # bench/quality.py, small preset, seeds 0-3, "full" (vote) against "no-vote": see docs/benchmarks.md.
+    vote: Literal["superprimitive", "none"] = "superprimitive"
     vote_min_fraction: float = 0.5
     min_instance_points: int = 50
     score_temperature: float | None = None

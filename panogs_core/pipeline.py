@@ -35,8 +35,8 @@ STAGES = (
     "visibility",
     "fusion",
     "language_field",
-    "superprimitives",
     "masks",
+    "superprimitives",
     "clustering",
     "labeling",
     "export",
@@ -248,13 +248,13 @@ def run_pipeline(
             *st.io_for("language_field"),
         )
     features = st.primitive_features(field_, fused, cfg)
+    masks = runner.stage("masks", keys["masks"], lambda p: st.masks(scene, vis, cfg, p), *st.io_for("masks"))
     graph = runner.stage(
         "superprimitives",
         keys["superprimitives"],
-        lambda p: st.superprimitives(prims, features, cfg, p),
+        lambda p: st.superprimitives(prims, features, masks, cfg, p),
         *st.io_for("superprimitives"),
     )
-    masks = runner.stage("masks", keys["masks"], lambda p: st.masks(scene, vis, p), *st.io_for("masks"))
     clusters = runner.stage(
         "clustering",
         keys["clustering"],

@@ -39,13 +39,13 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
     c = cfg.to_dict()
     k: dict[str, str] = {}
     k["primitives"] = _key(input_hash, c["primitives"])
-    k["visibility"] = _key(k["primitives"], c["visibility"])
+    k["visibility"] = _key(k["primitives"], c["visibility"], "with-depth-residual")  # older checkpoints lack it
     k["fusion"] = _key(k["visibility"], c["fusion"])
     k["language_field"] = _key(k["fusion"], c["language_field"])
     features_key = k["language_field"] if cfg.features_source == "field" else k["fusion"]
     k["features"] = _key(features_key, cfg.features_source)
-    k["superprimitives"] = _key(k["primitives"], k["features"], c["superprimitives"])
-    k["masks"] = _key(k["visibility"])
+    k["masks"] = _key(k["visibility"], c["affinity"])
+    k["superprimitives"] = _key(k["primitives"], k["features"], k["masks"], c["superprimitives"])
     k["clustering"] = _key(k["superprimitives"], k["masks"], k["features"], c["affinity"], c["clustering"])
     k["labeling"] = _key(k["clustering"], k["features"], _vocabulary_hash(vocab), c["labeling"])
     return k
@@ -129,19 +129,23 @@ def primitive_features(field: Any, fused: Any, cfg: PipelineConfig) -> np.ndarra
     return feats / np.maximum(norms, 1e-12)
 
 
-def superprimitives(prims: Any, features: np.ndarray, cfg: PipelineConfig, progress: ProgressFn) -> GraphStage:
+def superprimitives(
+    prims: Any, features: np.ndarray, masks: Any, cfg: PipelineConfig, progress: ProgressFn
+) -> GraphStage:
     from panogs_core.superprimitives import build_knn, graph_cut_superprimitives
 
     knn = build_knn(prims.points, cfg.superprimitives.k_neighbors)
     feats = features if cfg.superprimitives.use_language else None
-    sp = graph_cut_superprimitives(prims.points, prims.normals, feats, knn, cfg.superprimitives, on_progress=progress)
+    sp = graph_cut_superprimitives(
+        prims.points, prims.normals, feats, knn, cfg.superprimitives, masks=masks, on_progress=progress
+    )
     return GraphStage(sp, knn)
 
 
-def masks(scene: Scene, vis: Any, progress: ProgressFn) -> Any:
+def masks(scene: Scene, vis: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
     from panogs_core.affinity import observe_masks
 
-    return observe_masks(scene, vis, on_progress=progress)
+    return observe_masks(scene, vis, cfg.affinity, on_progress=progress)
 
 
 def clustering(

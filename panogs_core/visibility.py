@@ -74,15 +74,24 @@ class Visibility:
     point_index: np.ndarray  # (T,) int32
     pixel_row: np.ndarray  # (T,) int32, v (row) of the depth-image pixel
     pixel_col: np.ndarray  # (T,) int32, u (column)
+    # (T,) float16 relative depth residual (z - D) / D of each seen pair, or None. Lets a later stage apply a
+    # tighter, per-frame depth test than depth_rtol without projecting again (see affinity.observe_masks).
+    depth_residual: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         v = len(self.frame_ids)
         if self.offsets.shape != (v + 1,):
             raise ShapeError(f"Visibility.offsets: expected shape ({v + 1},), got {self.offsets.shape}")
         t = int(self.offsets[-1])
-        for name in ("point_index", "pixel_row", "pixel_col"):
+        names = ("point_index", "pixel_row", "pixel_col") + (("depth_residual",) if self.has_residual else ())
+        for name in names:
             if getattr(self, name).shape != (t,):
                 raise ShapeError(f"Visibility.{name}: expected shape ({t},), got {getattr(self, name).shape}")
+
+    @property
+    def has_residual(self) -> bool:
+        """Whether ``depth_residual`` is there."""
+        return self.depth_residual is not None
 
     @property
     def num_frames(self) -> int:
@@ -103,6 +112,8 @@ class Visibility:
             "pixel_row": self.pixel_row,
             "pixel_col": self.pixel_col,
         }
+        if self.depth_residual is not None:
+            arrays["depth_residual"] = self.depth_residual
         with open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -116,6 +127,7 @@ class Visibility:
                 point_index=z["point_index"],
                 pixel_row=z["pixel_row"],
                 pixel_col=z["pixel_col"],
+                depth_residual=z["depth_residual"] if "depth_residual" in z.files else None,
             )
 
 
@@ -150,14 +162,14 @@ def compute_visibility(
     if frames is None:
         frames = tuple(f for f in scene.frames if f.features is not None or f.masks is not None)
     start = time.perf_counter()
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    parts: list[tuple[np.ndarray, ...]] = []
     for done, frame in enumerate(frames, start=1):
         T_cam_world = _inverse_pose(frame.T_world_cam)
         if T_cam_world is None:
             parts.append(_empty_part())
         else:
             depth = scene.read_depth(frame)  # (H, W) float32 metres
-            parts.append(frame_visibility(points32, T_cam_world, scene.camera, depth, cfg))
+            parts.append(frame_observations(points32, T_cam_world, scene.camera, depth, cfg))
         report(on_progress, done, len(frames))
     vis = _assemble(tuple(f.id for f in frames), parts)
     log.info(
@@ -174,7 +186,19 @@ def frame_visibility(
     depth: np.ndarray,  # (H, W) float32 metres, 0 = no depth
     cfg: VisibilityConfig,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # 3 x (T_v,) int32: point index (ascending), row, column
-    """Primitives seen by one frame, with the pixel each lands on.
+    """Primitives seen by one frame, with the pixel each lands on (:func:`frame_observations` less the residual)."""
+    idx, row, col, _ = frame_observations(points, T_cam_world, camera, depth, cfg)
+    return idx, row, col
+
+
+def frame_observations(
+    points: np.ndarray,  # (N, 3) float32, world
+    T_cam_world: np.ndarray,  # (4, 4) float64, world-to-camera
+    camera: Camera,
+    depth: np.ndarray,  # (H, W) float32 metres, 0 = no depth
+    cfg: VisibilityConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # 3 x (T_v,) int32, (T_v,) float16
+    """Primitives seen by one frame: point index (ascending), pixel row and column, relative depth residual.
 
     Float32 arithmetic: coordinates of metres at float32 precision (1e-7 relative) move a projection by far
     less than a pixel, and halve the memory traffic of the per-point passes.
@@ -201,7 +225,8 @@ def frame_visibility(
     col, row = u[inside].astype(np.int32), v[inside].astype(np.int32)
     d = depth[row, col]  # sensor depth at the pixel
     seen = (d > 0) & (np.abs(z - d) <= cfg.depth_rtol * d + cfg.depth_atol)  # pitfall 8; D = 0 never seen
-    return idx[seen].astype(np.int32), row[seen], col[seen]
+    residual = ((z[seen] - d[seen]) / d[seen]).astype(np.float16)  # |residual| <= rtol: float16 keeps 3 digits
+    return idx[seen].astype(np.int32), row[seen], col[seen], residual
 
 
 def _inverse_pose(T_world_cam: np.ndarray) -> np.ndarray | None:  # (4, 4) float64 T_cam_world, or None
@@ -216,12 +241,12 @@ def _inverse_pose(T_world_cam: np.ndarray) -> np.ndarray | None:  # (4, 4) float
     return inverse if np.all(np.isfinite(inverse)) else None
 
 
-def _empty_part() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _empty_part() -> tuple[np.ndarray, ...]:
     empty = np.zeros(0, dtype=np.int32)
-    return empty, empty, empty
+    return empty, empty, empty, np.zeros(0, dtype=np.float16)
 
 
-def _assemble(frame_ids: tuple[str, ...], parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Visibility:
+def _assemble(frame_ids: tuple[str, ...], parts: list[tuple[np.ndarray, ...]]) -> Visibility:
     counts = np.array([p[0].shape[0] for p in parts], dtype=np.int64)  # (V,)
     offsets = np.concatenate([np.zeros(1, dtype=np.int64), np.cumsum(counts)])  # (V + 1,)
     if not parts:
@@ -230,4 +255,8 @@ def _assemble(frame_ids: tuple[str, ...], parts: list[tuple[np.ndarray, np.ndarr
     def cat(i: int) -> np.ndarray:
         return np.concatenate([p[i] for p in parts]).astype(np.int32, copy=False)
 
-    return Visibility(frame_ids=frame_ids, offsets=offsets, point_index=cat(0), pixel_row=cat(1), pixel_col=cat(2))
+    residual = np.concatenate([p[3] for p in parts]).astype(np.float16, copy=False)
+    return Visibility(
+        frame_ids=frame_ids, offsets=offsets, point_index=cat(0), pixel_row=cat(1), pixel_col=cat(2),
+        depth_residual=residual,
+    )  # fmt: skip

@@ -36,6 +36,9 @@ except ImportError:  # the stage 5 module may land later; the fields are all the
         distances: np.ndarray  # (N, K) float32
 
 
+MEAN = AffinityConfig(aggregate="mean")  # the reference's weighted mean (5.4)
+
+
 def _knn(neighbors: list[list[int]] | np.ndarray) -> KnnGraph:
     nbrs = np.asarray(neighbors, dtype=np.int64)
     return KnnGraph(neighbors=nbrs, distances=np.ones(nbrs.shape, dtype=np.float32))
@@ -71,9 +74,7 @@ def _naive_affinity(labels: np.ndarray, pairs: np.ndarray, obs: MaskObservations
             for m in set(hist_i) | set(hist_j):
                 p, q = hist_i[m] / n_i, hist_j[m] / n_j
                 mid = (p + q) / 2
-                jsd += 0.5 * (p * math.log(p / mid) if p else 0.0) + 0.5 * (
-                    q * math.log(q / mid) if q else 0.0
-                )
+                jsd += 0.5 * (p * math.log(p / mid) if p else 0.0) + 0.5 * (q * math.log(q / mid) if q else 0.0)
             weight = (n_i / sizes[i]) * (n_j / sizes[j])
             num += (1.0 - jsd) * weight
             den += weight
@@ -173,6 +174,24 @@ class TestObserveMasks:
         assert obs.point_index.dtype == np.int32
         assert obs.label.dtype == np.int32
 
+    def test_depth_residual_filter(self) -> None:
+        # Frame c (4 observations): the residuals spread +-0.1 % except point 7 at +5 %, a surface hidden
+        # behind the one the sensor saw: with the filter on it must not read the mask in front of it. Off
+        # (the default, mad 0), it does.
+        scene, vis = self._scene()
+        residual = np.array([0.0, 0.001, -0.001, 0.0, 0.001, -0.001, 0.0, 0.05], dtype=np.float16)
+        vis = Visibility(vis.frame_ids, vis.offsets, vis.point_index, vis.pixel_row, vis.pixel_col, residual)
+        on = AffinityConfig(mask_depth_mad=3.0)
+        obs = observe_masks(scene, vis, on)
+        np.testing.assert_array_equal(obs.point_index[obs.offsets[1] :], [3, 4])
+        off = observe_masks(scene, vis)
+        np.testing.assert_array_equal(off.point_index[off.offsets[1] :], [3, 4, 7])
+        # The floor keeps a tolerance when every residual is the same (MAD 0): 0.5 % passes a 1 % floor.
+        flat = np.zeros(8, dtype=np.float16)
+        flat[7] = 0.005
+        vis = Visibility(vis.frame_ids, vis.offsets, vis.point_index, vis.pixel_row, vis.pixel_col, flat)
+        np.testing.assert_array_equal(observe_masks(scene, vis, on).point_index[obs.offsets[1] :], [3, 4, 7])
+
     def test_cell_rounding(self) -> None:
         # A 4-row mask under a 6-row camera: pixel row v reads mask row floor((v + 0.5) * 4 / 6).
         camera = Camera(width=1, height=6, fx=1.0, fy=1.0, cx=0.0, cy=0.0)
@@ -215,9 +234,7 @@ class TestObserveMasks:
 
     def test_contract(self) -> None:
         with pytest.raises(ShapeError, match="offsets must rise from 0 to T = 2"):
-            MaskObservations(
-                offsets=np.array([0, 1]), point_index=np.zeros(2, np.int32), label=np.ones(2, np.int32)
-            )
+            MaskObservations(offsets=np.array([0, 1]), point_index=np.zeros(2, np.int32), label=np.ones(2, np.int32))
 
 
 class TestSegmentPairs:
@@ -239,9 +256,7 @@ class TestSegmentPairs:
         assert len({tuple(p) for p in pairs.tolist()}) == len(pairs)
 
     def test_exception(self) -> None:
-        with pytest.raises(
-            ShapeError, match=r"knn.neighbors must be \(3, K\) to match labels, found \(2, 1\)"
-        ):
+        with pytest.raises(ShapeError, match=r"knn.neighbors must be \(3, K\) to match labels, found \(2, 1\)"):
             segment_pairs(np.zeros(3, np.int64), _knn([[1], [0]]))
 
 
@@ -275,9 +290,23 @@ class TestEdgeAffinity:
         labels = np.repeat([0, 1], 10)
         frame0 = [(p, 1) for p in range(20)]
         frame1 = [(0, 2)] + [(p, 3) for p in range(10, 20)]
-        aff = edge_affinity(labels, np.array([[0, 1]]), _observations([frame0, frame1]), AffinityConfig())
+        aff = edge_affinity(labels, np.array([[0, 1]]), _observations([frame0, frame1]), MEAN)
         expected = (1.0 * 1.0 + (1.0 - LN2) * 0.1) / (1.0 + 0.1)
         assert aff[0] == pytest.approx(expected, abs=1e-6)
+        # The weighted median follows the frame that holds most of the weight.
+        median = edge_affinity(labels, np.array([[0, 1]]), _observations([frame0, frame1]), AffinityConfig())
+        assert median[0] == pytest.approx(1.0)
+
+    def test_median_ignores_a_minority_of_merged_frames(self) -> None:
+        # Two segments in different masks in 3 frames and in one merged mask in 1 (SAM under-segmenting):
+        # the mean is (3 (1 - ln 2) + 1) / 4 = 0.48, the median stays at 1 - ln 2.
+        labels = np.repeat([0, 1], 10)
+        apart = [(p, 1 + (p >= 10)) for p in range(20)]
+        merged = [(p, 1) for p in range(20)]
+        obs = _observations([apart, apart, merged, apart])
+        pair = np.array([[0, 1]])
+        assert edge_affinity(labels, pair, obs, MEAN)[0] == pytest.approx((3 * (1 - LN2) + 1) / 4, abs=1e-6)
+        assert edge_affinity(labels, pair, obs, AffinityConfig())[0] == pytest.approx(1 - LN2, abs=1e-6)
 
     def test_min_covisibility(self) -> None:
         labels = np.repeat([0, 1], 10)
@@ -297,7 +326,7 @@ class TestEdgeAffinity:
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_matches_naive_oracle(self, seed: int) -> None:
         labels, pairs, obs = _random_case(seed)
-        fast = edge_affinity(labels, pairs, obs, AffinityConfig())
+        fast = edge_affinity(labels, pairs, obs, MEAN)
         np.testing.assert_allclose(fast, _naive_affinity(labels, pairs, obs), atol=2e-6)
         assert np.all((fast == 0) | ((fast >= 1 - LN2 - 1e-6) & (fast <= 1 + 1e-6)))
 
@@ -354,9 +383,7 @@ class TestEdgeAffinity:
         with pytest.raises(InputError, match="mode 'language' needs features"):
             edge_affinity(labels, np.array([[0, 1]]), obs, AffinityConfig(mode="language"))
         with pytest.raises(ShapeError, match=r"features must be \(4, D\), found \(3, 2\)"):
-            edge_affinity(
-                labels, np.array([[0, 1]]), obs, AffinityConfig(mode="language"), features=np.ones((3, 2))
-            )
+            edge_affinity(labels, np.array([[0, 1]]), obs, AffinityConfig(mode="language"), features=np.ones((3, 2)))
         with pytest.raises(InputError, match=r"pairs name segments in \[0, 5\], labels have \[0, 2\)"):
             edge_affinity(labels, np.array([[0, 5]]), obs, AffinityConfig())
         with pytest.raises(ShapeError, match=r"pairs must be \(E, 2\) integers"):

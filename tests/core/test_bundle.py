@@ -123,9 +123,7 @@ class TestOpenValid:
         w = BundleWriter(tmp_path, name="d", camera=CAM, feature_dim=2, feature_space="s")
         depth = np.full((48, 64), 1.2344)
         depth[0, :3] = [np.nan, -1.0, 70.0]  # invalid, invalid, beyond uint16 at 1000 per metre
-        w.add_frame(
-            "a", np.eye(4), depth, features=np.zeros((2, 2, 2), np.float32), masks=np.ones((4, 4), int)
-        )
+        w.add_frame("a", np.eye(4), depth, features=np.zeros((2, 2, 2), np.float32), masks=np.ones((4, 4), int))
         scene = open_bundle(w.close())
         out = scene.read_depth(scene.frames[0])
         assert out[1, 1] == pytest.approx(1.234, abs=1e-6)

@@ -179,23 +179,34 @@ class TestEvaluatePaper:
         assert evaluate(pred, ins, gt, ins, vocab).miou == pytest.approx(0.25)
 
     def test_matches_reference_loop(self) -> None:
-        vocab = Vocabulary(names=("wall", "floor", "chair", "table", "sofa"),
-                           kinds=("stuff", "stuff", "thing", "thing", "thing"))
+        vocab = Vocabulary(
+            names=("wall", "floor", "chair", "table", "sofa"), kinds=("stuff", "stuff", "thing", "thing", "thing")
+        )
         rng = np.random.default_rng(3)
         for _ in range(20):
             n = 60
             gt_sem, pred_sem = rng.integers(-1, 5, n), rng.integers(-1, 5, n)
             gt_ins, pred_ins = rng.integers(-1, 4, n), rng.integers(-1, 4, n)
             m = evaluate(pred_sem, pred_ins, gt_sem, gt_ins, vocab, mode="paper")
-            cases = (([2, 3, 4], 0.25, m.prq_thing), ([0, 1], 0.25, m.prq_stuff),
-                     ([2, 3, 4], 0.5, m.prq_thing_50), ([0, 1], 0.5, m.prq_stuff_50))
+            cases = (
+                ([2, 3, 4], 0.25, m.prq_thing),
+                ([0, 1], 0.25, m.prq_stuff),
+                ([2, 3, 4], 0.5, m.prq_thing_50),
+                ([0, 1], 0.5, m.prq_stuff_50),
+            )
             for classes, threshold, value in cases:
                 expected = _reference_panoptic(pred_sem, pred_ins, gt_sem, gt_ins, classes, threshold)
                 assert value == pytest.approx(expected) if not math.isnan(value) else expected is None
 
 
-def _reference_panoptic(pred_sem: np.ndarray, pred_ins: np.ndarray, gt_sem: np.ndarray, gt_ins: np.ndarray,
-                        classes: list[int], threshold: float) -> float | None:
+def _reference_panoptic(
+    pred_sem: np.ndarray,
+    pred_ins: np.ndarray,
+    gt_sem: np.ndarray,
+    gt_ins: np.ndarray,
+    classes: list[int],
+    threshold: float,
+) -> float | None:
     """Reference 8.2, written as the plain loop (the oracle)."""
     tp = fn = n_valid = 0
     iou_sum = pq = 0.0

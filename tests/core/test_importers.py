@@ -41,9 +41,7 @@ def _scannet(root: Path, n: int = 12, bad_pose: int = 3) -> Path:
     np.savetxt(root / "intrinsic" / "intrinsic_depth.txt", K)
     for i in range(n):
         assert cv2.imwrite(str(root / "depth" / f"{i}.png"), _depth(rng, 24, 32))
-        assert cv2.imwrite(
-            str(root / "color" / f"{i}.jpg"), rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)
-        )
+        assert cv2.imwrite(str(root / "color" / f"{i}.jpg"), rng.integers(0, 255, (30, 40, 3), dtype=np.uint8))
         pose = np.full((4, 4), -np.inf) if i == bad_pose else _pose(i)
         np.savetxt(root / "pose" / f"{i}.txt", pose)
         if i % 2 == 0:
@@ -174,9 +172,7 @@ class TestImportReplica:
 
     def test_cam_params_and_explicit_camera(self, tmp_path: Path) -> None:
         src = _replica(tmp_path / "office0")
-        params = {
-            "camera": {"w": 60, "h": 34, "fx": 31.0, "fy": 32.0, "cx": 29.0, "cy": 16.0, "scale": 5000.0}
-        }
+        params = {"camera": {"w": 60, "h": 34, "fx": 31.0, "fy": 32.0, "cx": 29.0, "cy": 16.0, "scale": 5000.0}}
         (tmp_path / "cam_params.json").write_text(json.dumps(params))  # one folder up, as in NICE-SLAM
         scene = open_bundle(import_replica(src, tmp_path / "b1").bundle)
         assert scene.camera == Camera(60, 34, 31.0, 32.0, 29.0, 16.0)

@@ -211,9 +211,7 @@ class TestDecodePoints:
         with pytest.raises(ShapeError, match="points"):
             decode_points(field, np.zeros((4, 2), np.float32))
         with pytest.raises(InputError, match="state"):
-            decode_points(
-                LanguageField(features=field.features, bounds=field.bounds, state={}), np.zeros((1, 3))
-            )
+            decode_points(LanguageField(features=field.features, bounds=field.bounds, state={}), np.zeros((1, 3)))
 
 
 class TestGeometry:
@@ -256,7 +254,7 @@ class TestConfig:
 
     def test_defaults_follow_scannet(self) -> None:
         cfg = LanguageFieldConfig()
-        assert cfg.cell_sizes == (0.2, 0.06)
+        assert cfg.cell_sizes == (0.1, 0.04)  # the reference's Replica levels
         assert cfg.channels == 10
         assert cfg.hidden_dims == (128,)
         assert cfg.betas == (0.9, 0.99)

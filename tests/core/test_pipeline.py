@@ -132,8 +132,9 @@ def test_invalid_bundle_is_refused_before_any_work(tiny_bundle: Path, tmp_path: 
     assert not (tmp_path / "out" / "labels.npz").exists()
 
 
-def test_cli_run_and_query(tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path,
-                           capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_run_and_query(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     import shutil
 
     out = tmp_path / "cli-run"

@@ -79,8 +79,7 @@ class TestReadPly:
         body = "0 0 0 255\n1.5 2 -3 7\n0 1 0 0\n3 0 1 2\n"
         path = tmp_path / "a.ply"
         path.write_bytes(
-            _header("ascii", 3, extra_after="element face 1\nproperty list uchar int vertex_indices\n")
-            + body.encode()
+            _header("ascii", 3, extra_after="element face 1\nproperty list uchar int vertex_indices\n") + body.encode()
         )
         out = read_ply_vertices(path)
         np.testing.assert_allclose(out["y"], [0, 2, 1])
@@ -137,8 +136,7 @@ class TestReadPly:
                 "truncated",
             ),
             (
-                b"ply\nformat binary_big_endian 1.0\nelement vertex 999999999999\n"
-                b"property double x\nend_header\n",
+                b"ply\nformat binary_big_endian 1.0\nelement vertex 999999999999\nproperty double x\nend_header\n",
                 "truncated",
             ),
             (

@@ -34,9 +34,16 @@ def _feature_like(emb: np.ndarray, cls: int, scale: float = COS_SCALE) -> np.nda
 def _instance(iid: int, vocab: Vocabulary, cls: int) -> InstanceInfo:
     assert vocab.embeddings is not None
     return InstanceInfo(
-        id=iid, class_index=cls, class_name=vocab.names[cls], kind=vocab.kinds[cls], score=0.9,
-        num_points=100, centroid=np.full(3, iid, np.float32), bbox_min=np.zeros(3, np.float32),
-        bbox_max=np.ones(3, np.float32), feature=_feature_like(vocab.embeddings, cls),
+        id=iid,
+        class_index=cls,
+        class_name=vocab.names[cls],
+        kind=vocab.kinds[cls],
+        score=0.9,
+        num_points=100,
+        centroid=np.full(3, iid, np.float32),
+        bbox_min=np.zeros(3, np.float32),
+        bbox_max=np.ones(3, np.float32),
+        feature=_feature_like(vocab.embeddings, cls),
     )
 
 
@@ -81,8 +88,12 @@ class TestQueryInstances:
         q = vocab.embeddings[vocab.names.index("chair")]
         cos = [float(i.feature @ q) for i in instances]
         assert cos[1] - cos[0] < 0.03
-        scores = query_scores(np.stack([i.feature for i in instances]), q,
-                              np.delete(vocab.embeddings, vocab.names.index("chair"), 0), 0.01)
+        scores = query_scores(
+            np.stack([i.feature for i in instances]),
+            q,
+            np.delete(vocab.embeddings, vocab.names.index("chair"), 0),
+            0.01,
+        )
         assert scores[1] > 0.5 > scores[0]
 
     def test_ranking_top_k_min_score(self) -> None:
@@ -92,8 +103,7 @@ class TestQueryInstances:
         hits = query_instances(instances, vocab, "chair", feature_space=CLIP)
         assert [h.instance_id for h in hits] == [1, 3]
         assert hits[0].score > hits[1].score
-        assert [h.instance_id for h in query_instances(instances, vocab, "chair", feature_space=CLIP,
-                                                       top_k=1)] == [1]
+        assert [h.instance_id for h in query_instances(instances, vocab, "chair", feature_space=CLIP, top_k=1)] == [1]
         everything = query_instances(instances, vocab, "chair", feature_space=CLIP, min_score=0.0, top_k=10)
         assert len(everything) == 5
         assert [h.score for h in everything] == sorted((h.score for h in everything), reverse=True)
@@ -138,9 +148,15 @@ class TestQueryInstances:
         instances = [_instance(c, vocab, c) for c in range(len(vocab.names))]
         for temperature, all_found in ((SPACE_TEMPERATURES[CLIP], True), (0.015, False)):
             # instances labelled with the queried class are always returned; the calibration is their score
-            found = [any(h.instance_id == c and h.score >= 0.5 for h in query_instances(
-                instances, vocab, name, feature_space=CLIP, temperature=temperature, top_k=30))
-                for c, name in enumerate(vocab.names)]
+            found = [
+                any(
+                    h.instance_id == c and h.score >= 0.5
+                    for h in query_instances(
+                        instances, vocab, name, feature_space=CLIP, temperature=temperature, top_k=30
+                    )
+                )
+                for c, name in enumerate(vocab.names)
+            ]
             assert all(found) is all_found
 
     def test_empty_instances(self) -> None:
@@ -195,8 +211,18 @@ def test_class_name_query_returns_every_instance_labelled_with_it() -> None:
 
     def inst(i: int, cls: int, feature: list[float]) -> InstanceInfo:
         f = np.asarray(feature, np.float32)
-        return InstanceInfo(id=i, class_index=cls, class_name=vocab.names[cls], kind="thing", score=0.5,
-                            num_points=10, centroid=box, bbox_min=box, bbox_max=box, feature=f / np.linalg.norm(f))
+        return InstanceInfo(
+            id=i,
+            class_index=cls,
+            class_name=vocab.names[cls],
+            kind="thing",
+            score=0.5,
+            num_points=10,
+            centroid=box,
+            bbox_min=box,
+            bbox_max=box,
+            feature=f / np.linalg.norm(f),
+        )
 
     instances = [inst(0, 1, [0.7, 0.71, 0.0]), inst(1, 0, [1.0, 0.0, 0.0]), inst(2, 1, [0.0, 1.0, 0.0])]
     hits = query_instances(instances, vocab, "b", feature_space="test", top_k=10, min_score=0.9, temperature=0.05)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from panogs_core.affinity import MaskObservations
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
 from panogs_core.superprimitives import (
     KnnGraph,
@@ -13,6 +14,7 @@ from panogs_core.superprimitives import (
     build_knn,
     edge_weights,
     graph_cut_superprimitives,
+    split_straddling,
 )
 
 
@@ -40,6 +42,17 @@ def _coplanar_two_features(dim: int = 8) -> tuple[np.ndarray, np.ndarray, np.nda
     features[u < 1.0, 0] = 1.0
     features[u >= 1.0, 1] = 1.0
     return points, normals, features
+
+
+def _frames_of_masks(per_frame: list[np.ndarray]) -> MaskObservations:
+    """Every point observed in every frame with the given mask id (0 = outside every mask)."""
+    index, label, offsets = [], [], [0]
+    for ids in per_frame:
+        inside = np.flatnonzero(ids > 0)
+        index.append(inside.astype(np.int32))
+        label.append(np.asarray(ids)[inside].astype(np.int32))
+        offsets.append(offsets[-1] + inside.size)
+    return MaskObservations(np.array(offsets, np.int64), np.concatenate(index), np.concatenate(label))
 
 
 def _noisy_cloud(n: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -137,9 +150,7 @@ class TestEdgeWeights:
         points, normals, features = _noisy_cloud(60, 4, seed=3)
         knn = build_knn(points, 5)
         cfg = SuperPrimitiveConfig(k_neighbors=5)
-        src, dst, w = edge_weights(
-            points.astype(np.float64), normals.astype(np.float64), features, knn.neighbors, cfg
-        )
+        src, dst, w = edge_weights(points.astype(np.float64), normals.astype(np.float64), features, knn.neighbors, cfg)
         assert (src == np.repeat(np.arange(60), 5)).all()
         assert (dst == knn.neighbors.ravel()).all()
         for e in range(src.size):
@@ -197,14 +208,58 @@ class TestGraphCut:
         assert without.count == 1
         assert switched_off.count == 1
 
+    def test_masks_split_touching_coplanar_objects(self) -> None:
+        # Two desk tops side by side: one plane of one language, one super-primitive to the graph cut. Every
+        # mask frame sees the left half in one mask and the right half in another: the masks cut it in two.
+        # Without masks, or with the split off, it stays whole.
+        points, normals, _ = _coplanar_two_features()
+        left = points[:, 0] < 1.0
+        masks = _frames_of_masks([np.where(left, 1, 2)] * 3)
+        cfg = SuperPrimitiveConfig()
+        knn = build_knn(points, cfg.k_neighbors)
+        cut = graph_cut_superprimitives(points, normals, None, knn, cfg, masks=masks)
+        assert cut.count == 2
+        assert len(np.unique(cut.labels[left])) == 1
+        assert len(np.unique(cut.labels[~left])) == 1
+        assert graph_cut_superprimitives(points, normals, None, knn, cfg).count == 1
+        off = SuperPrimitiveConfig(split_purity=0.0)
+        assert graph_cut_superprimitives(points, normals, None, knn, off, masks=masks).count == 1
+
+    def test_occasional_part_split_is_not_a_cut(self) -> None:
+        # A mask splits the plane in one frame of three (SAM over-segmenting into parts): purity
+        # (n / 2 + n + n) / 3n = 0.83 is above split_purity 0.75, so the segment stays whole.
+        points, normals, _ = _coplanar_two_features()
+        left = points[:, 0] < 1.0
+        n = points.shape[0]
+        masks = _frames_of_masks([np.where(left, 1, 2), np.ones(n), np.ones(n)])
+        cfg = SuperPrimitiveConfig()
+        knn = build_knn(points, cfg.k_neighbors)
+        assert graph_cut_superprimitives(points, normals, None, knn, cfg, masks=masks).count == 1
+
+    def test_three_objects_in_one_segment_are_cut_twice(self) -> None:
+        points, _, _ = _coplanar_two_features()
+        third = np.minimum((points[:, 0] / (2.0 / 3.0)).astype(int), 2) + 1  # thirds along x: masks 1, 2, 3
+        sp = split_straddling(np.zeros(points.shape[0], np.int64), points, _frames_of_masks([third] * 2), 0.75, 20)
+        assert len(np.unique(sp)) == 3
+        for k in (1, 2, 3):
+            assert len(np.unique(sp[third == k])) == 1
+
+    def test_unobserved_members_follow_their_nearest_observed_neighbour(self) -> None:
+        # Only a few columns near each end are ever inside a mask; the middle is never seen in one.
+        points, _, _ = _coplanar_two_features()
+        x = points[:, 0]
+        label = np.where(x < 0.3, 1, np.where(x > 1.6, 2, 0))
+        sp = split_straddling(np.zeros(points.shape[0], np.int64), points, _frames_of_masks([label] * 2), 0.75, 20)
+        assert len(np.unique(sp)) == 2
+        assert len(np.unique(sp[x < 0.9])) == 1
+        assert len(np.unique(sp[x > 1.05])) == 1
+
     def test_orient_invariant_ignores_normal_signs(self) -> None:
         points, normals = _perpendicular_planes()
         flips = np.where(np.random.default_rng(4).random(800) < 0.5, -1.0, 1.0).astype(np.float32)
         flipped = normals * flips[:, None]
         knn = build_knn(points, 7)
-        invariant = graph_cut_superprimitives(
-            points, flipped, None, knn, SuperPrimitiveConfig(orient_invariant=True)
-        )
+        invariant = graph_cut_superprimitives(points, flipped, None, knn, SuperPrimitiveConfig(orient_invariant=True))
         reference = graph_cut_superprimitives(points, flipped, None, knn, SuperPrimitiveConfig())
         assert invariant.count == 2
         assert reference.count > 2  # the reference rule sees w = 2 between opposite signs
@@ -225,9 +280,7 @@ class TestGraphCut:
         knn = build_knn(points, cfg.k_neighbors)
         feats = features if language else None
         sp = graph_cut_superprimitives(points, normals, feats, knn, cfg)
-        src, dst, w = edge_weights(
-            points.astype(np.float64), normals.astype(np.float64), feats, knn.neighbors, cfg
-        )
+        src, dst, w = edge_weights(points.astype(np.float64), normals.astype(np.float64), feats, knn.neighbors, cfg)
         expected = _oracle_labels(points.shape[0], src, dst, w, feats, cfg)
         assert sp.count > 5
         assert (sp.labels == expected).all()

@@ -21,8 +21,7 @@ def offline(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def _byte_alphabet() -> list[str]:
     """The 256 printable stand-ins of the bytes used by byte-level BPE (GPT-2 / CLIP convention)."""
-    printable = {*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1),
-                 *range(ord("®"), ord("ÿ") + 1)}
+    printable = {*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1), *range(ord("®"), ord("ÿ") + 1)}
     shifted = iter(range(256, 512))
     return [chr(b) if b in printable else chr(next(shifted)) for b in range(256)]
 
@@ -33,20 +32,43 @@ def _tiny_clip(folder: Path) -> int:
 
     alphabet = _byte_alphabet()
     merges = ["c h", "ch a", "cha i", "chai r</w>"]
-    tokens = [*alphabet, *(c + "</w>" for c in alphabet), "ch", "cha", "chai", "chair</w>",
-              "<|startoftext|>", "<|endoftext|>"]
+    tokens = [
+        *alphabet,
+        *(c + "</w>" for c in alphabet),
+        "ch",
+        "cha",
+        "chai",
+        "chair</w>",
+        "<|startoftext|>",
+        "<|endoftext|>",
+    ]
     vocab = {t: i for i, t in enumerate(tokens)}
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "vocab.json").write_text(json.dumps(vocab))
     (folder / "merges.txt").write_text("#version: 0.2\n" + "\n".join(merges) + "\n")
-    special = {"bos_token_id": vocab["<|startoftext|>"], "eos_token_id": vocab["<|endoftext|>"],
-               "pad_token_id": vocab["<|endoftext|>"]}
+    special = {
+        "bos_token_id": vocab["<|startoftext|>"],
+        "eos_token_id": vocab["<|endoftext|>"],
+        "pad_token_id": vocab["<|endoftext|>"],
+    }
     config = CLIPConfig(
-        text_config={"vocab_size": len(vocab), "hidden_size": 16, "intermediate_size": 32,
-                     "num_hidden_layers": 1, "num_attention_heads": 2, "max_position_embeddings": 16,
-                     **special},
-        vision_config={"hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1,
-                       "num_attention_heads": 2, "image_size": 8, "patch_size": 4},
+        text_config={
+            "vocab_size": len(vocab),
+            "hidden_size": 16,
+            "intermediate_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "max_position_embeddings": 16,
+            **special,
+        },
+        vision_config={
+            "hidden_size": 16,
+            "intermediate_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "image_size": 8,
+            "patch_size": 4,
+        },
         projection_dim=12,
     )
     CLIPModel(config).save_pretrained(folder)

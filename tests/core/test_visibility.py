@@ -143,9 +143,7 @@ class TestComputeVisibility:
         pose[0, 3] = 1.0
         scene = _plane_scene()
         scene.frames = (_frame("0", pose),)
-        idx, row, col = compute_visibility(
-            scene, np.array([[1.0, 0.0, 2.0]], np.float32), VisibilityConfig()
-        ).frame(0)
+        idx, row, col = compute_visibility(scene, np.array([[1.0, 0.0, 2.0]], np.float32), VisibilityConfig()).frame(0)
         assert (idx.tolist(), row.tolist(), col.tolist()) == ([0], [2], [4])
 
     def test_default_frames_and_order(self) -> None:
@@ -256,3 +254,30 @@ class TestVisibilityConfig:
         cfg = VisibilityConfig()
         assert cfg.depth_rtol == 0.07
         assert cfg.depth_atol == 0.0
+
+
+class TestDepthResidual:
+    def test_residual_of_each_seen_pair(self, tmp_path: Path) -> None:
+        # Plane at 2 m; points at 2.0, 2.05 and 1.9 m depth on the optical axis region: residual (z - D) / D.
+        scene = _plane_scene(2.0)
+        points = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.05], [-0.5, 0.0, 1.9], [0.0, 0.5, 2.5]], np.float32)
+        vis = compute_visibility(scene, points, VisibilityConfig())  # type: ignore[arg-type]
+        np.testing.assert_array_equal(vis.point_index, [0, 1, 2])  # 2.5 m is 25 % off: not seen
+        assert vis.depth_residual is not None
+        np.testing.assert_allclose(vis.depth_residual.astype(np.float64), [0.0, 0.025, -0.05], atol=1e-3)
+        vis.save(tmp_path / "vis.npz")
+        back = Visibility.load(tmp_path / "vis.npz")
+        np.testing.assert_array_equal(back.depth_residual, vis.depth_residual)
+
+    def test_checkpoints_without_residual_still_load(self, tmp_path: Path) -> None:
+        empty = np.zeros(0, np.int32)
+        old = Visibility(frame_ids=(), offsets=np.zeros(1, np.int64), point_index=empty, pixel_row=empty,
+                         pixel_col=empty)  # fmt: skip
+        old.save(tmp_path / "old.npz")
+        assert Visibility.load(tmp_path / "old.npz").depth_residual is None
+
+    def test_residual_shape_checked(self) -> None:
+        with pytest.raises(ShapeError, match="depth_residual"):
+            Visibility(frame_ids=("a",), offsets=np.array([0, 2]), point_index=np.zeros(2, np.int32),
+                       pixel_row=np.zeros(2, np.int32), pixel_col=np.zeros(2, np.int32),
+                       depth_residual=np.zeros(3, np.float16))  # fmt: skip
