@@ -433,19 +433,39 @@ def _downsample_under_cap(
     colors: np.ndarray | None,  # (M, 3) float64
     cfg: PrimitivesConfig,
 ) -> tuple[np.ndarray, np.ndarray | None]:  # (N, 3), (N, 3) or None
-    """Voxel-downsample (cell means) at ``target_spacing``, growing the cell until N <= ``max_primitives``."""
-    import open3d as o3d
+    """Voxel-downsample (cell means) at ``target_spacing``, growing the cell until N <= ``max_primitives``.
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    if colors is not None:
-        pcd.colors = o3d.utility.Vector3dVector(colors)
+    Deterministic: open3d's voxel-block grid extracts its surface in hash-map order, which changes from run to
+    run, and so did open3d's downsampling and every stage after it (PRQ(T) 0.76 and 0.66 for two runs of one
+    scene). Here the points are put in coordinate order first and the cells come out in key order.
+    """
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
+    points = points[order]
+    colors = None if colors is None else colors[order]
     spacing = cfg.target_spacing
     while True:
-        down = pcd.voxel_down_sample(spacing)
-        n = len(down.points)
+        cell = voxel_cells(points, spacing)
+        n = int(cell.max()) + 1
         if n <= cfg.max_primitives:
             break
         spacing *= cfg.spacing_growth
     log.info("primitives: %d TSDF points -> %d at %.3f m spacing", points.shape[0], n, spacing)
-    out_colors = np.asarray(down.colors) if colors is not None else None
-    return np.asarray(down.points), out_colors
+    counts = np.bincount(cell, minlength=n)[:, None].astype(np.float64)
+    means = np.stack([np.bincount(cell, weights=points[:, k], minlength=n) for k in range(3)], 1) / counts
+    if colors is None:
+        return means, None
+    return means, np.stack([np.bincount(cell, weights=colors[:, k], minlength=n) for k in range(3)], 1) / counts
+
+
+def voxel_cells(points: np.ndarray, spacing: float) -> np.ndarray:  # (M,) int64 dense cell ids in key order
+    """Cell of each point on a grid of ``spacing`` metres, numbered by ascending (x, y, z) cell index.
+
+    Example:
+        >>> voxel_cells(np.array([[0.05, 0, 0], [0.01, 0, 0], [0.25, 0, 0]]), 0.1).tolist()
+        [0, 0, 1]
+    """
+    index = np.floor(points / spacing).astype(np.int64)
+    index -= index.min(axis=0)
+    span = index.max(axis=0) + 1
+    key = (index[:, 0] * span[1] + index[:, 1]) * span[2] + index[:, 2]
+    return np.unique(key, return_inverse=True)[1].reshape(-1).astype(np.int64)

@@ -14,6 +14,7 @@ from panogs_core.io.writer import BundleWriter
 from panogs_core.primitives import (
     Primitives,
     PrimitivesConfig,
+    _downsample_under_cap,
     build_primitives,
     estimate_normals,
     gaussian_log_scales,
@@ -251,3 +252,26 @@ class TestPrimitivesConfig:
         cfg = PrimitivesConfig()
         assert (cfg.point_size, cfg.scale_neighbors, cfg.min_sq_distance) == (0.05, 3, 1e-7)
         assert (cfg.normal_radius, cfg.normal_max_nn) == (0.1, 30)
+
+
+class TestDownsample:
+    def test_same_points_in_any_order_give_the_same_primitives(self) -> None:
+        # open3d extracts a TSDF surface in hash-map order, which changes between runs.
+        rng = np.random.default_rng(0)
+        points = rng.uniform(0, 1, (5000, 3))
+        colors = rng.uniform(0, 1, (5000, 3))
+        cfg = PrimitivesConfig(target_spacing=0.1)
+        a_points, a_colors = _downsample_under_cap(points, colors, cfg)
+        order = rng.permutation(5000)
+        b_points, b_colors = _downsample_under_cap(points[order], colors[order], cfg)
+        np.testing.assert_array_equal(a_points, b_points)
+        np.testing.assert_array_equal(a_colors, b_colors)
+        assert len(a_points) <= 1000  # 10 x 10 x 10 cells
+
+    def test_cell_means_and_cap(self) -> None:
+        points = np.array([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [0.51, 0.0, 0.0]])
+        out, colors = _downsample_under_cap(points, None, PrimitivesConfig(target_spacing=0.1))
+        np.testing.assert_allclose(out, [[0.02, 0.0, 0.0], [0.51, 0.0, 0.0]])
+        assert colors is None
+        capped, _ = _downsample_under_cap(points, None, PrimitivesConfig(target_spacing=0.1, max_primitives=1))
+        assert len(capped) == 1
