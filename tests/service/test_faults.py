@@ -67,7 +67,9 @@ class Cluster:
         assert response.status_code == 200, response.text
         return dict(response.json())
 
-    def wait_state(self, job_id: str, states: set[str], timeout: float = 60) -> dict[str, Any]:
+    # Deadlines, not timings: a job starts within seconds on a quiet machine, but a worker that imports torch
+    # while other jobs load both cores took over 60 s (a fresh-clone CI run beside a benchmark).
+    def wait_state(self, job_id: str, states: set[str], timeout: float = 180) -> dict[str, Any]:
         seen: dict[str, Any] = {}
 
         def reached() -> bool:
@@ -77,7 +79,7 @@ class Cluster:
         wait_for(reached, timeout, f"job {job_id} to reach {states}", lambda: f"last: {seen}\n{self.logs()}")
         return seen
 
-    def wait_stage(self, job_id: str, stage: str, timeout: float = 60) -> dict[str, Any]:
+    def wait_stage(self, job_id: str, stage: str, timeout: float = 180) -> dict[str, Any]:
         seen: dict[str, Any] = {}
 
         def reached() -> bool:
