@@ -169,7 +169,7 @@ def compute_visibility(
             parts.append(_empty_part())
         else:
             depth = scene.read_depth(frame)  # (H, W) float32 metres
-            parts.append(frame_observations(points32, T_cam_world, scene.camera, depth, cfg))
+            parts.append(frame_visibility(points32, T_cam_world, scene.camera, depth, cfg))
         report(on_progress, done, len(frames))
     vis = _assemble(tuple(f.id for f in frames), parts)
     log.info(
@@ -180,18 +180,6 @@ def compute_visibility(
 
 
 def frame_visibility(
-    points: np.ndarray,  # (N, 3) float32, world
-    T_cam_world: np.ndarray,  # (4, 4) float64, world-to-camera
-    camera: Camera,
-    depth: np.ndarray,  # (H, W) float32 metres, 0 = no depth
-    cfg: VisibilityConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # 3 x (T_v,) int32: point index (ascending), row, column
-    """Primitives seen by one frame, with the pixel each lands on (:func:`frame_observations` less the residual)."""
-    idx, row, col, _ = frame_observations(points, T_cam_world, camera, depth, cfg)
-    return idx, row, col
-
-
-def frame_observations(
     points: np.ndarray,  # (N, 3) float32, world
     T_cam_world: np.ndarray,  # (4, 4) float64, world-to-camera
     camera: Camera,

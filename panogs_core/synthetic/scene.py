@@ -143,7 +143,7 @@ def _write_frames(
     for i, (pose, seq) in enumerate(zip(poses, seeds)):
         rng = np.random.default_rng(seq)
         view = render_view(scene, layout, camera, pose)
-        seen, row, col = frame_visibility(
+        seen, row, col, _ = frame_visibility(
             surface.points, np.linalg.inv(pose), camera, view.depth.astype(np.float32), vis_cfg
         )
         own_face = (view.box[row, col] == surface.box[seen]) & (

@@ -200,7 +200,7 @@ class TestComputeVisibility:
         cam_pts = points.astype(np.float64) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         far_wall = np.full((CAM.height, CAM.width), 100.0, np.float32)  # tolerance 99.9 m: all in front pass
         cfg = VisibilityConfig(depth_rtol=0.999)
-        idx, row, col = frame_visibility(points, T_cam_world, CAM, far_wall, cfg)
+        idx, row, col, _ = frame_visibility(points, T_cam_world, CAM, far_wall, cfg)
         u = np.rint(CAM.fx * cam_pts[:, 0] / cam_pts[:, 2] + CAM.cx)
         v = np.rint(CAM.fy * cam_pts[:, 1] / cam_pts[:, 2] + CAM.cy)
         oracle = (cam_pts[:, 2] > 0.1) & (u >= 0) & (u <= CAM.width - 1) & (v >= 0) & (v <= CAM.height - 1)
