@@ -270,10 +270,15 @@ def split_straddling(
         seen = np.bincount(segment, weights=total, minlength=num)
         purity = np.bincount(segment, weights=largest, minlength=num) / np.maximum(seen, 1)
         straddling = np.flatnonzero((purity < min_purity) & (seen >= min_size))
+        # Members and observations of every segment as slices of one stable sort (ascending within a segment),
+        # instead of an O(N) scan per straddling segment.
+        member_of, member_start = _grouped(labels, num)
+        obs_of, obs_start = _grouped(labels[index], num)
         changed = False
         for seg in straddling.tolist():
-            members = np.flatnonzero(labels == seg)
-            parts = _cut(members, points, masks, frame_of, index, min_size)
+            members = member_of[member_start[seg] : member_start[seg + 1]]
+            obs = obs_of[obs_start[seg] : obs_start[seg + 1]]
+            parts = _cut(members, obs, points, masks, frame_of, index, min_size)
             if parts is not None:
                 labels[members[parts > 0]] = num + parts[parts > 0] - 1
                 num += int(parts.max())
@@ -283,8 +288,15 @@ def split_straddling(
     return np.unique(labels, return_inverse=True)[1].reshape(-1).astype(np.int64)
 
 
+def _grouped(keys: np.ndarray, num: int) -> tuple[np.ndarray, np.ndarray]:  # (K,) positions, (num + 1,) starts
+    """Positions of ``keys`` (ints in ``[0, num)``) sorted by key, stable, and where each key's run starts."""
+    order = np.argsort(keys, kind="stable")
+    return order, np.searchsorted(keys[order], np.arange(num + 1))
+
+
 def _cut(
-    members: np.ndarray,  # (M,) int64 point indices of one segment
+    members: np.ndarray,  # (M,) int64 point indices of one segment, ascending
+    obs: np.ndarray,  # (O,) int64 positions of its mask observations, ascending
     points: np.ndarray,  # (N, 3)
     masks: MaskObservations,
     frame_of: np.ndarray,  # (T,) frame of each observation
@@ -292,9 +304,6 @@ def _cut(
     min_size: int,
 ) -> np.ndarray | None:  # (M,) part of each member, 0..K-1 with K >= 2; None when no cut is worth making
     """The cut of :func:`split_straddling` for one segment."""
-    member = np.zeros(points.shape[0], dtype=bool)
-    member[members] = True
-    obs = np.flatnonzero(member[index])
     frames, ids = frame_of[obs], masks.label[obs].astype(np.int64)
     span = int(ids.max()) + 1
     keys, counts = np.unique(frames * span + ids, return_counts=True)

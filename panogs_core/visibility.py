@@ -83,15 +83,12 @@ class Visibility:
         if self.offsets.shape != (v + 1,):
             raise ShapeError(f"Visibility.offsets: expected shape ({v + 1},), got {self.offsets.shape}")
         t = int(self.offsets[-1])
-        names = ("point_index", "pixel_row", "pixel_col") + (("depth_residual",) if self.has_residual else ())
+        names = ["point_index", "pixel_row", "pixel_col"]
+        if self.depth_residual is not None:
+            names.append("depth_residual")
         for name in names:
             if getattr(self, name).shape != (t,):
                 raise ShapeError(f"Visibility.{name}: expected shape ({t},), got {getattr(self, name).shape}")
-
-    @property
-    def has_residual(self) -> bool:
-        """Whether ``depth_residual`` is there."""
-        return self.depth_residual is not None
 
     @property
     def num_frames(self) -> int:
