@@ -57,6 +57,7 @@ class PipelineResult:
     timings: list[StageStats]
     metrics: dict[str, Any] | None = None
     files: dict[str, Path] = field(default_factory=dict)
+    unseen: dict[str, int] = field(default_factory=dict)  # primitives no key frame saw, and how each was labelled
 
 
 def _hash_json(obj: Any) -> str:
@@ -264,7 +265,7 @@ def run_pipeline(
     labels = runner.stage(
         "labeling",
         keys["labeling"],
-        lambda p: st.labeling(prims, features, graph, clusters, vocab, cfg),
+        lambda p: st.labeling(prims, features, fused, graph, clusters, vocab, cfg),
         *st.io_for("labeling"),
     )
 
@@ -273,6 +274,7 @@ def run_pipeline(
 
         files, metrics = write_outputs(out, scene, prims, fused, graph, clusters, labels, vocab)
         return PipelineResult(
+            unseen=dict(labels.unseen),
             out_dir=out,
             scene_name=scene.name,
             num_primitives=int(prims.points.shape[0]),
@@ -304,6 +306,8 @@ def _write_report(
         "input_sha256": input_hash,
         "num_primitives": result.num_primitives,
         "num_instances": len(result.instances),
+        # Primitives that no key frame saw, and how many of them each rule labelled (labeling.label_unseen).
+        "unseen_primitives": result.unseen,
         "num_frames": len(scene.frames),
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,

@@ -165,10 +165,23 @@ def clustering(
 
 
 def labeling(
-    prims: Any, features: np.ndarray, graph: GraphStage, clusters: Any, vocab: Vocabulary, cfg: PipelineConfig
+    prims: Any,
+    features: np.ndarray,
+    fused: Any,
+    graph: GraphStage,
+    clusters: Any,
+    vocab: Vocabulary,
+    cfg: PipelineConfig,
 ) -> Any:
     from panogs_core.labeling import assign_panoptic
 
     return assign_panoptic(
-        prims.points, features, graph.superprimitives, clusters, vocab, cfg.labeling, neighbors=graph.knn.neighbors
+        prims.points,
+        features,
+        graph.superprimitives,
+        clusters,
+        vocab,
+        cfg.labeling,
+        neighbors=graph.knn.neighbors,
+        fused=np.asarray(fused.features, np.float32),
     )

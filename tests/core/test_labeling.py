@@ -78,7 +78,8 @@ def _run(cfg: LabelingConfig, features: np.ndarray | None = None) -> tuple[Panop
 class TestLabelingConfig:
     def test_smoke(self) -> None:
         cfg = LabelingConfig()
-        assert cfg.vote == "superprimitive"  # the reference's vote (see LabelingConfig)
+        assert cfg.vote == "islands"  # the vote restricted to small islands (see LabelingConfig)
+        assert cfg.instances == "hybrid" and cfg.unseen == "segment"
         assert 0.0 <= cfg.vote_min_fraction <= 1.0
 
     @pytest.mark.parametrize(
@@ -116,7 +117,9 @@ class TestVoteInSegments:
 
 
 class TestAssignPanoptic:
-    cfg = LabelingConfig(vote="none", min_instance_points=20, score_temperature=0.5)
+    # The cluster-based assembly these tests were written for (issue 2); the class-component assembly of
+    # issue 8 is tested in TestComponentInstances.
+    cfg = LabelingConfig(vote="none", min_instance_points=20, score_temperature=0.5, instances="clusters")
 
     def test_cardinality(self) -> None:
         out, cls = _run(self.cfg)
@@ -381,3 +384,100 @@ class TestLabelSets:
         # The spread rule lands near the measured CLIP value: 0.06 * (1 - 0.828).
         assert default_temperature(None, v.embeddings) == pytest.approx(0.0103, abs=5e-4)
         assert default_temperature("other-space", np.eye(3)) == pytest.approx(0.06)
+
+
+class TestIssue8Rules:
+    """The labelling rules of issue 8: fused evidence, island vote, unseen fill, class-component instances."""
+
+    def test_fused_evidence_beats_a_smoothed_field(self) -> None:
+        from panogs_core.labeling import primitive_classes
+
+        emb = np.eye(4, dtype=np.float32)
+        field_sims = np.eye(4, dtype=np.float32)[[WALL, WALL, WALL]]  # the field smoothed all into wall
+        fused = np.eye(4, dtype=np.float32)[[WALL, CHAIR, TABLE]] * 0.5
+        fused[2] = 0.0  # never seen
+        cfg = LabelingConfig(evidence_fused_weight=1.0)
+        assert primitive_classes(field_sims, fused, emb, cfg).tolist() == [WALL, CHAIR, -1]
+        cfg = LabelingConfig(evidence_fused_weight=0.0)
+        assert primitive_classes(field_sims, fused, emb, cfg).tolist() == [WALL, WALL, -1]
+
+    def test_island_vote_keeps_large_patches(self) -> None:
+        from panogs_core.labeling import vote_islands
+
+        # A line of 30 primitives in one segment: 20 cabinet, then a patch of 8 counter, then 2 chair.
+        cls = np.array([2] * 20 + [3] * 8 + [1] * 2)
+        nbr = np.stack([np.r_[1:30, 28], np.r_[1, 0:29]], 1)  # each primitive's two line neighbours
+        seg = np.zeros(30, np.int64)
+        out = vote_islands(cls, seg, nbr, island_points=5)
+        assert out[20:28].tolist() == [3] * 8  # the 8-primitive patch survives
+        assert out[28:].tolist() == [2, 2]  # the 2-primitive island joins the majority
+        assert vote_islands(cls, seg, nbr, island_points=10)[20:28].tolist() == [2] * 8
+
+    def test_unseen_propagates_along_the_surface(self) -> None:
+        from panogs_core.baselines import fill_nearest_seen
+        from panogs_core.labeling import label_unseen
+        from panogs_core.superprimitives import build_knn
+
+        # A floor line (2 cm spacing), seen only at both ends, under a bed top 10 cm above its middle.
+        xs = np.arange(0, 1.6, 0.02)
+        floor = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1)
+        bed = floor[(xs > 0.5) & (xs < 1.1)] + [0, 0, 0.10]
+        points = np.concatenate([floor, bed]).astype(np.float32)
+        seen_floor = (xs < 0.4) | (xs > 1.2)
+        cls = np.r_[np.where(seen_floor, FLOOR, -1), np.full(len(bed), TABLE)].astype(np.int64)
+        nbr = build_knn(points, 4).neighbors
+        sims = np.zeros((len(points), 4), np.float32)
+        out, counts = label_unseen(cls, sims, points, nbr, np.arange(len(points)), "propagate")
+        assert counts["unseen"] == counts["graph"] == int((cls < 0).sum())
+        assert (out[: len(xs)] == FLOOR).all()  # along the floor, not up to the bed 10 cm above
+        assert (fill_nearest_seen(points, cls)[: len(xs)] == TABLE).any()  # what Euclidean fill would do
+        segs = np.r_[np.zeros(len(xs)), np.ones(len(bed))].astype(np.int64)
+        assert (label_unseen(cls, sims, points, nbr, segs, "segment")[0][: len(xs)] == FLOOR).all()
+        assert (label_unseen(cls, np.eye(4, dtype=np.float32)[np.full(len(points), WALL)], points, nbr, segs,
+                             "field")[0] != FLOOR).any()  # fmt: skip
+
+    def test_components_split_only_by_large_clusters(self) -> None:
+        # Three touching chairs in a row (one class component), each its own cluster, and a fourth cluster
+        # that is a small part (a leg) of the first chair.
+        from panogs_core.superprimitives import build_knn
+
+        xs = np.arange(0, 1.5, 0.01)
+        points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1).astype(np.float32)
+        cluster = (xs // 0.5).astype(np.int64)
+        cluster[:10] = 3  # the leg
+        cls = np.full(len(xs), CHAIR, np.int64)
+        nbr = build_knn(points, 4).neighbors
+        sims = np.eye(4, dtype=np.float32)[cls]
+        cfg = LabelingConfig(vote="none", min_instance_points=20, split_min_points=30, split_min_fraction=0.2)
+        out = assign_panoptic(points, sims, _Labels(np.zeros(len(xs), np.int64)), _Labels(cluster), _vocab(), cfg,
+                              neighbors=nbr)  # fmt: skip
+        assert len(np.unique(out.instance)) == 3
+        assert len(np.unique(out.instance[:50])) == 1  # the leg stays with its chair
+        merged = assign_panoptic(points, sims, _Labels(np.zeros(len(xs), np.int64)), _Labels(cluster), _vocab(),
+                                 dataclasses.replace(cfg, instances="components"), neighbors=nbr)  # fmt: skip
+        assert len(np.unique(merged.instance)) == 1
+
+    def test_every_primitive_gets_a_class(self) -> None:
+        points, feats, cls, cluster = _scene()
+        fused = feats.copy()
+        fused[::3] = 0.0  # a third never seen
+        out = assign_panoptic(points, feats, _Labels(np.arange(len(cls)) // 5), _Labels(cluster), _vocab(),
+                              LabelingConfig(min_instance_points=20), fused=fused)  # fmt: skip
+        assert (out.semantic >= 0).all()
+        assert (out.semantic == cls).mean() > 0.9
+        assert out.unseen["unseen"] == len(cls[::3])
+        assert sum(out.unseen[k] for k in ("segment", "graph", "nearest", "field")) == out.unseen["unseen"]
+
+    @pytest.mark.parametrize(
+        ("kwargs", "match"),
+        [
+            ({"unseen": "nearest"}, "labeling.unseen"),
+            ({"instances": "sam"}, "labeling.instances"),
+            ({"evidence_fused_weight": 2.0}, "evidence_fused_weight"),
+            ({"component_radius": 0.0}, "component_radius"),
+            ({"split_min_fraction": -0.1}, "split_min_fraction"),
+        ],
+    )
+    def test_exception(self, kwargs: dict[str, object], match: str) -> None:
+        with pytest.raises(ConfigError, match=match):
+            LabelingConfig(**kwargs)  # type: ignore[arg-type]
