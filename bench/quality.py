@@ -105,7 +105,9 @@ def baselines(points, fused, vocab, gt, seen) -> dict[str, dict]:
     stuff_instance = label_components(points, raw, is_thing, min_points=10**9)  # stuff only: mIoU row
     return {
         "fused-argmax": score(raw, stuff_instance, gt, vocab, seen),
-        "fused-argmax-fill": score(filled, label_components(points, filled, is_thing, min_points=10**9), gt, vocab, seen),
+        "fused-argmax-fill": score(
+            filled, label_components(points, filled, is_thing, min_points=10**9), gt, vocab, seen
+        ),
         "argmax-components": score(filled, label_components(points, filled, is_thing), gt, vocab, seen),
     }
 
@@ -113,7 +115,7 @@ def baselines(points, fused, vocab, gt, seen) -> dict[str, dict]:
 def capture_stats(scene, fused, gt, vocab) -> str:
     """The realised statistics of a scene, each next to the real room's."""
     seen = fused.seen_count > 0
-    names = list(vocab.names) + ["unannotated"]
+    names = [*list(vocab.names), "unannotated"]
     sem = np.where(gt.semantic >= 0, gt.semantic, len(vocab.names))
     share = np.bincount(sem, minlength=len(names)) / len(sem)
     classes = sorted((n for n, s in zip(names, share) if s > 0), key=lambda n: -share[names.index(n)])

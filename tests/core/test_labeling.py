@@ -79,7 +79,8 @@ class TestLabelingConfig:
     def test_smoke(self) -> None:
         cfg = LabelingConfig()
         assert cfg.vote == "islands"  # the vote restricted to small islands (see LabelingConfig)
-        assert cfg.instances == "hybrid" and cfg.unseen == "segment"
+        assert cfg.instances == "hybrid"
+        assert cfg.unseen == "segment"
         assert 0.0 <= cfg.vote_min_fraction <= 1.0
 
     @pytest.mark.parametrize(
