@@ -2,45 +2,61 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PANOGS := $(VENV)/bin/panogs
-# torch is pinned to the CPU build 2.13.0. Where PyPI would hand you the CUDA build, point pip at the CPU index:
-#   make install TORCH_INDEX="--index-url https://download.pytorch.org/whl/cpu"
+# torch is pinned to 2.13.0. Where PyPI would hand you the CUDA build, add the CPU index (its 2.13.0+cpu ranks
+# above PyPI's 2.13.0, and torch's own dependencies still come from PyPI under the constraints):
+#   make install TORCH_INDEX="--extra-index-url https://download.pytorch.org/whl/cpu"
 TORCH_INDEX ?=
+# Every install takes the versions the tests ran with (constraints.txt, written by `make constraints`).
+PIP_INSTALL := $(PY) -m pip install -q -c constraints.txt
 DEMO ?= demo
 export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
-.PHONY: help install demo test test-fast lint fmt bench bench-quality bench-speed clean
+.PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
+	bench-speed clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
-$(VENV)/.installed: pyproject.toml
+system-deps: ## check Python and the system libraries first (as root: apt-get installs what is missing)
+	@tools/check-system-deps
+
+$(VENV)/.installed: pyproject.toml constraints.txt | system-deps
 	python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0 $(TORCH_INDEX)
-	$(PY) -m pip install -q -e '.[text,service,worker,dev]'
+	$(PIP_INSTALL) torch==2.13.0 $(TORCH_INDEX)
+	$(PIP_INSTALL) -e '.[pipeline,text,service,worker,dev]'
 	touch $@
 
-install: $(VENV)/.installed ## create .venv and install panogs with every extra
+install: system-deps $(VENV)/.installed ## create .venv and install panogs with every extra
+
+constraints: ## after changing a dependency: install it, then pin the whole closure in constraints.txt
+	$(PY) -m pip install -q -e '.[pipeline,text,service,worker,dev]'
+	$(PY) tools/freeze_constraints.py > constraints.txt
 
 demo: install ## synthetic room -> whole pipeline -> instance table -> text query
 	$(PANOGS) synth $(DEMO)/scene --preset small --difficulty default --seed 0
 	$(PANOGS) run $(DEMO)/scene --out $(DEMO)/run
 	$(PANOGS) query $(DEMO)/run chair
 
-test: install ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1)
+readme: install ## run the demo afresh and write its output into README.md (between the demo-output markers)
+	$(PY) tools/readme_demo.py
+
+readme-check: install ## run the demo afresh and fail when README.md shows other results
+	$(PY) tools/readme_demo.py --check
+
+test: install ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q
 
 test-fast: install ## core tests only
 	$(VENV)/bin/pytest -q tests/core
 
-lint: install ## ruff (lint + format check) and mypy on panogs_core
+lint: install ## ruff (lint + format check) and mypy on panogs_core, service and worker
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check panogs_core
 	$(VENV)/bin/mypy
 
 fmt: install ## format the code
-	$(VENV)/bin/ruff format panogs_core service worker tests bench
+	$(VENV)/bin/ruff format panogs_core service worker tests bench tools
 	$(VENV)/bin/ruff check --fix .
 
 bench: bench-quality bench-speed ## every benchmark

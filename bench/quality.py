@@ -26,6 +26,7 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
+- pool-0.5 / pool-0.8: fusion blends each primitive's feature cell with its 2D mask's pooled feature
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
   reference-grouping: the grouping ablations of issue 2 (they recompute the graph cut or the clustering)
 """
@@ -64,6 +65,8 @@ VARIANTS: dict[str, dict] = {
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
+    "pool-0.5": {"fusion": {"mask_pooling": 0.5}},
+    "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
     "lang-affinity": {"affinity": {"mode": "language"}},
     "no-lang-cut": {"superprimitives": {"use_language": False}},
     "fused-features": {"features_source": "fused"},
@@ -95,6 +98,15 @@ def score(pred_sem, pred_ins, gt, vocab, seen) -> dict[str, float]:
         out[name] = evaluate(pred_sem[part], pred_ins[part], gt.semantic[part], gt.instance[part], vocab).miou
     out["class_iou"] = m.class_iou  # type: ignore[assignment]
     return out
+
+
+def plain_fusion(scene, run_dir: Path, num_points: int) -> FusedFeatures:
+    """The reference's fusion (own feature cell, no mask pooling) from the run's visibility checkpoint."""
+    from panogs_core.fusion import FusionConfig, fuse_features
+    from panogs_core.visibility import Visibility
+
+    vis = Visibility.load(run_dir / "stages" / "visibility.npz")
+    return fuse_features(scene, vis, num_points, FusionConfig(fuse_colors=False))
 
 
 def baselines(points, fused, vocab, gt, seen) -> dict[str, dict]:
@@ -190,7 +202,7 @@ def main() -> None:
                     from panogs_core.primitives import Primitives
 
                     points = Primitives.load(scene_dir / "run" / "stages" / "primitives.npz").points
-                    fused = FusedFeatures.load(scene_dir / "run" / "stages" / "fusion.npz")
+                    fused = plain_fusion(scene, scene_dir / "run", len(points))
                     seen = fused.seen_count > 0
                     if gt is None or gt.points is not None or len(gt.semantic) != len(points):
                         raise SystemExit(f"{scene_dir}: needs per-primitive ground truth (a bundle with geometry)")

@@ -1,4 +1,5 @@
-"""The ``panogs`` command line: synth, import, validate, run, eval, query (and serve / keys from the service).
+"""The ``panogs`` command line: synth, import, validate, run, eval, query (and serve / keys / worker from the service
+and the worker).
 
 Every command calls the same library functions as the service. Heavy modules are imported inside the commands,
 so ``panogs --help`` is instant.
@@ -11,8 +12,10 @@ import json
 import logging
 import os
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TextIO
 
 from panogs_core.errors import PanoGSError
 
@@ -74,24 +77,76 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-class _StageBars:
-    """One tqdm bar per stage on stderr."""
+class StageReporter(Protocol):
+    """Shows a run's progress: called as ``on_progress(stage, done, total)``, closed when the run ends."""
 
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
+    def __call__(self, stage: str, done: int, total: int) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class _Silent:
+    """``--quiet``: shows nothing."""
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+
+class StageLines:
+    """One line per finished stage with its wall time, for a stream that is not a terminal.
+
+    A log (CI, ``make demo > log``) keeps every frame of a progress bar, hundreds per stage; this writes each
+    stage once, when the next one starts or the run ends.
+    """
+
+    def __init__(self, stream: TextIO, clock: Callable[[], float] = time.monotonic) -> None:
+        self.stream = stream
+        self.clock = clock
+        self.stage: str | None = None
+        self.started = 0.0
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if stage != self.stage:
+            self.close()
+            self.stage, self.started = stage, self.clock()
+
+    def close(self) -> None:
+        """Write the line of the stage in progress, if any."""
+        if self.stage is None:
+            return
+        self.stream.write(f"{self.stage:>16}: {self.clock() - self.started:.1f} s\n")
+        self.stream.flush()
+        self.stage = None
+
+
+def stage_reporter(quiet: bool, stream: TextIO) -> StageReporter:
+    """Nothing with ``--quiet``; progress bars on a terminal; one line per stage anywhere else."""
+    if quiet:
+        return _Silent()
+    if stream.isatty():
+        return _StageBars(stream)
+    return StageLines(stream)
+
+
+class _StageBars:
+    """One tqdm bar per stage, redrawn in place (for a terminal)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
         self.stage: str | None = None
         self.bar: Any = None
 
     def __call__(self, stage: str, done: int, total: int) -> None:
-        if not self.enabled:
-            return
         from tqdm import tqdm
 
         if stage != self.stage:
             self.close()
             self.stage = stage
             self.bar = tqdm(
-                total=max(total, 1), desc=f"{stage:>16}", unit="step", leave=True, file=sys.stderr, dynamic_ncols=True
+                total=max(total, 1), desc=f"{stage:>16}", unit="step", leave=True, file=self.stream, dynamic_ncols=True
             )
         if self.bar is not None:
             if total != self.bar.total:
@@ -159,13 +214,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = PipelineConfig.from_yaml(Path(args.config)) if args.config else PipelineConfig()
     if args.set:
         cfg = cfg.with_overrides(_parse_overrides(args.set))
-    bars = _StageBars(enabled=not args.quiet)
+    progress = stage_reporter(args.quiet, sys.stderr)
     try:
         result = run_pipeline(
-            args.bundle, args.out, cfg, vocabulary=args.vocabulary, on_progress=bars, resume=not args.no_resume
+            args.bundle, args.out, cfg, vocabulary=args.vocabulary, on_progress=progress, resume=not args.no_resume
         )
     finally:
-        bars.close()
+        progress.close()
     total = sum(t.wall_s for t in result.timings)
     print(
         f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
@@ -301,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--vocabulary", help="scannet20 | matterport21 | path to vocabulary.json")
     p.add_argument("--no-resume", action="store_true", help="recompute every stage")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress (bars on a terminal, else a line per stage)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("eval", help="print the metrics of a run, or score it against a ground-truth file")
@@ -324,13 +379,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-path", help="text encoder folder or hub name (needed for free text in CLIP space)")
     p.set_defaults(func=_cmd_query)
 
-    try:  # the service adds serve / keys when it is installed; the core never depends on it
-        from service.cli import add_service_commands
-    except ImportError:
-        pass
-    else:
-        add_service_commands(sub)
+    _add_optional_commands(sub)
     return parser
+
+
+def _add_optional_commands(sub: Any) -> None:
+    """``serve`` / ``keys`` from the service and ``worker`` from the worker, when installed; the core never
+    depends on them."""
+    try:
+        from service.cli import add_service_commands
+        from worker.cli import add_worker_commands
+    except ImportError:
+        return
+    add_service_commands(sub)
+    add_worker_commands(sub)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    if not sys.stderr.isatty():
+        # The text encoder's own bars ("Loading weights") redraw in place too, and a log keeps every frame.
+        os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
     try:
         return int(args.func(args) or 0)
     except PanoGSError as exc:

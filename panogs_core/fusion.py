@@ -70,6 +70,12 @@ class FusionConfig:
     paper_variance_eps: float = 1e-2  # added to sum of variances in the paper form (V = 0 when seen once)
     min_feature_norm: float = 1e-6  # pixel features with a smaller L2 norm are "no feature" (not counted)
     fuse_colors: bool = True  # also average the key frames' RGB onto the primitives (for exports)
+    # DEPARTURE (reference 3.1 reads each primitive's own feature cell): with ``mask_pooling`` = a > 0 a
+    # primitive that falls in a 2D mask of its frame reads ``(1 - a) f_cell + a f_mask``, where f_mask is
+    # the mean feature of the mask's cells, weighted by how much of each cell the mask covers
+    # (``mask_pooled_features``). Feature maps are a quarter of the depth resolution on real captures, so
+    # a cell on an object's border mixes both sides; the masks are sharp there. 0 = off (the reference).
+    mask_pooling: float = 0.0
 
     def __post_init__(self) -> None:
         if self.confidence not in _CONFIDENCE_MODES:
@@ -80,6 +86,8 @@ class FusionConfig:
             raise ConfigError(
                 f"fusion.paper_variance_eps: expected a finite value > 0, got {self.paper_variance_eps!r}"
             )
+        if not (math.isfinite(self.mask_pooling) and 0.0 <= self.mask_pooling <= 1.0):
+            raise ConfigError(f"fusion.mask_pooling: expected a value in [0, 1], got {self.mask_pooling!r}")
         if not (math.isfinite(self.min_feature_norm) and self.min_feature_norm >= 0):
             raise ConfigError(f"fusion.min_feature_norm: expected a finite value >= 0, got {self.min_feature_norm!r}")
 
@@ -162,7 +170,8 @@ def fuse_features(
     for v, frame in enumerate(frames):
         point_index, row, col = visibility.frame(v)
         if frame.features is not None and point_index.size:
-            features.add(scene, frame, point_index, row, col, cfg.min_feature_norm)
+            pooling = cfg.mask_pooling if frame.masks is not None else 0.0
+            features.add(scene, frame, point_index, row, col, cfg.min_feature_norm, pooling)
         if colors is not None and frame.color is not None and point_index.size:
             colors.add(scene, frame, point_index, row, col)
         report(on_progress, v + 1, len(frames))
@@ -274,6 +283,7 @@ class _FeatureSum:
         row: np.ndarray,  # (T_v,) int32
         col: np.ndarray,  # (T_v,) int32
         min_norm: float,
+        mask_pooling: float = 0.0,
     ) -> None:
         """Add one frame's unit pixel features (streamed: the map is dropped on return)."""
         import torch
@@ -296,6 +306,22 @@ class _FeatureSum:
         table = torch.from_numpy(gathered_cells).float()  # (U, D) float32
         valid = _normalise_rows_(table, min_norm).numpy()  # (U,) bool
         src = slot[cells]  # (T_v,) row of `table` for each seen primitive
+        if mask_pooling > 0.0:
+            masks = scene.read_masks(frame)
+            mask_id = masks.reshape(-1)[feature_cells(row, col, (scene.camera.height, scene.camera.width), masks.shape)]
+            pooled, has = mask_pooled_features(fmap, masks, min_norm)  # (M + 1, D), (M + 1,)
+            own = has[mask_id]  # (T_v,) the primitive lies in a mask with a pooled feature
+            if own.any():
+                # One row per (cell, mask) pair in use: the blend depends on both.
+                pair = src[own] * pooled.shape[0] + mask_id[own]
+                pairs, inverse = np.unique(pair, return_inverse=True)
+                blend = (1.0 - mask_pooling) * table[torch.from_numpy(pairs // pooled.shape[0])]
+                blend += mask_pooling * torch.from_numpy(pooled[pairs % pooled.shape[0]])
+                _normalise_rows_(blend, min_norm)
+                src = src.copy()
+                src[own] = table.shape[0] + inverse.reshape(-1)
+                table = torch.cat([table, blend])
+                valid = np.r_[valid, np.ones(len(pairs), bool)]
         keep = valid[src]  # a zero feature is no observation
         targets, src = point_index[keep].astype(np.int64), src[keep]
         self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
@@ -304,6 +330,53 @@ class _FeatureSum:
             gathered = self._buffer[:n]
             torch.index_select(table, 0, torch.from_numpy(src[lo : lo + n]), out=gathered)
             self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+
+
+def mask_pooled_features(
+    fmap: np.ndarray,  # (Hf, Wf, D) feature map
+    masks: np.ndarray,  # (Hm, Wm) int mask ids, 0 = no mask
+    min_norm: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:  # (M + 1, D) float32 unit rows indexed by mask id, (M + 1,) bool
+    """Mean unit feature of each 2D mask, over the feature cells it covers, weighted towards pure cells.
+
+    Cell c contributes to mask m with weight ``n_mc^2 / n_c`` (``n_mc`` pixels of m in c, ``n_c`` pixels of
+    c): the pixel count times the share of the cell the mask holds, so a cell that straddles a border counts
+    little for the mask that only grazes it. Mask pixel (i, j) lies in the feature cell of its centre, by the
+    sampling rule of SCENE_FORMAT. Row 0 (no mask) and masks without a feature are zero and marked False.
+
+    Example:
+        >>> fmap = np.array([[[1.0, 0.0], [0.0, 1.0]]])  # one row of two cells
+        >>> masks = np.array([[1, 1, 1, 2]])  # mask 1 covers cell 0 and half of cell 1
+        >>> pooled, has = mask_pooled_features(fmap, masks)
+        >>> pooled.astype(float).round(3).tolist(), has.tolist()
+        ([[0.0, 0.0], [0.97, 0.243], [0.0, 1.0]], [False, True, True])
+    """
+    hf, wf, d = fmap.shape
+    hm, wm = masks.shape
+    rows = np.repeat(np.arange(hm), wm)
+    cols = np.tile(np.arange(wm), hm)
+    cell = feature_cells(rows, cols, (hm, wm), (hf, wf))  # (Hm Wm,)
+    ids = masks.reshape(-1).astype(np.int64)
+    num_masks = int(ids.max()) + 1 if ids.size else 1
+    pixels_in_cell = np.bincount(cell, minlength=hf * wf).astype(np.float64)
+    inside = ids > 0
+    key, n_mc = np.unique(ids[inside] * (hf * wf) + cell[inside], return_counts=True)
+    mask_of, cell_of = key // (hf * wf), key % (hf * wf)
+    weight = n_mc.astype(np.float64) ** 2 / pixels_in_cell[cell_of]
+    feats = np.asarray(fmap, np.float32).reshape(hf * wf, d)
+    norms = np.linalg.norm(feats, axis=1)
+    usable = np.isfinite(norms) & (norms > min_norm)
+    weight = np.where(usable[cell_of], weight, 0.0)
+    unit = np.where(usable[:, None], feats / np.where(usable, norms, 1.0)[:, None], 0.0)
+    from scipy import sparse
+
+    pooling = sparse.csr_matrix((weight, (mask_of, cell_of)), shape=(num_masks, hf * wf))
+    pooled = np.asarray(pooling @ unit, dtype=np.float32)
+    length = np.linalg.norm(pooled, axis=1)
+    has = length > min_norm
+    has[0] = False
+    pooled = np.where(has[:, None], pooled / np.where(has, length, 1.0)[:, None], 0.0).astype(np.float32)
+    return pooled, has
 
 
 def _normalise_rows_(table: Any, min_norm: float) -> Any:  # (U,) torch bool: rows that are a feature

@@ -63,7 +63,9 @@ class LanguageFieldConfig:
     betas: tuple[float, float] = (0.9, 0.99)  # Adam betas (reference)
     bound_padding: float = 0.05  # metres added on every side of the primitives' box
     max_resolution: int = 1024  # cap on plane resolution R per level (memory: 3*C*R^2 floats per level)
-    device: str = "cpu"  # torch device for training and decoding
+    # Torch device for training and decoding. The CLI keeps the CPU; a service worker sets "cuda" where it sees a
+    # GPU, unless the job names a device (worker/device.py).
+    device: str = "cpu"
     seed: int = 0  # seeds plane/decoder initialisation and batch shuffling
 
     def __post_init__(self) -> None:

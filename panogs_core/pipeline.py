@@ -301,6 +301,9 @@ def _write_report(
 ) -> None:
     import torch
 
+    # Only the language field trains and decodes on a chosen torch device; every other stage runs on the CPU.
+    torch_device_stages = {"language_field": cfg.language_field.device}
+    stages = [{**t.to_json(), "device": torch_device_stages.get(t.name, "cpu")} for t in timings]
     report = {
         "scene": scene.name,
         "input_sha256": input_hash,
@@ -312,7 +315,7 @@ def _write_report(
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,
         "vocabulary": vocabulary_spec or ("bundle" if scene.vocabulary is not None else "default"),
-        "stages": [t.to_json() for t in timings],
+        "stages": stages,
         "total_wall_s": round(total_s, 3),
         "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
         "config": cfg.to_dict(),
@@ -321,6 +324,7 @@ def _write_report(
             "python": platform.python_version(),
             "numpy": np.__version__,
             "torch": torch.__version__,
+            "cuda": torch.version.cuda,  # None in a CPU build of torch
         },
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))

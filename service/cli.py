@@ -1,35 +1,42 @@
-"""``panogs serve``, ``panogs worker`` and ``panogs keys``; added to the ``panogs`` CLI by
-``add_service_commands``.
+"""``panogs serve`` and ``panogs keys``; added to the ``panogs`` CLI by ``add_service_commands``.
 
 ``panogs serve`` with no configuration is the embedded deployment: it upgrades the SQLite database under
-``./panogs-data`` (or ``PANOGS_DATA_DIR``), starts one Celery worker as a child process on the filesystem
-broker, and serves the API with uvicorn in this process. Ctrl-C stops both: the worker hands a running job
-back to the queue at its next progress step (it resumes from its last finished stage on the next start).
+``./panogs-data`` (or ``PANOGS_DATA_DIR``), starts one worker (``panogs worker``, from the ``worker`` package) as
+a child process on the filesystem broker, and serves the API with uvicorn in this process. Ctrl-C stops both: the
+worker hands a running job back to the queue at its next progress step (it resumes from its last finished stage
+on the next start). The worker is another process, started by its command line: this module never imports it.
 
-Also runnable as ``python -m service.cli ...`` (what docker-compose and the tests run).
+Also runnable as ``python -m service.cli serve|keys``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import os
 import signal
 import subprocess
 import sys
 import threading
-import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the settings import pydantic: imported inside the commands, so `panogs --help` stays quick
+    from service.settings import Settings
 
 WORKER_STOP_GRACE_S = 20.0  # after Ctrl-C, how long the worker may take to hand its job back
 WORKER_RESTART_DELAY_S = 2.0  # a worker that died is replaced after this (not in a tight loop)
 PARENT_PID_ENV = "PANOGS_SERVE_PID"  # set by serve for its worker, which stops when serve is gone
+# What the embedded worker runs: the `panogs worker` command of the panogs entry point.
+WORKER_COMMAND = ("-m", "panogs_core.cli", "worker")
+# The modules a worker needs beyond the API's; an API-only install (`panogs[service]`) has none of them.
+WORKER_MODULES = ("torch", "open3d")
 
 logger = logging.getLogger("panogs.serve")
 
 
 def add_service_commands(subparsers: Any) -> None:
-    """Add ``serve``, ``worker`` and ``keys`` to an argparse subparsers object."""
+    """Add ``serve`` and ``keys`` to an argparse subparsers object."""
     p = subparsers.add_parser("serve", help="run the API (and, embedded, a worker): the batch service")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
@@ -37,12 +44,6 @@ def add_service_commands(subparsers: Any) -> None:
     p.add_argument("--no-worker", action="store_true", help="API only (the scaled deployment runs workers apart)")
     p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes")
     p.set_defaults(func=cmd_serve)
-
-    p = subparsers.add_parser("worker", help="run a Celery worker for jobs")
-    p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR)")
-    p.add_argument("--queues", help="comma-separated queues (PANOGS_WORKER_QUEUES; default cpu)")
-    p.add_argument("--loglevel", default="INFO")
-    p.set_defaults(func=cmd_worker)
 
     p = subparsers.add_parser("keys", help="administer API keys (each key is a tenant)")
     p.add_argument("--data-dir", help="embedded data folder (PANOGS_DATA_DIR)")
@@ -57,7 +58,8 @@ def add_service_commands(subparsers: Any) -> None:
     k.set_defaults(func=cmd_keys_revoke)
 
 
-def _settings(args: argparse.Namespace) -> Any:
+def settings_from_args(args: argparse.Namespace) -> Settings:
+    """The settings, with ``--data-dir`` (when given) in force here and in the children this process starts."""
     from service.settings import get_settings
 
     if getattr(args, "data_dir", None):
@@ -79,11 +81,24 @@ def _out(line: str) -> None:
     sys.stdout.flush()
 
 
+def missing_worker_modules() -> list[str]:
+    """The modules of ``WORKER_MODULES`` that this install lacks (looked up, not imported)."""
+    return [name for name in WORKER_MODULES if importlib.util.find_spec(name) is None]
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Migrate, start the worker child (unless --no-worker), serve the API until Ctrl-C."""
     import uvicorn
 
-    settings = _settings(args)
+    missing = [] if args.no_worker else missing_worker_modules()
+    if missing:
+        # Fail now, not at the first job: an API-only install cannot run the embedded worker.
+        sys.stderr.write(
+            f"panogs serve: the embedded worker needs {', '.join(missing)}, which this install lacks; install the "
+            "worker (pip install 'panogs[worker]') or run the API alone with `panogs serve --no-worker`\n"
+        )
+        return 2
+    settings = settings_from_args(args)
     logging.basicConfig(level=settings.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     _prepare_database(settings)
     worker = None if args.no_worker else WorkerSupervisor()
@@ -112,14 +127,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stop_when_orphaned(parent_pid: int) -> None:
-    """In the embedded worker: warm-shutdown once ``serve`` is gone, even if it was killed with SIGKILL."""
-    while os.getppid() == parent_pid:
-        time.sleep(1.0)
-    logger.warning("serve (pid %d) is gone; stopping this worker", parent_pid)
-    os.kill(os.getpid(), signal.SIGTERM)
-
-
 class WorkerSupervisor:
     """The embedded worker: a child process, restarted if it dies while ``serve`` runs, stopped in order."""
 
@@ -129,7 +136,7 @@ class WorkerSupervisor:
         self._thread = threading.Thread(target=self._watch, name="panogs-worker-supervisor", daemon=True)
 
     def _spawn(self) -> None:
-        command = [sys.executable, "-m", "service.cli", "worker"]
+        command = [sys.executable, *WORKER_COMMAND]
         # Its own session: the terminal's Ctrl-C reaches only us, and we stop the worker in order.
         env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
         self._proc = subprocess.Popen(command, start_new_session=True, env=env)
@@ -164,40 +171,12 @@ class WorkerSupervisor:
             proc.wait()
 
 
-def worker_argv(settings: Any, queues: str | None, loglevel: str) -> list[str]:
-    """The Celery worker command line for ``settings``."""
-    return [
-        "worker",
-        f"--loglevel={loglevel}",
-        f"--queues={queues or settings.worker_queues}",
-        f"--pool={settings.worker_pool}",
-        f"--concurrency={settings.worker_concurrency}",
-        "--prefetch-multiplier=1",
-        f"--hostname=panogs-{os.getpid()}@%h",
-        "--without-gossip",
-        "--without-mingle",
-    ]
-
-
-def cmd_worker(args: argparse.Namespace) -> int:
-    """Run a Celery worker in this process until stopped."""
-    settings = _settings(args)
-    settings.ensure_dirs()
-    parent = os.environ.get(PARENT_PID_ENV)
-    if parent:
-        threading.Thread(target=_stop_when_orphaned, args=(int(parent),), daemon=True).start()
-    from worker.celery_app import app
-
-    app.worker_main(worker_argv(settings, args.queues, args.loglevel))
-    return 0
-
-
 def cmd_keys_create(args: argparse.Namespace) -> int:
     """Print a new key; only its hash is stored."""
     from service.auth import create_api_key
     from service.db.session import get_session_factory, session_scope
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     _prepare_database(settings)
     with session_scope(get_session_factory(settings.database)) as session:
         row, key = create_api_key(session, args.name)
@@ -211,7 +190,7 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
     from service.auth import list_api_keys
     from service.db.session import get_session_factory, session_scope
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     _prepare_database(settings)
     with session_scope(get_session_factory(settings.database)) as session:
         rows = list_api_keys(session)
@@ -227,7 +206,7 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
     from service.auth import revoke_api_key
     from service.db.session import get_session_factory, session_scope
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     _prepare_database(settings)
     with session_scope(get_session_factory(settings.database)) as session:
         row = revoke_api_key(session, args.key)

@@ -1,8 +1,12 @@
 """Service errors: each carries its HTTP status and a stable ``type``; one handler turns them into JSON.
 
 Every error response is ``{"type": ..., "message": ...}`` (plus ``problems`` where there are several).
-No stack trace leaves the server: unexpected exceptions are logged with a request id and answered with a 500
-that names only that id.
+No stack trace leaves the server: unexpected exceptions are logged with their traceback and a request id and
+answered with a 500 that names only that id.
+
+Database errors are answered by what they mean (``service.db.faults``): an integrity error is the client's
+conflict (409) or a refused value (422), an outage is a 503 with ``Retry-After``, and anything else is a bug
+(500, logged with its traceback), never a retryable 503 that hides it.
 """
 
 from __future__ import annotations
@@ -15,7 +19,10 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.db.faults import DatabaseFault, classify
 
 logger = logging.getLogger(__name__)
 
@@ -132,6 +139,16 @@ _STATUS_TYPES = {
 }
 
 
+# What the client is told for each database fault that is not a bug: (status, type, message).
+_FAULT_ANSWERS = {
+    DatabaseFault.DUPLICATE: (409, "conflict", "the request conflicts with data that already exists"),
+    DatabaseFault.MISSING_REFERENCE: (409, "conflict", "the request refers to something that no longer exists"),
+    DatabaseFault.CONSTRAINT: (422, "invalid_input", "a value of the request is refused by the database"),
+    DatabaseFault.OUTAGE: (503, "service_unavailable", "the database is unavailable; retry shortly"),
+}
+RETRY_AFTER_S = 2  # a database outage: when the client should try again
+
+
 def _format_location(loc: tuple[Any, ...]) -> str:
     parts = [str(p) for p in loc if p not in ("body",)]
     return ".".join(parts) or "body"
@@ -156,18 +173,31 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(body, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
     @app.exception_handler(DBAPIError)
-    async def _database_error(request: Request, exc: DBAPIError) -> JSONResponse:
-        # A database that is briefly away is the client's cue to retry, not a server bug.
-        logger.warning("database error on %s %s: %s", request.method, request.url.path, type(exc.orig).__name__)
-        body = {"type": "service_unavailable", "message": "the database is unavailable; retry shortly"}
-        return JSONResponse(body, status_code=503, headers={"Retry-After": "2"})
+    @app.exception_handler(PoolTimeoutError)
+    async def _database_error(request: Request, exc: DBAPIError | PoolTimeoutError) -> JSONResponse:
+        return database_error_response(request, exc)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        request_id = uuid.uuid4().hex[:12]
-        logger.exception("unhandled error on %s %s (request %s)", request.method, request.url.path, request_id)
-        body = {
-            "type": "internal_error",
-            "message": f"internal error (request {request_id}); see the server log",
-        }
-        return JSONResponse(body, status_code=500)
+        return internal_error_response(request, exc)
+
+
+def database_error_response(request: Request, exc: DBAPIError | PoolTimeoutError) -> JSONResponse:
+    """The answer to a database error, by its :class:`DatabaseFault`; a bug goes to the server log in full."""
+    fault = classify(exc)
+    if fault is DatabaseFault.BUG:
+        return internal_error_response(request, exc)
+    status, kind, message = _FAULT_ANSWERS[fault]
+    # Expected faults need no traceback: the fault and the driver's error class say what happened.
+    cause = type(exc.orig).__name__ if isinstance(exc, DBAPIError) else type(exc).__name__
+    logger.warning("database %s on %s %s: %s", fault.value, request.method, request.url.path, cause)
+    headers = {"Retry-After": str(RETRY_AFTER_S)} if fault is DatabaseFault.OUTAGE else None
+    return JSONResponse({"type": kind, "message": message}, status_code=status, headers=headers)
+
+
+def internal_error_response(request: Request, exc: BaseException) -> JSONResponse:
+    """A 500 naming a request id; the traceback goes to the server log under that id, never to the client."""
+    request_id = uuid.uuid4().hex[:12]
+    logger.error("unhandled error on %s %s (request %s)", request.method, request.url.path, request_id, exc_info=exc)
+    body = {"type": "internal_error", "message": f"internal error (request {request_id}); see the server log"}
+    return JSONResponse(body, status_code=500)

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import logging
 import uuid
-from pathlib import Path
 from typing import Protocol, cast
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.broker import TaskName, create_celery_app
 from service.db import crud
 from service.db.session import session_scope
 from service.settings import Settings
@@ -29,8 +29,6 @@ class Sender(Protocol):
 
 def celery_sender(settings: Settings) -> Sender:
     """A Celery app for ``settings`` (configuration only; no task code is imported)."""
-    from worker.celery_app import create_celery_app
-
     return cast(Sender, create_celery_app(settings))
 
 
@@ -40,8 +38,6 @@ def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, 
     A job whose message could not be published stays ``queued`` with ``enqueued_at`` empty and the reaper
     publishes it again. A message published twice is harmless: only one task can claim the job.
     """
-    from worker.names import TaskName
-
     try:
         sender.send_task(TaskName.RUN_JOB.value, args=[str(job_id)], queue=queue)
     except Exception as exc:  # any broker failure: the job stays queued and undispatched
@@ -50,19 +46,3 @@ def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, 
     with session_scope(factory) as session:
         crud.mark_enqueued(session, job_id)
     return True
-
-
-def broker_ping(settings: Settings, timeout_s: float = 1.0) -> None:
-    """Raise when the broker cannot be reached within ``timeout_s`` (the filesystem broker: its folders)."""
-    if settings.is_embedded_broker:
-        for key in ("data_folder_in", "control_folder"):
-            folder = Path(settings.broker_transport_options()[key])
-            if not folder.is_dir():
-                raise ConnectionError(f"broker folder {folder} is missing")
-        return
-    from kombu.connection import Connection
-
-    options = settings.broker_transport_options()
-    with Connection(settings.broker, transport_options=options, connect_timeout=timeout_s) as conn:  # type: ignore[no-untyped-call]
-        conn.ensure_connection(max_retries=1, timeout=timeout_s)
-        conn.default_channel  # noqa: B018  (opening a channel round-trips to the server)

@@ -32,6 +32,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from panogs_core.errors import Cancelled, PanoGSError
 from service.db import crud
+from service.db.faults import DatabaseFault, classify
 from service.db.models import Artifact, Job, JobState
 from service.db.session import session_scope
 from service.jobs import config_factory
@@ -112,13 +113,19 @@ def load_pipeline(spec: str) -> tuple[PipelineFn, tuple[str, ...], Callable[[dic
 
 
 def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:
-    """Call ``fn``; while the database is unreachable, retry with backoff until ``deadline_s`` has passed."""
+    """Call ``fn``; while the database is unreachable, retry with backoff until ``deadline_s`` has passed.
+
+    Only an outage is waited out: any other database error (an integrity error, a bug) cannot pass by waiting and
+    is raised at once.
+    """
     start = time.monotonic()
     delay = 0.25
     while True:
         try:
             return fn()
         except DBAPIError as exc:
+            if classify(exc) is not DatabaseFault.OUTAGE:
+                raise
             if time.monotonic() - start + delay > deadline_s:
                 raise TransientError(f"database unavailable while trying to {what}: {exc.orig!r}") from exc
             logger.warning("database unavailable (%s); retrying in %.1f s", what, delay)

@@ -1,70 +1,96 @@
-"""Celery tasks: thin, they take ids. The pipeline (and torch) is imported on the first task, never at import.
+"""The Celery task: thin, it takes a job id. Registered on an app by :func:`register_tasks`, never at import.
 
-Importing torch in a prefork parent before it forks deadlocks the children, so nothing here or in the
-modules it imports at the top touches torch; ``runner.load_pipeline`` imports it inside the task.
+Importing torch in a prefork parent before it forks deadlocks the children, so nothing here or in the modules it
+imports at the top touches torch: the pipeline (and torch, and the CUDA check) are loaded by the first task, in
+the process that runs it.
 """
 
 from __future__ import annotations
 
-import functools
+import logging
 import os
 import threading
 import uuid
 from typing import Any
 
-from celery import Task
+from celery import Celery, Task
 from celery.signals import worker_shutting_down
 
+from service.broker import TaskName
 from service.db.session import get_session_factory
-from service.settings import get_settings
+from service.settings import Settings
 from service.storage import Storage
 from worker import runner
-from worker.celery_app import app
-from worker.names import TaskName
+from worker.device import cuda_available, device_config_factory
 
-SHUTDOWN = threading.Event()  # set on warm shutdown; a running job is handed back at its next progress step
-
-
-@worker_shutting_down.connect  # type: ignore[untyped-decorator]
-def _on_shutdown(**_kwargs: Any) -> None:
-    SHUTDOWN.set()
+logger = logging.getLogger(__name__)
 
 
-@functools.cache
-def job_env() -> runner.JobEnv:
-    """The worker process's job environment (settings, database, storage, pipeline), built on first use."""
-    settings = get_settings()
+class LazyJobEnv:
+    """The worker process's job environment, built by the first task that asks (after any fork)."""
+
+    def __init__(self, settings: Settings, shutdown: threading.Event) -> None:
+        self._settings = settings
+        self._shutdown = shutdown
+        self._env: runner.JobEnv | None = None
+        self._lock = threading.Lock()
+
+    def get(self) -> runner.JobEnv:
+        """The environment, built once."""
+        with self._lock:
+            if self._env is None:
+                self._env = build_job_env(self._settings, self._shutdown)
+            return self._env
+
+
+def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEnv:
+    """Settings, database, storage and the pipeline, with configs placed on this process's device."""
     pipeline, stages, make_config = runner.load_pipeline(settings.pipeline_function)
+    has_cuda = cuda_available()
+    logger.info("jobs train on %s unless they name a device", "cuda" if has_cuda else "cpu")
     return runner.JobEnv(
         settings=settings,
         session_factory=get_session_factory(settings.database),
         storage=Storage(settings.storage),
         pipeline=pipeline,
-        make_config=make_config,
+        make_config=device_config_factory(make_config, has_cuda),
         stages=stages,
-        shutdown=SHUTDOWN,
+        shutdown=shutdown,
     )
 
 
-@app.task(  # type: ignore[untyped-decorator]
-    name=TaskName.RUN_JOB.value,
-    bind=True,
-    acks_late=True,
-    autoretry_for=(runner.TransientError,),
-    retry_backoff=5,
-    retry_backoff_max=120,
-    max_retries=10,
-)
-def run_job(self: Task[Any, Any], job_id: str) -> str | None:
+def run_job(env: runner.JobEnv, job_id: str, *, lease: str, worker: str) -> str | None:
     """Run job ``job_id``; the job's row records everything, the return value is for the worker log only."""
-    env = job_env()
     ident = uuid.UUID(job_id)
-    lease = str(self.request.id)
     try:
-        state = runner.execute_job(ident, lease=lease, worker=f"{self.request.hostname}/{os.getpid()}", env=env)
+        state = runner.execute_job(ident, lease=lease, worker=worker, env=env)
     except runner.TransientError:
         raise
     except Exception as exc:  # the task boundary: record the failure on the job, then let Celery log it
         runner.record_crash(ident, lease, exc, env)
         raise
     return None if state is None else state.value
+
+
+def register_tasks(app: Celery, settings: Settings) -> None:
+    """Register the job task on ``app``; its jobs use ``settings``, not whatever the environment holds."""
+    shutdown = threading.Event()  # set on warm shutdown; a running job is handed back at its next progress step
+    envs = LazyJobEnv(settings, shutdown)
+
+    def on_shutdown(**_kwargs: Any) -> None:
+        shutdown.set()
+
+    worker_shutting_down.connect(on_shutdown, weak=False)
+
+    @app.task(  # type: ignore[untyped-decorator]
+        name=TaskName.RUN_JOB.value,
+        bind=True,
+        acks_late=True,
+        autoretry_for=(runner.TransientError,),
+        retry_backoff=5,
+        retry_backoff_max=120,
+        max_retries=10,
+    )
+    def run_job_task(self: Task[Any, Any], job_id: str) -> str | None:
+        worker = f"{self.request.hostname}/{os.getpid()}"
+        return run_job(envs.get(), job_id, lease=str(self.request.id), worker=worker)

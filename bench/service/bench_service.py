@@ -30,12 +30,12 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "support"))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import httpx
 import numpy as np
-
-from service.testing import (
+from service_harness import (
     DEFAULT_PG_ADMIN_URL,
     DEFAULT_REDIS_URL,
     REPO,

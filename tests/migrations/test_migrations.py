@@ -1,22 +1,25 @@
-"""Migrations: upgrade to head, no drift from the models (alembic check), downgrade to base, on both backends."""
+"""Migrations: upgrade to head, no drift from the models (alembic check), downgrade to base, on both backends;
+and the same scripts from an installed wheel."""
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from alembic import command
 from alembic.script import ScriptDirectory
+from fresh_install import install
+from service_harness import DEFAULT_PG_ADMIN_URL, require_postgres, temp_postgres
 from sqlalchemy import create_engine, inspect
 
 from service.db.base import Base
 from service.db.migrate import alembic_config
-from service.testing import DEFAULT_PG_ADMIN_URL, postgres_reachable, temp_postgres
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(params=["postgres", "sqlite"])
@@ -24,8 +27,7 @@ def url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'panogs.db'}"
         return
-    if not postgres_reachable(PG_ADMIN_URL):
-        pytest.skip(f"PostgreSQL not reachable at {PG_ADMIN_URL}")
+    require_postgres(PG_ADMIN_URL)
     with temp_postgres(PG_ADMIN_URL) as db_url:
         yield db_url
 
@@ -60,3 +62,31 @@ def test_revisions_are_reviewed_and_reversible() -> None:
         downgrade = source.split("def downgrade()", 1)[1]
         assert "pass" not in downgrade.split("\n", 3)[1], f"{revision.path}: empty downgrade"
         assert Path(revision.path).name[:10].count("-") == 2, "file names start with the date (file_template)"
+
+
+MIGRATE_FROM_WHEEL = """
+import json, sqlite3, sys
+from service.db.migrate import downgrade, migrations_dir, upgrade
+url, path = sys.argv[1], sys.argv[2]
+query = "SELECT name FROM sqlite_master WHERE type='table'"
+tables = lambda: sorted(row[0] for row in sqlite3.connect(path).execute(query))
+upgrade(url)
+after_upgrade = tables()
+downgrade(url)
+print(json.dumps({"scripts": str(migrations_dir()), "upgraded": after_upgrade, "downgraded": tables()}))
+"""
+
+
+@pytest.mark.slow
+def test_installed_wheel_migrates_from_any_folder(tmp_path_factory: pytest.TempPathFactory, tmp_path: Path) -> None:
+    """The migrations ship inside the wheel: an installed ``panogs[service]``, run from a folder that is not the
+    repository, upgrades a fresh SQLite file to head and back down."""
+    venv = install(tmp_path_factory.getbasetemp(), "service")
+    db = tmp_path / "fresh.db"
+    argv = [str(venv.python), "-c", MIGRATE_FROM_WHEEL, f"sqlite:///{db}", str(db)]
+    done = subprocess.run(argv, cwd=tmp_path, env=venv.env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert Path(result["scripts"]).is_relative_to(venv.root), "the scripts came from the installed package"
+    assert set(result["upgraded"]) == {*Base.metadata.tables, "alembic_version"}
+    assert result["downgraded"] == ["alembic_version"]

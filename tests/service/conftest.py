@@ -3,7 +3,8 @@ bundles.
 
 URLs come from the environment with local defaults: ``PANOGS_TEST_PG_ADMIN_URL`` (a database this user may
 create databases from) and ``PANOGS_TEST_REDIS_URL``. Each session creates its own database and Redis key
-prefix and removes them at the end.
+prefix and removes them at the end. An unreachable PostgreSQL or Redis skips the tests that need it, except
+under CI (``CI=true``), where it fails them with the command that starts it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,16 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from service_harness import (
+    DEFAULT_PG_ADMIN_URL,
+    DEFAULT_REDIS_URL,
+    SCRIPTED_PIPELINE,
+    drop_redis_prefix,
+    new_redis_prefix,
+    require_postgres,
+    require_redis,
+    temp_postgres,
+)
 from sqlalchemy import text
 from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
 
@@ -23,15 +34,6 @@ from service.db.migrate import upgrade
 from service.db.session import get_engine
 from service.main import create_app
 from service.settings import Settings
-from service.testing import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
-    drop_redis_prefix,
-    new_redis_prefix,
-    postgres_reachable,
-    redis_reachable,
-    temp_postgres,
-)
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
@@ -41,8 +43,7 @@ TABLES = ("artifact", "job", "scene", "upload", "api_key")
 @pytest.fixture(scope="session")
 def pg_url() -> Iterator[str]:
     """A migrated PostgreSQL database of this session."""
-    if not postgres_reachable(PG_ADMIN_URL):
-        pytest.skip(f"PostgreSQL not reachable at {PG_ADMIN_URL}")
+    require_postgres(PG_ADMIN_URL)
     with temp_postgres(PG_ADMIN_URL) as url:
         upgrade(url)
         yield url
@@ -51,8 +52,7 @@ def pg_url() -> Iterator[str]:
 @pytest.fixture(scope="session")
 def redis_prefix() -> Iterator[str]:
     """A Redis key prefix of this session (its keys are deleted at the end)."""
-    if not redis_reachable(REDIS_URL):
-        pytest.skip(f"Redis not reachable at {REDIS_URL}")
+    require_redis(REDIS_URL)
     prefix = new_redis_prefix()
     yield prefix
     drop_redis_prefix(REDIS_URL, prefix)
@@ -82,7 +82,7 @@ def make_settings(tmp_path: Path, sqlite_template: Path, request: pytest.Fixture
             "heartbeat_timeout_s": 30,
             "api_key_cache_s": 0,
             "status_cache_s": 0,
-            "pipeline_function": "worker.scripted:run_pipeline",  # API tests run no pipeline
+            "pipeline_function": SCRIPTED_PIPELINE,  # API tests run no pipeline
         }
         if backend == "postgres":
             url = request.getfixturevalue("pg_url")

@@ -1,7 +1,7 @@
-"""A TCP proxy that can cut a link (database or broker outages), and the process helpers of service.testing.
+"""A TCP proxy that can cut a link (database or broker outages), and the process helpers of service_harness.
 
 The API and the workers are started with exactly the commands docker-compose.yml runs (``compose_command``),
-with ``panogs`` replaced by ``python -m service.cli`` (the same entry point, without needing the console
+with ``panogs`` replaced by ``python -m panogs_core.cli`` (the same entry point, without needing the console
 script).
 """
 
@@ -12,7 +12,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from service.testing import REPO, Procs, compose_command, free_port, wait_for
+from service_harness import REPO, Procs, compose_command, free_port, wait_for
 
 __all__ = ["REPO", "Procs", "TcpProxy", "compose_command", "free_port", "wait_for"]
 

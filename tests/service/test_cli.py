@@ -8,6 +8,7 @@ import pytest
 
 from service import cli
 from service.settings import Settings, get_settings
+from worker import cli as worker_cli
 
 
 @pytest.fixture
@@ -42,11 +43,11 @@ def test_keys_lifecycle(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> N
 
 def test_worker_argv_follows_settings(tmp_path: Path) -> None:
     settings = Settings(_env_file=None, data_dir=tmp_path, worker_queues="gpu", worker_pool="prefork")  # type: ignore[call-arg]
-    argv = cli.worker_argv(settings, None, "INFO")
+    argv = worker_cli.worker_argv(settings, None, "INFO")
     assert "--queues=gpu" in argv
     assert "--pool=prefork" in argv
     assert "--prefetch-multiplier=1" in argv
-    assert "--queues=cpu" in cli.worker_argv(settings, "cpu", "INFO")
+    assert "--queues=cpu" in worker_cli.worker_argv(settings, "cpu", "INFO")
 
 
 def test_panogs_cli_has_the_service_commands() -> None:
@@ -56,4 +57,17 @@ def test_panogs_cli_has_the_service_commands() -> None:
     assert args.func is cli.cmd_serve
     assert args.port == 9000
     assert parser.parse_args(["keys", "create", "--name", "x"]).func is cli.cmd_keys_create
-    assert parser.parse_args(["worker"]).func is cli.cmd_worker
+    assert parser.parse_args(["worker"]).func is worker_cli.cmd_worker
+
+
+def test_embedded_serve_refuses_an_install_without_the_worker(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], data_dir: Path
+) -> None:
+    """An API-only install (no torch) cannot run the embedded worker: serve says so at once, before migrating."""
+    monkeypatch.setattr(cli, "WORKER_MODULES", ("torch", "no_such_module_for_panogs"))
+    assert cli.main(["serve", "--port", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "no_such_module_for_panogs" in err
+    assert "--no-worker" in err
+    assert "torch" not in err.split("needs", 1)[1].split("which")[0]  # only what is missing is named
+    assert not data_dir.exists(), "nothing was migrated or created"

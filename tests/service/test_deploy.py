@@ -1,6 +1,7 @@
 """Deployment files: docker-compose.yml parses, names every service, volume and setting, and runs the commands
-the end-to-end tests run; the Dockerfile builds the CPU image with a CUDA build argument; .env.example lists
-every setting. (Docker itself cannot run on these machines.)"""
+the end-to-end tests run; the Dockerfile builds a slim API image (no torch) and a worker image (CPU, or CUDA by a
+build argument), both from constraints.txt; .env.example lists every setting. (Docker itself cannot run on these
+machines: the files are checked by reading.)"""
 
 from __future__ import annotations
 
@@ -70,13 +71,49 @@ def test_commands_are_the_tested_ones(compose: dict[str, Any]) -> None:
     assert compose_command("worker")[3:] == ["worker"]
 
 
-def test_dockerfile() -> None:
+def dockerfile_stages() -> dict[str, str]:
+    """The Dockerfile's stages by name: the text from each ``FROM ... AS name`` to the next."""
     text = (REPO / "Dockerfile").read_text()
-    assert re.search(r"^ARG TORCH_VARIANT=cpu$", text, re.M)
-    assert "download.pytorch.org/whl/${TORCH_VARIANT}" in text
-    assert ".[service,worker,text]" in text
-    assert re.search(r'^CMD \["panogs", "serve"', text, re.M)
-    assert re.search(r"^USER panogs$", text, re.M)
+    parts = re.split(r"^FROM \S+ AS (\w+)$", text, flags=re.M)
+    return dict(zip(parts[1::2], parts[2::2], strict=True))
+
+
+def test_dockerfile_api_image_is_slim() -> None:
+    api = dockerfile_stages()["api"]
+    assert re.search(r"^ARG API_EXTRAS=service$", api, re.M)
+    assert "[${API_EXTRAS}]" in api
+    assert "torch" not in api
+    assert "apt-get" not in api  # open3d's system libraries belong to the worker
+    assert re.search(r'^CMD \["panogs", "serve", "--no-worker"', api, re.M)
+    assert re.search(r"^USER panogs$", api, re.M)
+
+
+def test_dockerfile_worker_image() -> None:
+    worker = dockerfile_stages()["worker"]
+    assert re.search(r"^ARG TORCH_VARIANT=cpu$", worker, re.M)
+    assert "download.pytorch.org/whl/${TORCH_VARIANT}" in worker
+    assert "torch==2.13.0" in worker
+    assert "[worker,text]" in worker
+    assert "libusb-1.0-0" in worker
+    assert re.search(r'^CMD \["panogs", "worker"\]', worker, re.M)
+    assert re.search(r"^USER panogs$", worker, re.M)
+
+
+def test_every_install_follows_the_constraints() -> None:
+    stages = dockerfile_stages()
+    assert "COPY constraints.txt" in stages["base"]
+    for name in ("api", "worker"):
+        installs = [line for line in stages[name].splitlines() if "pip install" in line]
+        assert installs
+        assert all("-c constraints.txt" in line for line in installs), f"{name}: {installs}"
+
+
+def test_compose_builds_each_service_from_its_target(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    assert services["api"]["build"]["target"] == "api"
+    for name in ("worker", "worker-gpu"):
+        assert services[name]["build"]["target"] == "worker"
+    assert services["api"]["image"] != services["worker"]["image"]
 
 
 def test_env_example_lists_every_setting() -> None:

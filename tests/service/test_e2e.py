@@ -24,14 +24,14 @@ import httpx
 import numpy as np
 import pytest
 from procs import REPO, Procs, free_port, wait_for
-
-from service.testing import (
+from service_harness import (
     DEFAULT_PG_ADMIN_URL,
     DEFAULT_REDIS_URL,
     drop_redis_prefix,
     new_redis_prefix,
-    postgres_reachable,
-    redis_reachable,
+    python_path,
+    require_postgres,
+    require_redis,
     temp_postgres,
 )
 
@@ -68,8 +68,8 @@ def _key(env: dict[str, str], cwd: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def scaled(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict[str, str], Path]]:
     """The compose deployment as local processes: API + worker on PostgreSQL and Redis."""
-    if not (postgres_reachable(PG_ADMIN_URL) and redis_reachable(REDIS_URL)):
-        pytest.skip("PostgreSQL and Redis are needed")
+    require_postgres(PG_ADMIN_URL)
+    require_redis(REDIS_URL)
     tmp = tmp_path_factory.mktemp("e2e-scaled")
     prefix = new_redis_prefix()
     with temp_postgres(PG_ADMIN_URL) as db_url:
@@ -97,11 +97,11 @@ def embedded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, di
     tmp = tmp_path_factory.mktemp("e2e-embedded")
     clean = {k: v for k, v in os.environ.items() if not k.startswith("PANOGS_")}
     procs = Procs({}, tmp)
-    procs.env = {**clean, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    procs.env = {**clean, "PYTHONPATH": python_path(), "PYTHONUNBUFFERED": "1"}
     try:
         headers = _key(procs.env, tmp)  # the data folder ./panogs-data is created on first use
         port = free_port()
-        proc = procs.start("serve", [sys.executable, "-m", "service.cli", "serve", "--port", str(port)])
+        proc = procs.start("serve", [sys.executable, "-m", "panogs_core.cli", "serve", "--port", str(port)])
 
         def up() -> bool:
             assert proc.poll() is None, procs.tail("serve")()
@@ -143,6 +143,7 @@ def test_session(deployment: str, request: pytest.FixtureRequest, bundle: tuple[
 
         ply = _download(client, job["id"], "panoptic.ply", ranged=True)
         _check_ply(ply, instances, len(np.load(labels)["instance"]))
+        _check_devices(json.loads(_download(client, job["id"], "report.json").read_text()))
 
 
 def _upload_scene(client: httpx.Client, archive: Path) -> str:
@@ -222,6 +223,17 @@ def _download(client: httpx.Client, job_id: str, name: str, ranged: bool = False
     assert rest.headers["content-range"] == f"bytes {size // 2}-{size - 1}/{size}"
     path.write_bytes(first.content + rest.content)
     return path
+
+
+def _check_devices(report: dict[str, Any]) -> None:
+    """The worker trained on this machine's GPU when it has one (the test and the worker share the machine),
+    and the report says so for the language field; every other stage ran on the CPU."""
+    import torch
+
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    devices = {entry["stage"]: entry["device"] for entry in report["stages"]}
+    assert devices.pop("language_field") == expected
+    assert set(devices.values()) == {"cpu"}
 
 
 def _check_ply(path: Path, instances: list[dict[str, Any]], num_points: int) -> None:

@@ -1,7 +1,7 @@
 """Faults, with real processes on PostgreSQL and Redis: killed workers, a restarted API, database and broker
 outages.
 
-The pipeline is the scripted stand-in (``worker.scripted``: known stage times, checkpoints, no torch), so that
+The pipeline is the scripted stand-in (``scripted_pipeline``: known stage times, checkpoints, no torch), so that
 "the middle of a job" is a moment the test controls. PostgreSQL and Redis are reached through TCP proxies that
 the test can cut, which is how an outage looks to the service without stopping servers others use.
 """
@@ -21,17 +21,17 @@ from typing import Any
 import httpx
 import pytest
 from procs import REPO, Procs, TcpProxy, wait_for
-from svc_helpers import pack, write_tiny_bundle
-
-from service.testing import (
+from service_harness import (
     DEFAULT_PG_ADMIN_URL,
     DEFAULT_REDIS_URL,
+    SCRIPTED_PIPELINE,
     drop_redis_prefix,
     new_redis_prefix,
-    postgres_reachable,
-    redis_reachable,
+    require_postgres,
+    require_redis,
     temp_postgres,
 )
+from svc_helpers import pack, write_tiny_bundle
 
 pytestmark = pytest.mark.slow
 
@@ -116,8 +116,8 @@ class Cluster:
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    if not (postgres_reachable(PG_ADMIN_URL) and redis_reachable(REDIS_URL)):
-        pytest.skip("PostgreSQL and Redis are needed for the fault tests")
+    require_postgres(PG_ADMIN_URL)
+    require_redis(REDIS_URL)
     tmp = tmp_path_factory.mktemp("faults")
     prefix = new_redis_prefix()
     redis_port = int(REDIS_URL.split(":")[2].split("/")[0])
@@ -132,7 +132,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
             "PANOGS_BROKER_URL": f"redis://127.0.0.1:{redis_proxy.port}/{REDIS_URL.rsplit('/', 1)[1]}",
             "PANOGS_BROKER_KEY_PREFIX": prefix,
             "PANOGS_DATA_DIR": str(tmp / "data"),
-            "PANOGS_PIPELINE_FUNCTION": "worker.scripted:run_pipeline",
+            "PANOGS_PIPELINE_FUNCTION": SCRIPTED_PIPELINE,
             "PANOGS_SCRIPTED_STAGE_S": str(STAGE_S),
             "PANOGS_HEARTBEAT_INTERVAL_S": "0.5",
             "PANOGS_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),

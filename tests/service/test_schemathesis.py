@@ -20,6 +20,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
+from service_harness import SCRIPTED_PIPELINE
 from sqlalchemy import text
 from svc_helpers import RecordingSender, make_scene, new_key, pack, write_tiny_bundle
 
@@ -42,7 +43,7 @@ def app_and_auth(pg_url: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
         api_key_cache_s=0,
         status_cache_s=0,
         max_upload_bytes=1_000_000,
-        pipeline_function="worker.scripted:run_pipeline",
+        pipeline_function=SCRIPTED_PIPELINE,
     )
     app = create_app(settings_, sender=RecordingSender(), run_reaper=False)
     auth = new_key(settings_)

@@ -10,13 +10,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import scripted_pipeline as scripted
 
 from service.db.migrate import upgrade
 from service.db.models import ApiKey, Job, JobState, Scene
 from service.db.session import get_engine, get_session_factory, session_scope
 from service.settings import Settings
 from service.storage import Storage
-from worker import runner, scripted
+from worker import runner
 
 
 @pytest.fixture(scope="session")

@@ -1,14 +1,19 @@
-"""The Celery app's reliability settings, and that the worker imports no torch before it forks."""
+"""The Celery apps: the broker's reliability settings, the worker's registered task and the settings it runs with,
+and that the worker imports no torch before it forks."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
+import pytest
+
+from service.broker import QueueName, TaskName, create_celery_app
 from service.settings import Settings
-from worker.celery_app import create_celery_app
-from worker.names import QueueName, TaskName
+from worker import tasks
+from worker.app import create_worker_app
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -28,18 +33,60 @@ def test_reliability_settings(tmp_path: Path) -> None:
     assert conf.result_backend is None
 
 
-def test_embedded_broker_needs_no_server(tmp_path: Path) -> None:
-    settings = Settings(_env_file=None, data_dir=tmp_path)  # type: ignore[call-arg]
+def test_embedded_broker_app_writes_nothing(tmp_path: Path) -> None:
+    """Building an app configures it; the folders are made by the commands that start (``ensure_dirs``)."""
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data")  # type: ignore[call-arg]
     app = create_celery_app(settings)
     assert app.conf.broker_url.startswith("filesystem://")
     options = app.conf.broker_transport_options
-    assert Path(options["data_folder_in"]).is_dir()
     assert options["data_folder_in"] == options["data_folder_out"]
+    assert Path(options["data_folder_in"]).is_relative_to(tmp_path / "data")
+    assert not (tmp_path / "data").exists()
+    settings.ensure_dirs()
+    assert Path(options["data_folder_in"]).is_dir()
 
 
-def test_worker_modules_do_not_import_torch() -> None:
-    """A prefork parent that imported torch deadlocks its children: the task module must not pull it in."""
-    code = "import sys, worker.tasks, worker.celery_app, worker.runner; print('torch' in sys.modules)"
-    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+def test_worker_app_runs_jobs_with_the_settings_it_was_given(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Explicit settings win over the environment, and the job environment is built by the first task only."""
+    monkeypatch.setenv("PANOGS_PIPELINE_FUNCTION", "no_such_module:run")  # what the environment would say
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", pipeline_function="scripted_pipeline:run_pipeline")  # type: ignore[call-arg]
+    built: list[Settings] = []
+    monkeypatch.setattr(tasks, "build_job_env", lambda s, _shutdown: built.append(s) or "env")
+    monkeypatch.setattr(tasks, "run_job", lambda env, job_id, **_kw: f"{env}:{job_id}")
+    app = create_worker_app(settings)
+    assert built == [], "the app was built, but no task ran yet"
+    task = app.tasks[TaskName.RUN_JOB.value]
+    assert task.acks_late is True
+    assert task.apply(args=["job-1"]).get() == "env:job-1"
+    assert task.apply(args=["job-2"]).get() == "env:job-2"
+    assert built == [settings], "one environment per process, from the settings passed to the app"
+
+
+def test_lazy_job_env_is_built_once_under_concurrency(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    settings = Settings(_env_file=None, data_dir=tmp_path)  # type: ignore[call-arg]
+    calls: list[int] = []
+    monkeypatch.setattr(tasks, "build_job_env", lambda _s, _e: calls.append(1) or object())
+    envs = tasks.LazyJobEnv(settings, threading.Event())
+    results: list[object] = []
+    threads = [threading.Thread(target=lambda: results.append(envs.get())) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1
+    assert len({id(r) for r in results}) == 1
+
+
+def test_worker_modules_do_not_import_torch(tmp_path: Path) -> None:
+    """A prefork parent that imported torch deadlocks its children: building the worker app must not pull it
+    in (the CUDA check and the pipeline are loaded by the first task)."""
+    code = (
+        "import sys, worker.tasks, worker.app, worker.runner, worker.cli, worker.device\n"
+        "from service.settings import Settings\n"
+        "worker.app.create_worker_app(Settings(_env_file=None, data_dir=sys.argv[1]))\n"
+        "print('torch' in sys.modules)"
+    )
+    argv = [sys.executable, "-c", code, str(tmp_path / "data")]
+    done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "False"

@@ -12,13 +12,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy.exc import OperationalError
+import scripted_pipeline as scripted
+from sqlalchemy import create_engine, text
+from sqlalchemy.exc import IntegrityError, OperationalError
 from wk_helpers import read_job, update_job
 
 from service.db.base import utcnow
 from service.db.models import JobState
 from service.settings import Settings
-from worker import runner, scripted
+from worker import runner
 
 Env = Callable[..., runner.JobEnv]
 MakeJob = Callable[..., uuid.UUID]
@@ -205,6 +207,23 @@ class TestTransient:
 
         assert runner.with_db_retry(flaky, deadline_s=5, what="test") == "ok"
         assert len(calls) == 3
+
+    def test_only_an_outage_is_waited_out(self, tmp_path: Path) -> None:
+        """A real integrity error is raised at once: waiting cannot make a duplicate key unique."""
+        engine = create_engine(f"sqlite:///{tmp_path / 'dup.db'}")
+        with engine.begin() as conn:
+            conn.execute(text("CREATE TABLE t (x INTEGER PRIMARY KEY)"))
+        calls = []
+
+        def duplicate() -> None:
+            calls.append(1)
+            with engine.begin() as conn:
+                conn.execute(text("INSERT INTO t VALUES (1)"))
+
+        duplicate()
+        with pytest.raises(IntegrityError):
+            runner.with_db_retry(duplicate, deadline_s=5, what="test")
+        assert len(calls) == 2, "tried once, not retried"
 
     def test_gives_up_with_a_transient_error(self) -> None:
         def down() -> None:

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response
 from sqlalchemy import text
 
 from service.api.deps import FactoryDep, SettingsDep
-from service.queue import broker_ping
+from service.broker import broker_ping
 from service.schemas import Health
 
 router = APIRouter(tags=["health"])

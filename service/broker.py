@@ -1,4 +1,9 @@
-"""The Celery app, configured from ``Settings``. Importing this module imports no task code and no torch.
+"""The broker side of the job queue: task and queue names, the Celery app's configuration, and a ping.
+
+Both the API (which publishes jobs by task name) and the worker (which registers the task under that name) build
+their Celery app with :func:`create_celery_app`; the worker adds its task code on top (``worker.app``). Only the
+worker imports this module's names from the service, never the other way round, so the API never imports task
+code, and importing this module builds nothing and writes nothing.
 
 Reliability settings, and why:
 
@@ -15,18 +20,35 @@ Reliability settings, and why:
 
 from __future__ import annotations
 
+from enum import StrEnum
+from pathlib import Path
+
 from celery import Celery
 from kombu.entity import Queue
 
-from service.settings import Settings, get_settings
-from worker.names import QueueName, TaskName
+from service.settings import Settings
+
+
+class TaskName(StrEnum):
+    """Registered task names: the API publishes by name, so it never imports task code."""
+
+    RUN_JOB = "panogs.run_job"
+
+
+class QueueName(StrEnum):
+    """The queues workers consume; jobs go to ``Settings.job_queue``."""
+
+    CPU = "cpu"
+    GPU = "gpu"
 
 
 def create_celery_app(settings: Settings) -> Celery:
-    """A Celery app for ``settings`` (broker, queues, reliability options)."""
-    if settings.is_embedded_broker:
-        settings.ensure_dirs()
-    app = Celery("panogs", broker=settings.broker, include=["worker.tasks"])
+    """A Celery app for ``settings``: broker, queues, reliability options; no tasks, no folders.
+
+    The embedded broker's folders are made by ``Settings.ensure_dirs``, which the commands that serve or work
+    call when they start; building an app only configures it.
+    """
+    app = Celery("panogs", broker=settings.broker)
     app.conf.update(
         broker_transport_options=settings.broker_transport_options(),
         broker_connection_retry_on_startup=True,
@@ -62,4 +84,17 @@ def create_celery_app(settings: Settings) -> Celery:
     return app
 
 
-app = create_celery_app(get_settings())
+def broker_ping(settings: Settings, timeout_s: float = 1.0) -> None:
+    """Raise when the broker cannot be reached within ``timeout_s`` (the filesystem broker: its folders)."""
+    if settings.is_embedded_broker:
+        for key in ("data_folder_in", "control_folder"):
+            folder = Path(settings.broker_transport_options()[key])
+            if not folder.is_dir():
+                raise ConnectionError(f"broker folder {folder} is missing")
+        return
+    from kombu.connection import Connection
+
+    options = settings.broker_transport_options()
+    with Connection(settings.broker, transport_options=options, connect_timeout=timeout_s) as conn:  # type: ignore[no-untyped-call]
+        conn.ensure_connection(max_retries=1, timeout=timeout_s)
+        conn.default_channel  # noqa: B018  (opening a channel round-trips to the server)

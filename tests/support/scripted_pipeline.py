@@ -3,9 +3,10 @@
 Same signature and the same outputs' names, no torch, and a known duration: each stage takes
 ``PANOGS_SCRIPTED_STAGE_S`` seconds (default 0.2) in 5 progress steps, and leaves a checkpoint so that a
 resumed run skips it. The config overrides it accepts are ``{"fail_at": "<stage>"}`` (raise a
-``NumericalError`` there) and ``{"stage_s": <seconds>}``. Select it with
-``PANOGS_PIPELINE_FUNCTION=worker.scripted:run_pipeline``. Not for production: its outputs are placeholders
-(two instances, "chair" and "table").
+``NumericalError`` there), ``{"stage_s": <seconds>}`` and, as the real config has it,
+``{"language_field": {"device": ...}}`` (the worker sets it; report.json records it). Select it with
+``PANOGS_PIPELINE_FUNCTION=scripted_pipeline:run_pipeline`` and ``tests/support`` on the Python path. A test
+double, not shipped: its outputs are placeholders (two instances, "chair" and "table").
 """
 
 from __future__ import annotations
@@ -41,12 +42,23 @@ class ScriptedResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
+KNOWN_KEYS = ("fail_at", "language_field", "stage_s")
+
+
 def make_config(overrides: dict[str, Any]) -> dict[str, Any]:
     """Validate the scripted pipeline's overrides (unknown keys are refused, as ``PipelineConfig`` does)."""
-    unknown = sorted(set(overrides) - {"fail_at", "stage_s"})
+    unknown = sorted(set(overrides) - set(KNOWN_KEYS))
     if unknown:
-        raise ConfigError(f"config: unknown key(s) {unknown}; known keys are ['fail_at', 'stage_s']")
+        raise ConfigError(f"config: unknown key(s) {unknown}; known keys are {list(KNOWN_KEYS)}")
+    extra = sorted(set(overrides.get("language_field", {})) - {"device"})
+    if extra:
+        raise ConfigError(f"config.language_field: unknown key(s) {extra}; the scripted pipeline knows ['device']")
     return dict(overrides)
+
+
+def device_of(config: dict[str, Any]) -> str:
+    """The device the config names, ``cpu`` by default (as ``LanguageFieldConfig``)."""
+    return str(config.get("language_field", {}).get("device", "cpu"))
 
 
 def run_pipeline(
@@ -81,11 +93,11 @@ def run_pipeline(
             on_progress(stage, STEPS, STEPS)
         marker.write_text("done")
         timings[stage] = time.perf_counter() - start
-    _write_outputs(out, Path(bundle), vocabulary)
+    _write_outputs(out, Path(bundle), vocabulary, device_of(config))
     return ScriptedResult(out_dir=out, instances=INSTANCES, timings=timings)
 
 
-def _write_outputs(out: Path, bundle: Path, vocabulary: str | None) -> None:
+def _write_outputs(out: Path, bundle: Path, vocabulary: str | None, device: str) -> None:
     (out / "instances.json").write_text(json.dumps(INSTANCES))
     points = np.array([[0.9, 0, 0.5], [1.1, 0, 0.5], [-1.2, 0, 0.4], [-0.8, 0, 0.4]], np.float32)
     semantic = np.array([1, 1, 2, 2], np.int64)
@@ -99,5 +111,5 @@ def _write_outputs(out: Path, bundle: Path, vocabulary: str | None) -> None:
     rows = [f"{x} {y} {z} 128 128 128 {s} {i}" for (x, y, z), s, i in zip(points, semantic, instance)]
     (out / "panoptic.ply").write_text(header + "\n".join(rows) + "\n")
     (out / "gaussians.ply").write_text(header + "\n".join(rows) + "\n")
-    report = {"scene": bundle.name, "vocabulary": vocabulary, "stages": list(STAGES)}
+    report = {"scene": bundle.name, "vocabulary": vocabulary, "stages": list(STAGES), "device": device}
     (out / "report.json").write_text(json.dumps(report))

@@ -1,8 +1,13 @@
 """Helpers for tests and benchmarks of the service: throwaway PostgreSQL databases, Redis key prefixes, and
-the service run as real processes with the commands docker-compose.yml runs.
+the service run as real processes with the commands docker-compose.yml runs. A test helper, not shipped: the
+tests find it through ``pythonpath`` (pyproject.toml), a benchmark puts ``tests/support`` on ``sys.path``.
 
 Each test session gets its own database (``panogs_test_<random>``) and its own Redis key prefix, so that it
 never touches anyone else's data on a shared server, and removes them when it ends.
+
+When PostgreSQL or Redis cannot be reached, :func:`require_service` skips the tests that need it on a developer's
+machine, and fails them under CI (``CI=true``), naming the service and how to start it: a CI run must not pass
+without testing the service.
 """
 
 from __future__ import annotations
@@ -20,13 +25,47 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import yaml
 from sqlalchemy import create_engine, make_url, text
 
-from service.db.migrate import REPO_ROOT as REPO
-
+REPO = Path(__file__).resolve().parents[2]
+SUPPORT = Path(__file__).resolve().parent  # this folder: the test doubles a started worker imports
 DEFAULT_PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
+SCRIPTED_PIPELINE = "scripted_pipeline:run_pipeline"  # Settings.pipeline_function of the test double
+
+# How to start each service on a Debian machine like CI's (the commands .ci/run runs).
+START_POSTGRES = "pg_ctlcluster --skip-systemctl-redirect $(ls /etc/postgresql) main start"
+START_REDIS = (
+    "redis-server --daemonize yes --bind 127.0.0.1 -::1 --port 6379 --save '' --appendonly no "
+    "--dir /var/lib/redis --logfile /var/log/redis/ci.log"
+)
+
+
+def under_ci() -> bool:
+    """True in a CI run (CI=true, as CI systems and .ci/run set it)."""
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+def require_service(name: str, url: str, reachable: bool, start: str) -> None:
+    """Skip (on a developer's machine) or fail (under CI) when the service ``name`` at ``url`` is unreachable."""
+    if reachable:
+        return
+    message = f"{name} is not reachable at {url}; start it with: {start}"
+    if under_ci():
+        pytest.fail(f"CI=true and {message}", pytrace=False)
+    pytest.skip(message)
+
+
+def require_postgres(admin_url: str = DEFAULT_PG_ADMIN_URL) -> None:
+    """:func:`require_service` for PostgreSQL."""
+    require_service("PostgreSQL", admin_url, postgres_reachable(admin_url), START_POSTGRES)
+
+
+def require_redis(url: str = DEFAULT_REDIS_URL) -> None:
+    """:func:`require_service` for Redis."""
+    require_service("Redis", url, redis_reachable(url), START_REDIS)
 
 
 @contextmanager
@@ -99,18 +138,24 @@ def free_port() -> int:
 
 
 def compose_command(service: str) -> list[str]:
-    """The command a docker-compose service runs, as an argv for this machine."""
+    """The command a docker-compose service runs, as an argv for this machine (``panogs`` is the console script
+    of ``panogs_core.cli``)."""
     spec = yaml.safe_load((REPO / "docker-compose.yml").read_text())["services"][service]["command"]
     argv = list(spec) if isinstance(spec, list) else spec.split()
     assert argv[0] == "panogs", f"{service}: expected a panogs command, found {argv}"
-    return [sys.executable, "-m", "service.cli", *argv[1:]]
+    return [sys.executable, "-m", "panogs_core.cli", *argv[1:]]
+
+
+def python_path() -> str:
+    """PYTHONPATH for a started process: the repository and the test doubles (``scripted_pipeline``)."""
+    return os.pathsep.join([str(REPO), str(SUPPORT)])
 
 
 class Procs:
     """Started processes, stopped (then killed) at the end; logs under ``log_dir``."""
 
     def __init__(self, env: dict[str, str], log_dir: Path) -> None:
-        self.env = {**os.environ, **env, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+        self.env = {**os.environ, **env, "PYTHONPATH": python_path(), "PYTHONUNBUFFERED": "1"}
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
 

@@ -1,0 +1,142 @@
+"""The README's demo output is a log of ``make demo`` as tools/readme_demo.py writes it (``make readme``): the three
+commands, a line per stage, the summary, the instance table, the metrics and the query's answer, each line in the
+form the CLI prints. The patterns are checked against the CLI's own formatting, so a change of the CLI's output
+fails here until the README is regenerated. (The numbers themselves: ``make readme-check``.)"""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+import re
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from panogs_core.cli import StageLines, format_instances, format_metrics
+from panogs_core.pipeline import STAGES
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _load_tool() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("readme_demo", REPO / "tools" / "readme_demo.py")
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["readme_demo"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+tool = _load_tool()
+
+NUM = r"[ \d.-]"
+# One pattern per kind of line, named by a token; the block must spell a sentence of tokens (SHAPE).
+PATTERNS = {
+    "stage": r" *\w+: \d+\.\d s",
+    "synth": r"wrote synthetic scene \(small, default, seed 0\) to demo/scene",
+    "summary": r"\S+: \d+ primitives, \d+ instances, \d+\.\d s -> demo/run",
+    "row": rf" *\d+  .{{16}} (thing|stuff) {NUM}{{5}} [ \d]{{7}}  \({NUM}{{6}}, {NUM}{{6}}, {NUM}{{6}}\)",
+    "metric": r" *(standard|paper): mIoU (\d\.\d{3}|  n/a)  mAcc (\d\.\d{3}|  n/a)  "
+    r"PRQ\(T\) (\d\.\d{3}|  n/a)  PRQ\(S\) (\d\.\d{3}|  n/a)",
+    "query": r"query 'chair': \d+ instance\(s\)",
+    "hit": r"  instance +\d+  .{16} score \d\.\d{3}  box \[\S+ \S+ \S+\] - \[\S+ \S+ \S+\]",
+}
+SHAPE = re.compile(
+    r"cmd_synth synth cmd_run (stage )+blank summary header (row )+(elided_row )?(row )?blank (metric ){2}"
+    r"cmd_query query (hit )+(elided_hit )?"
+)
+
+
+def token(line: str) -> str:
+    """The kind of a line of the block."""
+    commands = {" ".join([tool.PANOGS_SHOWN, *c]): f"cmd_{c[0]}" for c in tool.DEMO_COMMANDS}
+    fixed = {"": "blank", tool.ELIDED_ROW: "elided_row", tool.ELIDED_HIT: "elided_hit"}
+    if line in commands:
+        return commands[line]
+    if line in fixed:
+        return fixed[line]
+    if line == format_instances([]).splitlines()[0]:
+        return "header"
+    for name, pattern in PATTERNS.items():
+        if re.fullmatch(pattern, line):
+            return name
+    return f"<unknown: {line!r}>"
+
+
+def readme_lines() -> list[str]:
+    text = (REPO / "README.md").read_text()
+    assert text.count(tool.BEGIN) == 1, "one begin marker"
+    assert text.count(tool.END) == 1, "one end marker"
+    inner = tool.readme_block(text).splitlines()[1:-1]
+    assert inner[0] == "```"
+    assert inner[-1] == "```"
+    return inner[1:-1]
+
+
+def test_patterns_match_what_the_cli_prints() -> None:
+    instances = [
+        {"id": 7, "class_name": "other furniture", "kind": "thing", "score": 0.875, "num_points": 1882,
+         "centroid": [0.24, -2.74, 10.85]},
+        {"id": 12, "class_name": "wall", "kind": "stuff", "score": 1.0, "num_points": 13631,
+         "centroid": [2.9, 1.8, 1.4]},
+    ]  # fmt: skip
+    for row in format_instances(instances).splitlines()[1:]:
+        assert re.fullmatch(PATTERNS["row"], row), row
+    metrics = {"standard": {"miou": 0.95, "macc": 0.9, "prq_thing": None, "prq_stuff": 0.5}}
+    metrics["paper"] = metrics["standard"]
+    for line in format_metrics(metrics).splitlines():
+        assert re.fullmatch(PATTERNS["metric"], line), line
+    stream, now = io.StringIO(), iter([0.0, 1.5, 1.5, 3.0])
+    lines = StageLines(stream, clock=lambda: next(now))
+    lines("superprimitives", 0, 1)
+    lines("export", 0, 1)
+    lines.close()
+    for line in stream.getvalue().splitlines():
+        assert re.fullmatch(PATTERNS["stage"], line), line
+
+
+def test_readme_block_is_a_log_of_the_demo() -> None:
+    lines = readme_lines()
+    tokens = [token(line) for line in lines]
+    unknown = [t for t in tokens if t.startswith("<unknown")]
+    assert not unknown, f"lines the CLI does not print (run `make readme`): {unknown}"
+    assert SHAPE.fullmatch("".join(f"{t} " for t in tokens)), f"out of order (run `make readme`): {tokens}"
+    stages = [line.split(":")[0].strip() for line, t in zip(lines, tokens) if t == "stage"]
+    assert stages == [s for s in STAGES if s in stages], "stages in pipeline order"
+
+
+def test_elide_keeps_the_first_and_last_rows() -> None:
+    header = format_instances([]).splitlines()[0]
+    rows = [f"row {i}" for i in range(10)]
+    hits = [f"  instance {i}" for i in range(5)]
+    log = ["summary", header, *rows, "", "metrics", "query 'chair': 5 instance(s)", *hits]
+    out = tool.elide(log)
+    assert out == [
+        "summary", header, "row 0", "row 1", "row 2", tool.ELIDED_ROW, "row 9", "", "metrics",
+        "query 'chair': 5 instance(s)", "  instance 0", "  instance 1", tool.ELIDED_HIT,
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize("count", [1, 4])
+def test_elide_leaves_short_tables_whole(count: int) -> None:
+    header = format_instances([]).splitlines()[0]
+    log = [header, *[f"row {i}" for i in range(count)], ""]
+    assert tool.elide(log) == log
+
+
+def test_write_then_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``make readme`` rewrites only the block; ``make readme-check`` passes on other times, fails on other
+    results."""
+    log = ["summary: 10 primitives, 2 instances, 3.1 s -> demo/run", "standard: mIoU 0.950"]
+    monkeypatch.setattr(tool, "run_demo", lambda _workdir: list(log))
+    readme = tmp_path / "README.md"
+    readme.write_text(f"before\n{tool.BEGIN}\n```\nstale\n```\n{tool.END}\nafter\n")
+    assert tool.main(["--readme", str(readme)]) == 0
+    assert readme.read_text() == f"before\n{tool.block(log)}\nafter\n"
+    log[0] = "summary: 10 primitives, 2 instances, 9.9 s -> demo/run"  # another run, another time
+    assert tool.main(["--check", "--readme", str(readme)]) == 0
+    log[1] = "standard: mIoU 0.788"  # other results
+    assert tool.main(["--check", "--readme", str(readme)]) == 1

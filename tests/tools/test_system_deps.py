@@ -1,0 +1,68 @@
+"""``make install`` checks the system first (tools/check-system-deps): as root it installs what is missing with
+apt-get; otherwise it stops at once and prints the exact command. ``ldconfig``, ``id`` and ``apt-get`` are
+stand-ins on PATH here, so the test neither needs nor changes the machine's packages."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SCRIPT = REPO / "tools" / "check-system-deps"
+LIBRARIES = (
+    "\tlibusb-1.0.so.0 (libc6,x86-64) => /lib/libusb-1.0.so.0\n\tlibgomp.so.1 (libc6,x86-64) => /lib/libgomp.so.1\n"
+)
+
+
+class FakeSystem:
+    """A folder of stand-in commands: the library cache is a file, apt-get records its calls and 'installs'."""
+
+    def __init__(self, root: Path, uid: int, libraries: str) -> None:
+        self.bin = root / "bin"
+        self.bin.mkdir()
+        self.cache = root / "ld.so.cache.txt"
+        self.cache.write_text(libraries)
+        self.apt_log = root / "apt.log"
+        self._command("ldconfig", f'cat "{self.cache}"')
+        self._command("id", f"echo {uid}")
+        install = f"printf '%s' '{LIBRARIES}' > \"{self.cache}\""
+        self._command("apt-get", f'echo "$@" >> "{self.apt_log}"; [ "$1" = install ] && {install}; exit 0')
+
+    def _command(self, name: str, body: str) -> None:
+        path = self.bin / name
+        path.write_text(f"#!/bin/sh\n{body}\n")
+        path.chmod(0o755)
+
+    def run(self) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "PATH": f"{self.bin}{os.pathsep}{os.environ['PATH']}", "PYTHON": sys.executable}
+        return subprocess.run([str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+
+    def apt_calls(self) -> list[str]:
+        return self.apt_log.read_text().splitlines() if self.apt_log.exists() else []
+
+
+@pytest.mark.parametrize("uid", [0, 1000])
+def test_nothing_missing_nothing_done(tmp_path: Path, uid: int) -> None:
+    system = FakeSystem(tmp_path, uid=uid, libraries=LIBRARIES)
+    done = system.run()
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == []
+
+
+def test_not_root_stops_at_once_with_the_command(tmp_path: Path) -> None:
+    system = FakeSystem(tmp_path, uid=1000, libraries="")
+    done = system.run()
+    assert done.returncode == 1
+    assert "sudo apt-get install -y libusb-1.0-0 libgomp1" in done.stderr
+    assert system.apt_calls() == [], "a user who is not root is told, not sudo-prompted"
+
+
+def test_root_installs_what_is_missing(tmp_path: Path) -> None:
+    system = FakeSystem(tmp_path, uid=0, libraries="\tlibgomp.so.1 (libc6,x86-64) => /lib/libgomp.so.1\n")
+    done = system.run()
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == ["update -qq", "install -y libusb-1.0-0 -qq"]
