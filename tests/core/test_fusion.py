@@ -308,3 +308,48 @@ class TestFusionOnABundle:
         assert fused.seen_count.tolist() == [1, 1, 0]
         assert fused.colors is not None
         np.testing.assert_allclose(fused.colors[:2], [[0, 1, 0], [0, 1, 0]], atol=0.02)
+
+
+@dataclass
+class MaskedScene(FakeScene):
+    """A FakeScene whose frames also have 2D masks."""
+
+    masks: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def read_masks(self, frame: Frame) -> np.ndarray:
+        return self.masks[frame.id]
+
+
+class TestMaskPooling:
+    """Issue 8: a feature cell on an object border bleeds; the object's mask pools its pure cells."""
+
+    def _scene(self) -> tuple[MaskedScene, Visibility]:
+        bleed = 0.4 * E0 + 0.6 * E1
+        fmap = _two_region_map(E0, E1)  # cells of image columns 0-3 hold e0, 4-7 hold e1
+        fmap[:, 1] = bleed / np.linalg.norm(bleed)  # ... but the cells of columns 2-3 lean to e1
+        masks = np.where(np.arange(8)[None, :] < 4, 1, 2).repeat(6, axis=0).astype(np.int32)  # the objects
+        scene = MaskedScene(camera=CAM, frames=(_frame("a"),), features={"a": fmap}, masks={"a": masks})
+        return scene, _visibility({"a": [(0, 2, 3), (1, 2, 6)]})  # point 0 in the bleeding cell
+
+    def test_pooling_pulls_a_border_primitive_to_its_object(self) -> None:
+        scene, vis = self._scene()
+        plain = fuse_features(scene, vis, 2, FusionConfig())
+        pooled = fuse_features(scene, vis, 2, FusionConfig(mask_pooling=0.8))
+        assert np.argmax(plain.features[0]) == 1  # the bled feature
+        assert np.argmax(pooled.features[0]) == 0  # its mask's feature
+        assert np.linalg.norm(pooled.features[0]) == pytest.approx(1.0, abs=1e-5)  # blended rows stay unit
+        assert np.argmax(pooled.features[1]) == 1  # inside the other object nothing changes
+        np.testing.assert_array_equal(pooled.seen_count, plain.seen_count)
+
+    def test_pooled_features_weight_pure_cells(self) -> None:
+        from panogs_core.fusion import mask_pooled_features
+
+        fmap = np.stack([np.eye(2, dtype=np.float32)])  # (1, 2, 2): cell 0 = e0, cell 1 = e1
+        masks = np.array([[1, 1, 1, 0]])  # mask 1 covers all of cell 0 and half of cell 1
+        pooled, has = mask_pooled_features(fmap, masks)
+        assert has.tolist() == [False, True]
+        assert pooled[1, 0] > 3 * pooled[1, 1]  # the half-covered cell counts a quarter as much
+
+    def test_config_range(self) -> None:
+        with pytest.raises(ConfigError, match="mask_pooling"):
+            FusionConfig(mask_pooling=1.5)
