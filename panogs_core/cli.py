@@ -311,7 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("synth", help="make a synthetic scene bundle")
     p.add_argument("out", help="output bundle folder")
-    p.add_argument("--preset", default="tiny", choices=["tiny", "small", "default", "large"])
+    p.add_argument("--preset", default="tiny", choices=["tiny", "small", "default", "large", "scan"])
     p.add_argument("--difficulty", default="default", choices=["easy", "default", "hard"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(

@@ -3,8 +3,9 @@
 ``make_scene(out_dir, preset=..., difficulty=..., seed=...)`` builds a furnished room (walls, floor, ceiling
 and box-modelled furniture of the Matterport-21 classes), samples its surfaces into ``geometry.ply`` with
 per-point ground truth, ray-casts a handheld trajectory into depth, colour, SAM-like masks and language
-feature maps, and degrades each per the difficulty. See ``docs/synthetic.md`` for the noise model and the
-presets.
+feature maps, and degrades each per the difficulty. The ``scan`` preset is a realistic capture (a cluttered
+studio with unannotated ground truth, a dense trajectory with sparse key frames, world-anchored feature
+confusions). See ``docs/synthetic.md`` for the noise model and the presets.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from panogs_core.synthetic.layout import Layout, build_layout
 from panogs_core.synthetic.presets import (
     DIFFICULTIES,
     PRESETS,
+    REALISTIC_DIFFICULTIES,
     DepthNoise,
     Difficulty,
     FeatureNoise,
@@ -30,6 +32,7 @@ __all__ = [
     "CLASS_NAMES",
     "DIFFICULTIES",
     "PRESETS",
+    "REALISTIC_DIFFICULTIES",
     "DepthNoise",
     "Difficulty",
     "FeatureNoise",

@@ -66,6 +66,32 @@ CONFUSABLE: dict[str, tuple[str, ...]] = {
     "bathtub": ("sink", "toilet"),
 }
 
+# Realistic scenes only (anchored confusions, docs/synthetic.md): the classes a 2D model confuses each class
+# with in a real capture, where the errors stay between related classes: counter / cabinet / desk / table (flat
+# tops and fronts of furniture), door / wall, window / curtain / wall. Kept apart from CONFUSABLE, which the
+# older presets draw from, so that their bytes do not change. A class without entries never leans.
+RELATED: dict[str, tuple[str, ...]] = {
+    "wall": ("door", "curtain", "window"),
+    "floor": (),
+    "ceiling": ("wall",),
+    "cabinet": ("counter", "desk", "table"),
+    "bed": ("sofa",),
+    "chair": ("sofa",),
+    "sofa": ("bed", "chair"),
+    "table": ("desk", "counter", "cabinet"),
+    "door": ("wall", "cabinet"),
+    "window": ("curtain", "wall"),
+    "bookshelf": ("cabinet",),
+    "picture": ("window",),
+    "counter": ("cabinet", "table", "desk"),
+    "desk": ("table", "cabinet", "counter"),
+    "curtain": ("window", "wall"),
+    "refrigerator": ("cabinet", "door"),
+    "toilet": ("sink",),
+    "sink": ("counter", "toilet"),
+    "bathtub": ("sink",),
+}
+
 # Row of each Matterport-21 class in MATTERPORT_LABELS_21_dim512.npy (label_sets/README.md).
 _MP21 = (
     "wall floor cabinet bed chair sofa table door window bookshelf picture counter desk curtain refrigerator "
@@ -73,12 +99,17 @@ _MP21 = (
 ).split()
 
 
-def confusion_targets() -> tuple[np.ndarray, np.ndarray]:  # (L, C) int64, (L,) int64
-    """Per class, the indices of its confusable classes (padded with -1) and how many there are."""
-    width = max(len(v) for v in CONFUSABLE.values())
+def confusion_targets(related: bool = False) -> tuple[np.ndarray, np.ndarray]:  # (L, C) int64, (L,) int64
+    """Per class, the indices of its confusable classes (padded with -1) and how many there are.
+
+    Args:
+        related: Take :data:`RELATED` (realistic scenes) rather than :data:`CONFUSABLE`.
+    """
+    source = RELATED if related else CONFUSABLE
+    width = max(len(v) for v in source.values())
     table = np.full((len(CLASS_NAMES), width), -1, dtype=np.int64)
     for i, name in enumerate(CLASS_NAMES):
-        table[i, : len(CONFUSABLE[name])] = [CLASS_ID[c] for c in CONFUSABLE[name]]
+        table[i, : len(source[name])] = [CLASS_ID[c] for c in source[name]]
     return table, (table >= 0).sum(axis=1)
 
 

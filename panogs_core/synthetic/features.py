@@ -16,6 +16,9 @@ the CLIP space, whose rows are 0.35-0.7 apart, and in MiniLM, whose rows are 0.9
    mix the classes on both sides; then an optional Gaussian blur of ``blur_cells``;
 5. pixel: independent noise ``pixel_sigma * s * g`` per cell (s: the cell's area-weighted ``s_c``);
 6. every cell is L2-normalised and stored as float16.
+
+Confusable classes come from ``catalog.CONFUSABLE``; realistic scenes (preset ``scan``) take
+``catalog.RELATED`` instead and add errors that are the same in every view (``anchored.py``).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ class FeatureModel:
     instance_class: np.ndarray  # (I,) int64
     instance_vectors: np.ndarray  # (I, D) float32, v_i (not normalised)
     noise: FeatureNoise
+    related: bool = False  # confusions drawn from catalog.RELATED (realistic scenes) instead of CONFUSABLE
 
 
 def make_feature_model(
@@ -45,6 +49,7 @@ def make_feature_model(
     instance_class: np.ndarray,  # (I,) int64
     noise: FeatureNoise,
     rng: np.random.Generator,
+    related: bool = False,
 ) -> FeatureModel:
     """Draw the fixed per-instance feature directions of a scene.
 
@@ -53,6 +58,8 @@ def make_feature_model(
         instance_class: Catalogue class of every instance ``(I,)``.
         noise: Feature noise parameters.
         rng: Source of the noise.
+        related: Confuse classes with their related classes (``catalog.RELATED``, realistic scenes) rather
+            than with ``catalog.CONFUSABLE``.
 
     Returns:
         The model to pass to :func:`synthesize_features` for every frame.
@@ -63,10 +70,10 @@ def make_feature_model(
     g = rng.standard_normal((len(cls), emb.shape[1])).astype(np.float32)
     vec = emb[cls] + noise.instance_spread * scale[cls, None] * g / np.sqrt(emb.shape[1])
     confused = rng.random(len(cls)) < noise.confused_instances
-    targets = _pick_confusable(cls, rng)
+    targets = _pick_confusable(cls, rng, related)
     weight = rng.uniform(*noise.confusion_weight, len(cls)) * confused
     vec = (1.0 - weight[:, None]) * vec + weight[:, None] * emb[targets]
-    return FeatureModel(emb.astype(np.float32), scale, cls, vec.astype(np.float32), noise)
+    return FeatureModel(emb.astype(np.float32), scale, cls, vec.astype(np.float32), noise, related)
 
 
 def synthesize_features(
@@ -89,13 +96,25 @@ def synthesize_features(
     Returns:
         Unit feature vectors, float16.
     """
-    noise, (hf, wf) = model.noise, shape
     ids, compact = np.unique(instance, return_inverse=True)
     compact = compact.reshape(instance.shape)
     sources, source_scale = _frame_sources(model, ids, rng)
-    blob = blob_mask(instance.shape, noise.confused_area, rng)
+    blob = blob_mask(instance.shape, model.noise.confused_area, rng)
     source = 2 * compact + blob  # source 2k: instance k as is, 2k + 1: instance k inside a confusion blob
-    h, w = instance.shape
+    return _cells(source, sources, source_scale, shape, model.noise, rng)
+
+
+def _cells(
+    source: np.ndarray,  # (H, W) int64 source index per pixel
+    sources: np.ndarray,  # (S, D) float32 source vectors
+    source_scale: np.ndarray,  # (S,) float32 noise unit of each source
+    shape: tuple[int, int],  # (Hf, Wf)
+    noise: FeatureNoise,
+    rng: np.random.Generator,
+) -> np.ndarray:  # (Hf, Wf, D) float16
+    """Steps 4-6: area-average the per-pixel sources into cells, blur, add the cell noise, normalise."""
+    hf, wf = shape
+    h, w = source.shape
     row = ((np.arange(h) + 0.5) * hf / h).astype(np.int64)
     col = ((np.arange(w) + 0.5) * wf / w).astype(np.int64)
     cell = (row[:, None] * wf + col[None, :]).ravel()
@@ -113,10 +132,15 @@ def synthesize_features(
     return feat.astype(np.float16)
 
 
-def _pick_confusable(cls: np.ndarray, rng: np.random.Generator) -> np.ndarray:  # (n,) int64
-    """One confusable class per entry of ``cls``, uniformly among that class's confusables."""
-    table, count = confusion_targets()
-    return table[cls, (rng.random(len(cls)) * count[cls]).astype(np.int64)]
+def _pick_confusable(cls: np.ndarray, rng: np.random.Generator, related: bool = False) -> np.ndarray:  # (n,) int64
+    """One confusable class per entry of ``cls``, uniformly among that class's confusables.
+
+    With ``related``, from ``catalog.RELATED``, where a class without related classes (the floor) is its own
+    target: leaning towards it changes nothing.
+    """
+    table, count = confusion_targets(related)
+    picked = table[cls, (rng.random(len(cls)) * count[cls]).astype(np.int64)]
+    return np.where(picked >= 0, picked, cls)
 
 
 def _blur_matrix(n: int, sigma: float) -> np.ndarray:  # (n, n) float32, rows sum to 1
@@ -137,7 +161,7 @@ def _frame_sources(
     g = rng.standard_normal((len(ids), emb.shape[1]), dtype=np.float32)
     own = model.instance_vectors[np.maximum(ids, 0)] + noise.view_sigma * scale[:, None] * g
     own[~known] = 0.0  # pixels that hit nothing carry only the per-cell noise
-    targets = _pick_confusable(cls, rng)
+    targets = _pick_confusable(cls, rng, model.related)
     leaned = (1.0 - noise.area_weight) * own + noise.area_weight * emb[targets] * known[:, None]
     sources = np.stack([own, leaned], axis=1).reshape(2 * len(ids), -1)
     return sources.astype(np.float32), np.repeat(scale, 2)

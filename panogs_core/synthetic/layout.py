@@ -56,6 +56,8 @@ class Layout:
         instance_class: ``(I,)`` int64 catalogue class of each instance.
         contacts: ``(E, 2)`` int64 instance pairs that touch or nearly touch.
         families: Family of each zone, along x.
+        annotated: ``(I,)`` bool, False for instances the ground truth leaves unannotated (clutter outside
+            the label set, the ceiling of a realistic scene); None = every instance is annotated.
     """
 
     room: np.ndarray
@@ -65,6 +67,7 @@ class Layout:
     instance_class: np.ndarray
     contacts: np.ndarray
     families: tuple[str, ...]
+    annotated: np.ndarray | None = None
 
     @property
     def box_class(self) -> np.ndarray:  # (B,) int64
@@ -295,12 +298,16 @@ def build_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
     """Draw a furnished room.
 
     Args:
-        spec: Room size ranges and zone length.
+        spec: Room size ranges and zone length; a realistic spec gets a studio (``scan_layout.py``).
         rng: Source of every random choice (the layout is a pure function of its state).
 
     Returns:
         The room as boxes with instance and class ids, colours and contacts.
     """
+    if spec.realistic:
+        from panogs_core.synthetic.scan_layout import build_scan_layout  # it builds on this module's helpers
+
+        return build_scan_layout(spec, rng)
     room = np.array([rng.uniform(*spec.room_length), rng.uniform(*spec.room_width),
                      rng.uniform(*spec.room_height)])  # fmt: skip
     n_zones = max(1, round(room[0] / spec.zone_length))

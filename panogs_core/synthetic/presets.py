@@ -8,7 +8,7 @@ The numbers are documented in ``docs/synthetic.md``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from panogs_core.errors import ConfigError
 
@@ -38,6 +38,15 @@ class SyntheticSpec:
         room_height: Range of the ceiling height, metres.
         zone_length: Rooms longer than this are split into furnished zones of about this length, metres.
         feature_space: Default text-embedding space of the features.
+        realistic: A real-capture-like scene (``docs/synthetic.md``, preset ``scan``): a furnished studio with
+            clutter and unannotated ground truth (``scan_layout.py``), a dense handheld trajectory of which
+            only every ``dense_factor``-th pose is written, geometry from every dense pose, no coverage help,
+            and the difficulty's strengths from :data:`REALISTIC_DIFFICULTIES`.
+        dense_factor: Dense trajectory poses per written frame (realistic only). The geometry holds what any
+            dense pose observes, as a real mesh is fused from every frame of the video while only a sparse
+            subset are exported; written frames are every ``dense_factor``-th pose.
+        unannotated_stuff: Fraction of the wall and floor points whose ground truth is left unannotated
+            (-1), in blobs, as annotators of a real capture skip segments (realistic only).
     """
 
     name: str
@@ -53,6 +62,9 @@ class SyntheticSpec:
     room_height: Range = (2.5, 2.8)
     zone_length: float = 4.5
     feature_space: str = "minilm-l6"
+    realistic: bool = False
+    dense_factor: int = 1
+    unannotated_stuff: float = 0.0
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -70,6 +82,10 @@ class SyntheticSpec:
         _check_range("room_height", self.room_height, 2.2)
         if self.zone_length < 3.0:
             raise ConfigError(f"zone_length: expected >= 3 m, got {self.zone_length}")
+        if self.dense_factor < 1:
+            raise ConfigError(f"dense_factor: expected >= 1, got {self.dense_factor}")
+        if not 0.0 <= self.unannotated_stuff < 1.0:
+            raise ConfigError(f"unannotated_stuff: expected a fraction in [0, 1), got {self.unannotated_stuff}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,6 +128,11 @@ class FeatureNoise:
         confused_area: Fraction of each frame covered by smooth blobs that lean towards a confusable class.
         area_weight: Lean inside those blobs.
         blur_cells: Gaussian blur of the feature map after area averaging, in cells (0 = none).
+        anchored_area: Fraction of the surface inside confusion regions fixed in the world (0 = off): spheres
+            where a class with related classes (``catalog.RELATED``) leans towards one of them in every view,
+            so that multi-view fusion cannot average the error away (realistic scenes only).
+        anchored_weight: Range of the lean inside an anchored region (drawn per region).
+        anchored_radius_m: Range of the anchored regions' radii, metres.
     """
 
     instance_spread: float = 0.25
@@ -122,6 +143,9 @@ class FeatureNoise:
     confused_area: float = 0.04
     area_weight: float = 0.6
     blur_cells: float = 0.5
+    anchored_area: float = 0.0
+    anchored_weight: Range = (0.5, 0.8)
+    anchored_radius_m: Range = (0.25, 0.6)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -159,11 +183,16 @@ class TrajectoryNoise:
         position_m: Gaussian position jitter, metres.
         rotation_deg: Gaussian roll / pitch / yaw jitter, degrees.
         uneven: Spread of the step lengths along the path (0 = equal steps; 1 = gamma-distributed bursts).
+        pose_error_m: Gaussian error of the written poses against the ones rendered, metres per axis (0 =
+            off): a real capture's poses come from its own registration and are off by a little per frame.
+        pose_error_deg: The same for the rotation, degrees per axis.
     """
 
     position_m: float = 0.02
     rotation_deg: float = 1.5
     uneven: float = 0.3
+    pose_error_m: float = 0.0
+    pose_error_deg: float = 0.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -189,6 +218,15 @@ PRESETS: dict[str, SyntheticSpec] = {
     "large": SyntheticSpec(
         name="large", num_frames=120, num_points=152_000, room_length=(10.0, 12.0), room_width=(7.0, 8.5),
         room_height=(2.7, 3.0), zone_length=3.6, feature_space="clip-vit-b32",
+    ),
+    # Like the held-out ScanNet capture of issue 8 (docs/synthetic.md, "The scan preset"): 58 degree depth
+    # camera at half its 640x480, feature maps a quarter of that, 1400 dense poses of which 140 are written
+    # and 70 (every 20th pose, as the real key frames) are key frames, CLIP features; 80k surface samples of
+    # which 45-51k are observed; 22 % of the wall and floor unannotated.
+    "scan": SyntheticSpec(
+        name="scan", hfov_deg=58.0, num_frames=140, key_frame_stride=2, num_points=80_000,
+        room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",
+        realistic=True, dense_factor=10, unannotated_stuff=0.22,
     ),
 }  # fmt: skip
 
@@ -220,6 +258,39 @@ DIFFICULTIES: dict[str, Difficulty] = {
 }  # fmt: skip
 
 
+def _realistic(base: Difficulty, trajectory: dict[str, float], features: dict[str, object]) -> Difficulty:
+    """A difficulty of :data:`DIFFICULTIES` with the realism strengths switched on (see below)."""
+    return replace(
+        base,
+        features=replace(base.features, **features),  # type: ignore[arg-type]
+        trajectory=replace(base.trajectory, **trajectory),
+    )
+
+
+# The difficulties of a realistic spec (preset ``scan``): the sensor models of DIFFICULTIES, with world-anchored
+# confusions, more confused instances, a realistic blur of the quarter-resolution feature maps and pose errors,
+# calibrated so that the fused-feature argmax baseline lands near the real capture's mIoU (docs/synthetic.md).
+REALISTIC_DIFFICULTIES: dict[str, Difficulty] = {
+    "easy": _realistic(
+        DIFFICULTIES["easy"],
+        trajectory={"pose_error_m": 0.0, "pose_error_deg": 0.0},
+        features={"blur_cells": 0.0, "anchored_area": 0.0},
+    ),
+    "default": _realistic(
+        DIFFICULTIES["default"],
+        trajectory={"pose_error_m": 0.01, "pose_error_deg": 0.4},
+        features={"confused_instances": 0.12, "confusion_weight": (0.35, 0.75), "blur_cells": 0.7,
+                  "anchored_area": 0.07, "anchored_weight": (0.55, 0.85)},
+    ),
+    "hard": _realistic(
+        DIFFICULTIES["hard"],
+        trajectory={"pose_error_m": 0.02, "pose_error_deg": 0.7},
+        features={"confused_instances": 0.22, "confusion_weight": (0.4, 0.8), "blur_cells": 1.0,
+                  "anchored_area": 0.17, "anchored_weight": (0.55, 0.9)},
+    ),
+}  # fmt: skip
+
+
 def get_preset(preset: str | SyntheticSpec) -> SyntheticSpec:
     """The spec of a preset name (or the spec itself).
 
@@ -233,14 +304,20 @@ def get_preset(preset: str | SyntheticSpec) -> SyntheticSpec:
     return PRESETS[preset]
 
 
-def get_difficulty(difficulty: str | Difficulty) -> Difficulty:
+def get_difficulty(difficulty: str | Difficulty, realistic: bool = False) -> Difficulty:
     """The degradation level of a difficulty name (or the level itself).
+
+    Args:
+        difficulty: ``easy``, ``default``, ``hard`` or a :class:`Difficulty` (returned as is).
+        realistic: Look a name up in :data:`REALISTIC_DIFFICULTIES` (for a realistic spec) rather than in
+            :data:`DIFFICULTIES`.
 
     Raises:
         ConfigError: for an unknown difficulty name.
     """
     if isinstance(difficulty, Difficulty):
         return difficulty
-    if difficulty not in DIFFICULTIES:
-        raise ConfigError(f"difficulty: expected one of {sorted(DIFFICULTIES)}, got {difficulty!r}")
-    return DIFFICULTIES[difficulty]
+    table = REALISTIC_DIFFICULTIES if realistic else DIFFICULTIES
+    if difficulty not in table:
+        raise ConfigError(f"difficulty: expected one of {sorted(table)}, got {difficulty!r}")
+    return table[difficulty]

@@ -40,10 +40,13 @@ def look_pose(position: np.ndarray, yaw: float, pitch: float, roll: float = 0.0)
     return pose
 
 
-def _loop(room: np.ndarray, count: int = 2000) -> np.ndarray:  # (count, 2)
-    """Dense rounded rectangle (a superellipse) inset from the walls."""
-    inset = np.clip(0.25 * room[:2], 0.9, 1.6)
-    half = np.maximum(room[:2] / 2 - inset, 0.15)
+def _loop(room: np.ndarray, count: int = 2000, inset: float | None = None) -> np.ndarray:  # (count, 2)
+    """Dense rounded rectangle (a superellipse) inset from the walls by ``inset`` metres.
+
+    The default inset is a quarter of the room's side, kept within 0.9-1.6 m.
+    """
+    margin = np.clip(0.25 * room[:2], 0.9, 1.6) if inset is None else np.full(2, inset)
+    half = np.maximum(room[:2] / 2 - margin, 0.15)
     theta = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
     c, s = np.cos(theta), np.sin(theta)
     return room[:2] / 2 + half * np.stack([np.sign(c) * np.abs(c) ** 0.5, np.sign(s) * np.abs(s) ** 0.5], 1)
@@ -60,11 +63,13 @@ def _stations(path: np.ndarray, n: int, uneven: float, rng: np.random.Generator)
     return np.stack([np.interp(s, arc, closed[:, 0]), np.interp(s, arc, closed[:, 1])], 1)
 
 
-def _push_clear(xy: np.ndarray, layout: Layout) -> np.ndarray:
-    """Move positions towards the room centre until no box reaching camera height is within reach."""
+def _push_clear(
+    xy: np.ndarray, layout: Layout, min_top: float = _HEIGHT[0] - 0.5, clearance: float = _CLEARANCE
+) -> np.ndarray:
+    """Move positions towards the room centre until no box higher than ``min_top`` is within ``clearance``."""
     b = layout.boxes
     tall = np.arange(NUM_STUFF, len(b.yaw))
-    tall = tall[b.centers[tall, 2] + b.half[tall, 2] > _HEIGHT[0] - 0.5]
+    tall = tall[b.centers[tall, 2] + b.half[tall, 2] > min_top]
     centre = layout.room[:2] / 2
     out = xy.copy()
     for _ in range(30):
@@ -73,7 +78,7 @@ def _push_clear(xy: np.ndarray, layout: Layout) -> np.ndarray:
         lx = np.abs(c * rel[..., 0] + s * rel[..., 1]) - b.half[tall, 0]
         ly = np.abs(-s * rel[..., 0] + c * rel[..., 1]) - b.half[tall, 1]
         dist = np.hypot(np.maximum(lx, 0), np.maximum(ly, 0))
-        near = (dist < _CLEARANCE).any(axis=1) if len(tall) else np.zeros(len(out), bool)
+        near = (dist < clearance).any(axis=1) if len(tall) else np.zeros(len(out), bool)
         if not near.any():
             break
         step = centre - out[near]

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from panogs_core.bundle import Scene, open_bundle
 from panogs_core.errors import ConfigError, EncoderUnavailableError
-from panogs_core.synthetic import CLASS_KINDS, CLASS_NAMES, PRESETS, build_layout, make_scene
+from panogs_core.synthetic import CLASS_KINDS, CLASS_NAMES, PRESETS, SyntheticSpec, build_layout, make_scene
 from panogs_core.synthetic.layout import NUM_STUFF
 from panogs_core.synthetic.placement import Boxes, inside_room, overlaps
 from panogs_core.synthetic.sampling import sample_surfaces
@@ -340,3 +340,155 @@ def test_same_class_instances_look_alike() -> None:
     # Random 384-d rows are sqrt(2) apart (s_c = 1.41), so the spread is 0.25 * 1.41 = 0.35: cosine about
     # 1 / (1 + 0.35^2) = 0.89 between two instances. The per-dimension sigma of 0.1 it replaced gave 0.13.
     assert cos.min() > 0.8
+
+
+def test_old_presets_unchanged(easy_scene: Scene) -> None:
+    """The realistic preset must not move a byte of the older ones (benchmarks stay comparable).
+
+    The numbers were read from a tiny / easy / seed 0 bundle made before the ``scan`` preset existed; counts
+    must match exactly, sums to their printed precision (robust to last-bit differences between machines).
+    """
+    geo, gt = easy_scene.read_geometry(), easy_scene.read_ground_truth()
+    assert geo is not None
+    assert gt is not None
+    frame = easy_scene.frames[5]
+    depth, masks = easy_scene.read_depth(frame), easy_scene.read_masks(frame)
+    feats = easy_scene.read_features(frame).astype(np.float32)
+    assert len(geo.points) == 6855
+    assert np.bincount(gt.semantic).tolist() == [2757, 758, 381, 369, 0, 358, 330, 290, 256, 239, 804, 143, 0, 0, 170]
+    assert len(np.unique(gt.instance)) == 26
+    np.testing.assert_allclose(geo.points.astype(np.float64).sum(axis=0), [15727.002, 10762.566, 7315.255], atol=2e-3)
+    np.testing.assert_allclose(frame.T_world_cam[:3, 3], [1.717885, 2.460244, 1.447618], atol=2e-6)
+    assert int((depth > 0).sum()) == 19089
+    assert float(depth[depth > 0].mean()) == pytest.approx(2.009414, abs=2e-6)
+    np.testing.assert_allclose(feats.mean(axis=(0, 1))[:4], [-0.01137, 0.00984, -0.00849, -0.00386], atol=2e-5)
+    assert len(np.unique(masks)) == 14
+
+
+class TestScanPreset:
+    """The realistic preset: a dense capture of a cluttered studio, sparse key frames, unannotated truth."""
+
+    @staticmethod
+    def _small() -> SyntheticSpec:
+        # the full preset takes ~30-40 s; the mechanisms show on a low-resolution, short capture of the room
+        return dataclasses.replace(PRESETS["scan"], width=160, height=120, num_frames=24, num_points=20_000)
+
+    @pytest.fixture(scope="class")
+    def scan(self, tmp_path_factory: pytest.TempPathFactory) -> Scene:
+        root = tmp_path_factory.mktemp("scan") / "scene"
+        return open_bundle(make_scene(root, preset=self._small(), difficulty="default", seed=0))
+
+    def test_frames(self, scan: Scene) -> None:
+        spec = PRESETS["scan"]
+        assert spec.realistic
+        assert spec.feature_space == CLIP
+        assert spec.feature_stride == 4
+        assert scan.feature_space == CLIP
+        assert len(scan.frames) == 24
+        assert len(scan.feature_frames) == len(scan.mask_frames) == 12  # every other frame is depth-only
+        feats = scan.read_features(scan.feature_frames[0])
+        assert feats.shape == (120 // 4, 160 // 4, 512)
+
+    def test_unannotated_ground_truth(self, scan: Scene) -> None:
+        gt, geo = scan.read_ground_truth(), scan.read_geometry()
+        assert gt is not None
+        assert geo is not None
+        unannotated = gt.semantic < 0
+        np.testing.assert_array_equal(unannotated, gt.instance < 0)
+        assert 0.1 < unannotated.mean() < 0.45
+        # clutter sits off the walls and the floor: unannotated points in the middle of the room
+        room_min, room_max = geo.points.min(axis=0), geo.points.max(axis=0)
+        inner = (geo.points[:, :2] > room_min[:2] + 0.3).all(1) & (geo.points[:, :2] < room_max[:2] - 0.3).all(1)
+        assert (unannotated & inner & (geo.points[:, 2] > 0.05)).sum() > 100
+        assert gt.semantic.max() < len(CLASS_NAMES)
+
+    def test_some_geometry_seen_by_no_key_frame(self, scan: Scene) -> None:
+        """The geometry comes from the dense trajectory; the sparse key frames miss part of it."""
+        from panogs_core.visibility import VisibilityConfig, compute_visibility
+
+        geo = scan.read_geometry()
+        assert geo is not None
+        vis = compute_visibility(scan, geo.points, VisibilityConfig())
+        seen = np.zeros(len(geo.points), dtype=bool)
+        seen[vis.point_index] = True
+        assert 0.1 < 1.0 - seen.mean() < 0.9
+
+    def test_layout(self) -> None:
+        from panogs_core.synthetic.catalog import CLASS_ID
+
+        for seed in (0, 1):
+            layout = build_layout(PRESETS["scan"], np.random.default_rng(seed))
+            assert layout.annotated is not None
+            assert not layout.annotated[1]  # the ceiling, as ScanNet's 20 classes have none
+            assert (~layout.annotated[NUM_STUFF:]).sum() >= 20  # clutter
+            things = layout.instance_class[NUM_STUFF:][layout.annotated[NUM_STUFF:]]
+            assert {CLASS_ID[c] for c in ("cabinet", "counter", "sink", "bed", "sofa", "table", "curtain")} <= set(
+                things.tolist()
+            )
+            assert (things == CLASS_ID["cabinet"]).sum() >= 4
+            # the sink stands on the counter: they are listed as touching
+            sink = np.flatnonzero(layout.instance_class == CLASS_ID["sink"])
+            counter = np.flatnonzero(layout.instance_class == CLASS_ID["counter"])
+            pairs = {tuple(sorted(p)) for p in layout.contacts.tolist()}
+            assert any(tuple(sorted((int(s), int(c)))) in pairs for s in sink for c in counter)
+            b, idx = layout.boxes, np.arange(NUM_STUFF, len(layout.boxes.yaw))
+            assert inside_room(Boxes(b.centers[idx], b.half[idx], b.yaw[idx]), layout.room)
+            for k in idx:
+                other = idx[layout.box_instance[idx] != layout.box_instance[k]]
+                one = Boxes(b.centers[[k]], b.half[[k]], b.yaw[[k]])
+                assert not overlaps(one, Boxes(b.centers[other], b.half[other], b.yaw[other]), -1e-4)
+
+    def test_realistic_difficulties(self) -> None:
+        from panogs_core.synthetic.presets import DIFFICULTIES, REALISTIC_DIFFICULTIES, get_difficulty
+
+        assert get_difficulty("hard", realistic=True) is REALISTIC_DIFFICULTIES["hard"]
+        assert get_difficulty("hard") is DIFFICULTIES["hard"]
+        for name, level in DIFFICULTIES.items():
+            assert level.features.anchored_area == 0.0  # the realism strengths are off outside realistic specs
+            assert level.trajectory.pose_error_m == 0.0
+            assert REALISTIC_DIFFICULTIES[name].depth == level.depth  # same sensors
+        areas = [REALISTIC_DIFFICULTIES[n].features.anchored_area for n in ("easy", "default", "hard")]
+        assert areas == sorted(areas)
+        assert areas[-1] > 0
+
+
+def test_anchored_confusion_is_the_same_in_every_view() -> None:
+    """Inside a world-anchored region a class leans to the same related class in every frame."""
+    from panogs_core.synthetic.anchored import Anchors, synthesize_anchored_features
+    from panogs_core.synthetic.catalog import CLASS_ID, RELATED
+    from panogs_core.synthetic.features import make_feature_model
+    from panogs_core.synthetic.presets import FeatureNoise
+
+    rng = np.random.default_rng(0)
+    emb = rng.standard_normal((len(CLASS_NAMES), 64)).astype(np.float32)
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    cabinet = CLASS_ID["cabinet"]
+    noise = FeatureNoise(instance_spread=0.1, view_sigma=0.05, pixel_sigma=0.1, confused_instances=0.0,
+                         confused_area=0.0, blur_cells=0.0)  # fmt: skip
+    model = make_feature_model(emb, np.array([cabinet]), noise, rng, related=True)
+    anchors = Anchors(centres=np.array([[0.0, 0.0, 0.0]]), radii=np.array([1.0]), pick=np.array([0.0]),
+                      weight=np.array([0.8]))  # fmt: skip
+    instance = np.zeros((8, 16), dtype=np.int64)
+    world = np.zeros((8, 16, 3))
+    world[:, 8:, 0] = 5.0  # the right half of the image lies outside the region
+    target = CLASS_ID[RELATED["cabinet"][0]]
+    for seed in range(4):
+        feats = synthesize_anchored_features(model, anchors, np.array([True]), instance, world, (4, 8),
+                                             np.random.default_rng(seed))  # fmt: skip
+        pred = (feats.astype(np.float32) @ emb.T).argmax(axis=-1)
+        assert (pred[:, :4] == target).all()
+        assert (pred[:, 4:] == cabinet).all()
+    # clutter (an unannotated instance) never leans
+    feats = synthesize_anchored_features(model, anchors, np.array([False]), instance, world, (4, 8),
+                                         np.random.default_rng(0))  # fmt: skip
+    assert ((feats.astype(np.float32) @ emb.T).argmax(axis=-1) == cabinet).all()
+
+
+def test_related_table() -> None:
+    from panogs_core.synthetic.catalog import CLASS_ID, RELATED
+
+    assert set(RELATED) == set(CLASS_NAMES)
+    assert all(c in CLASS_ID and c != name for name, related in RELATED.items() for c in related)
+    assert {"counter", "desk", "table"} <= set(RELATED["cabinet"])
+    assert "wall" in RELATED["door"]
+    assert {"curtain", "wall"} <= set(RELATED["window"])
