@@ -20,13 +20,18 @@ Baselines (computed from the run's own fusion checkpoint, no segments, no field)
 Method variants (a labelling-only variant reuses every earlier stage's checkpoint):
 
 - full: the method as configured by default
-- previous: the labelling before issue 8 (field classes everywhere, the reference vote, clusters as instances)
+- previous: the method before issue 8 (no mask pooling in the fusion; field classes everywhere, the
+  reference vote, clusters as instances)
+- vote-purity-0.8: the island vote only in segments whose majority holds 80 % (instead of 50 %)
+- vote-any-island / vote-small-islands: islands flip whatever their own evidence (no close-second test),
+  islands under 150 or under 50 primitives
 - evidence-field / evidence-mix: classes of seen primitives from the field (or half field, half fused)
 - vote-none / vote-reference: no vote, or the reference's vote of the whole super-primitive (purity 0.5)
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
-- pool-0.5 / pool-0.8: fusion blends each primitive's feature cell with its 2D mask's pooled feature
+- no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
+  mask's pooled feature at 0.8 instead of 0.5
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
   reference-grouping: the grouping ablations of issue 2 (they recompute the graph cut or the clustering)
 """
@@ -56,7 +61,11 @@ from panogs_core.synthetic import make_scene
 PREVIOUS = {"evidence_fused_weight": 0.0, "unseen": "field", "vote": "superprimitive", "instances": "clusters"}
 VARIANTS: dict[str, dict] = {
     "full": {},
-    "previous": {"labeling": PREVIOUS},
+    "previous": {"labeling": PREVIOUS, "fusion": {"mask_pooling": 0.0}},
+    "no-pool": {"fusion": {"mask_pooling": 0.0}},
+    "vote-purity-0.8": {"labeling": {"vote_min_fraction": 0.8}},
+    "vote-any-island": {"labeling": {"vote_max_ratio": 0.0}},
+    "vote-small-islands": {"labeling": {"vote_max_ratio": 0.0, "island_points": 50}},
     "evidence-field": {"labeling": {"evidence_fused_weight": 0.0}},
     "evidence-mix": {"labeling": {"evidence_fused_weight": 0.5}},
     "vote-none": {"labeling": {"vote": "none"}},
@@ -65,7 +74,6 @@ VARIANTS: dict[str, dict] = {
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
-    "pool-0.5": {"fusion": {"mask_pooling": 0.5}},
     "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
     "lang-affinity": {"affinity": {"mode": "language"}},
     "no-lang-cut": {"superprimitives": {"use_language": False}},
@@ -76,8 +84,9 @@ VARIANTS: dict[str, dict] = {
     "reference-grouping": {"superprimitives": {"split_purity": 0.0}, "affinity": {"aggregate": "mean"}},
 }
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
-DEFAULT_VARIANTS = ["full", "previous", "evidence-field", "evidence-mix", "vote-none", "vote-reference",
-                    "unseen-field", "unseen-propagate", "inst-clusters", "inst-components"]  # fmt: skip
+DEFAULT_VARIANTS = ["full", "vote-none", "vote-reference", "vote-any-island", "vote-small-islands",
+                    "evidence-mix", "unseen-field", "unseen-propagate", "inst-clusters", "inst-components",
+                    "previous", "no-pool"]  # fmt: skip
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff", "miou_seen", "miou_unseen")
 
 # The held-out real ScanNet room of issue 8 (81,369 mesh vertices, 100 key frames).

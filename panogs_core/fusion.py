@@ -75,7 +75,7 @@ class FusionConfig:
     # the mean feature of the mask's cells, weighted by how much of each cell the mask covers
     # (``mask_pooled_features``). Feature maps are a quarter of the depth resolution on real captures, so
     # a cell on an object's border mixes both sides; the masks are sharp there. 0 = off (the reference).
-    mask_pooling: float = 0.0
+    mask_pooling: float = 0.5
 
     def __post_init__(self) -> None:
         if self.confidence not in _CONFIDENCE_MODES:

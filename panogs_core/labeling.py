@@ -83,7 +83,8 @@ class LabelingConfig:
     # issue 8 are evidence_fused_weight=0, unseen="field", vote="superprimitive", instances="clusters".
     evidence_fused_weight: float = 1.0
     unseen: Literal["segment", "propagate", "field"] = "segment"
-    island_points: int = 50
+    island_points: int = 150
+    vote_max_ratio: float = 0.1
     instances: Literal["clusters", "components", "hybrid"] = "hybrid"
     component_radius: float = 0.10
     split_min_points: int = 200
@@ -108,6 +109,8 @@ class LabelingConfig:
             raise ConfigError(
                 f"labeling.split_min_fraction: expected a value in [0, 1], found {self.split_min_fraction}"
             )
+        if not (np.isfinite(self.vote_max_ratio) and 0.0 <= self.vote_max_ratio <= 1.0):
+            raise ConfigError(f"labeling.vote_max_ratio: expected a value in [0, 1], found {self.vote_max_ratio}")
         for name in ("island_points", "split_min_points"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"labeling.{name}: expected >= 0, found {getattr(self, name)}")
@@ -270,16 +273,20 @@ def assign_panoptic(
         neighbors = build_knn(points, min(cfg.split_neighbors, max(len(pts) - 1, 1))).neighbors
     nbr = None if neighbors is None else np.asarray(neighbors, np.int64)
     unseen_counts: dict[str, int] = {}
+    scores = field_sims
     if fused is None:
         # DEPARTURE (reference 7.2 takes the argmax everywhere): a zero feature has no evidence, so class -1
         # rather than class 0 by accident of argmax; the vote can still fill it from its segment.
         cls = np.where(sq_norm > 1e-12, np.argmax(field_sims, axis=1), -1).astype(np.int64)
     else:
-        cls = primitive_classes(field_sims, fused, emb, cfg)
+        cls, scores = primitive_classes(field_sims, fused, emb, cfg)
     if cfg.vote == "superprimitive":
         cls = vote_in_segments(cls, segments, cfg.vote_min_fraction)
     elif cfg.vote == "islands" and nbr is not None:
-        cls = vote_islands(cls, segments, nbr, cfg.island_points, cfg.vote_min_fraction)
+        margin = None
+        if cfg.vote_max_ratio > 0:  # the score gap a flip may cross: T ln(1 / ratio) in cosine units
+            margin = (cfg.score_temperature or default_temperature(None, emb)) * np.log(1.0 / cfg.vote_max_ratio)
+        cls = vote_islands(cls, segments, nbr, cfg.island_points, cfg.vote_min_fraction, scores, margin)
     if fused is not None and nbr is not None:
         cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen)
     if cfg.instances != "clusters" and nbr is not None:
@@ -300,7 +307,7 @@ def primitive_classes(
     fused: np.ndarray,  # (N, D) fused mean features, zero rows where no key frame saw the primitive
     emb: np.ndarray,  # (L, D) unit class embeddings
     cfg: LabelingConfig,
-) -> np.ndarray:  # (N,) int64, -1 where unseen
+) -> tuple[np.ndarray, np.ndarray]:  # (N,) int64 class (-1 where unseen), (N, L) the scores
     """Class of each seen primitive from its fused and field cosines; -1 where no key frame saw it.
 
     DEPARTURE (reference 7.2 labels with the field's features): on a held-out ScanNet room the argmax of the
@@ -314,7 +321,7 @@ def primitive_classes(
     if w > 0.0:
         unit = fused[seen] / np.linalg.norm(fused[seen], axis=1, keepdims=True)
         scores[seen] += w * (unit @ emb.T)
-    return np.where(seen, np.argmax(scores, axis=1), -1).astype(np.int64)
+    return np.where(seen, np.argmax(scores, axis=1), -1).astype(np.int64), scores
 
 
 def vote_islands(
@@ -323,6 +330,8 @@ def vote_islands(
     neighbors: np.ndarray,  # (N, K) kNN (self excluded)
     island_points: int,
     min_fraction: float = 0.5,
+    scores: np.ndarray | None = None,  # (N, L) class scores the classes are the argmax of
+    max_margin: float | None = None,
 ) -> np.ndarray:  # (N,) int64
     """The vote inside super-primitives, restricted to small islands of another class.
 
@@ -354,6 +363,12 @@ def vote_islands(
     small = np.bincount(patch, minlength=n)[patch] < island_points
     target = winner[segments]
     flip = voters & small & (target >= 0) & (target != classes)
+    if scores is not None and max_margin is not None:
+        # Only where the segment's class is a close second: its score trails the primitive's own by at most
+        # ``max_margin``. A confident island (a sink the masks and features agree on) keeps its class.
+        rows = np.flatnonzero(flip)
+        gap = scores[rows, classes[rows]] - scores[rows, target[rows]]
+        flip[rows[gap > max_margin]] = False
     out = classes.copy()
     out[flip] = target[flip]
     return out

@@ -33,6 +33,9 @@ class FakeScene:
     def read_color(self, frame: Frame) -> np.ndarray | None:
         return self.colors.get(frame.id)
 
+    def read_masks(self, frame: Frame) -> np.ndarray:  # no 2D mask anywhere: mask pooling changes nothing
+        return np.zeros((self.camera.height, self.camera.width), np.int32)
+
 
 def _frame(fid: str, *, features: bool = True, color: bool = False) -> Frame:
     return Frame(
@@ -303,7 +306,7 @@ class TestFusionOnABundle:
         scene = open_bundle(writer.close())
         points = np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.0, 5.0]], np.float32)  # u = 2.5, 4.0
         vis = compute_visibility(scene, points, VisibilityConfig())
-        fused = fuse_features(scene, vis, 3, FusionConfig())
+        fused = fuse_features(scene, vis, 3, FusionConfig(mask_pooling=0.0))  # one mask over both halves
         np.testing.assert_allclose(fused.features, [E0, E1, np.zeros(D)], atol=1e-3)
         assert fused.seen_count.tolist() == [1, 1, 0]
         assert fused.colors is not None
@@ -312,7 +315,7 @@ class TestFusionOnABundle:
 
 @dataclass
 class MaskedScene(FakeScene):
-    """A FakeScene whose frames also have 2D masks."""
+    """A FakeScene whose frames have 2D masks."""
 
     masks: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -333,7 +336,7 @@ class TestMaskPooling:
 
     def test_pooling_pulls_a_border_primitive_to_its_object(self) -> None:
         scene, vis = self._scene()
-        plain = fuse_features(scene, vis, 2, FusionConfig())
+        plain = fuse_features(scene, vis, 2, FusionConfig(mask_pooling=0.0))
         pooled = fuse_features(scene, vis, 2, FusionConfig(mask_pooling=0.8))
         assert np.argmax(plain.features[0]) == 1  # the bled feature
         assert np.argmax(pooled.features[0]) == 0  # its mask's feature

@@ -398,9 +398,9 @@ class TestIssue8Rules:
         fused = np.eye(4, dtype=np.float32)[[WALL, CHAIR, TABLE]] * 0.5
         fused[2] = 0.0  # never seen
         cfg = LabelingConfig(evidence_fused_weight=1.0)
-        assert primitive_classes(field_sims, fused, emb, cfg).tolist() == [WALL, CHAIR, -1]
+        assert primitive_classes(field_sims, fused, emb, cfg)[0].tolist() == [WALL, CHAIR, -1]
         cfg = LabelingConfig(evidence_fused_weight=0.0)
-        assert primitive_classes(field_sims, fused, emb, cfg).tolist() == [WALL, WALL, -1]
+        assert primitive_classes(field_sims, fused, emb, cfg)[0].tolist() == [WALL, WALL, -1]
 
     def test_island_vote_keeps_large_patches(self) -> None:
         from panogs_core.labeling import vote_islands
@@ -413,6 +413,19 @@ class TestIssue8Rules:
         assert out[20:28].tolist() == [3] * 8  # the 8-primitive patch survives
         assert out[28:].tolist() == [2, 2]  # the 2-primitive island joins the majority
         assert vote_islands(cls, seg, nbr, island_points=10)[20:28].tolist() == [2] * 8
+
+    def test_island_vote_spares_confident_islands(self) -> None:
+        from panogs_core.labeling import vote_islands
+
+        cls = np.array([2] * 20 + [3] * 4 + [1] * 4)
+        nbr = np.stack([np.r_[1:28, 26], np.r_[1, 0:27]], 1)
+        scores = np.zeros((28, 4), np.float32)
+        scores[np.arange(28), cls] = 0.30
+        scores[20:24, 2] = 0.299  # the counter patch: cabinet is a close second
+        scores[24:, 2] = 0.10  # the chair patch: cabinet is far behind
+        out = vote_islands(cls, np.zeros(28, np.int64), nbr, 10, 0.5, scores, max_margin=0.01)
+        assert out[20:24].tolist() == [2] * 4  # flipped to the segment's class
+        assert out[24:].tolist() == [1] * 4  # kept: its own evidence is confident
 
     def test_unseen_propagates_along_the_surface(self) -> None:
         from panogs_core.baselines import fill_nearest_seen
@@ -477,6 +490,7 @@ class TestIssue8Rules:
             ({"evidence_fused_weight": 2.0}, "evidence_fused_weight"),
             ({"component_radius": 0.0}, "component_radius"),
             ({"split_min_fraction": -0.1}, "split_min_fraction"),
+            ({"vote_max_ratio": 2.0}, "vote_max_ratio"),
         ],
     )
     def test_exception(self, kwargs: dict[str, object], match: str) -> None:
