@@ -56,14 +56,29 @@ class LabelingConfig:
         split_classes: Split a cluster's thing primitives into one instance per class and connected part
             (``_assemble_split``) instead of relabelling them all to the cluster's majority thing class.
         split_neighbors: Neighbours of the kNN graph built for the split when ``assign_panoptic`` gets none.
+        island_points: The island vote flips connected patches of fewer primitives than this.
+        vote_max_ratio: The island vote flips a primitive only when the softmax probability of the segment's
+            class is at least this share of its own class's (0 = always).
+        evidence_fused_weight: Class evidence of a seen primitive: this weight on the fused feature's
+            cosines, the rest on the field's (1 = fused only).
+        unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``propagate`` (the nearest
+            seen class along the kNN graph) or ``field`` (the field's extrapolation, the reference).
+        instances: ``hybrid`` (class components split by large clusters), ``components`` or ``clusters``
+            (the SAM-guided clusters, split by class: the method before issue 8).
+        component_radius: Longest kNN edge that joins two primitives of one class into a component, metres.
+        split_min_points: A cluster splits a component only if it holds this many of its primitives ...
+        split_min_fraction: ... and this share of it, and so does at least one other cluster.
     """
 
     # DEPARTURE (reference 7.3 always votes): reference 13 measured voting inside coarse segments lowering
-    # mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment of another majority class; a segment
-    # whose majority holds less than half of it is such a mixed segment, so it is left alone.
-    # On by default, as the reference. It was off for a while: with synthetic features that carried a random
-    # per-instance code (fixed since) and straddling super-primitives (now cut by the masks) it measured worse.
-    # bench/quality.py, small preset, seeds 0-3, "full" (vote) against "no-vote": see docs/benchmarks.md.
+    # mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment of another majority class, and on the
+    # held-out ScanNet room of issue 8 the vote cost 4-5 mIoU points at easy and default. No vote at all loses
+    # at default and hard, where the per-primitive classes are noisy. So ``islands`` (``vote_islands``): only
+    # a connected patch of another class smaller than ``island_points`` flips to its segment's majority, and
+    # only where that majority is a close second for it (softmax ratio >= ``vote_max_ratio``); a confident
+    # patch is an object on or in a larger one (a sink in its counter), not noise. On the realistic scan
+    # rooms (seeds 0-1) this was at or above both no vote and the plain island vote at every difficulty; the
+    # four-seed table is in docs/benchmarks.md. ``vote_min_fraction`` is the purity guard of both votes.
     vote: Literal["superprimitive", "islands", "none"] = "islands"
     vote_min_fraction: float = 0.5
     min_instance_points: int = 50
@@ -78,9 +93,9 @@ class LabelingConfig:
     split_classes: bool = True
     split_neighbors: int = 7  # kNN used for the split when the caller passes none (the stage passes stage 5's)
     # Issue 8 (labels that never lose to the fused-feature baselines): where the class evidence of a seen
-    # primitive comes from, what the unseen ones get, and how instances are cut. The defaults below are the
-    # rules that won in bench/quality.py on the realistic rooms; the values that reproduce the labelling before
-    # issue 8 are evidence_fused_weight=0, unseen="field", vote="superprimitive", instances="clusters".
+    # primitive comes from (``primitive_classes``), what the unseen ones get (``label_unseen``), and how
+    # instances are cut (``_assemble_components``). The values that reproduce the labelling before issue 8:
+    # evidence_fused_weight=0, unseen="field", vote="superprimitive", instances="clusters".
     evidence_fused_weight: float = 1.0
     unseen: Literal["segment", "propagate", "field"] = "segment"
     island_points: int = 150
