@@ -333,9 +333,10 @@ def primitive_classes(
     w = cfg.evidence_fused_weight
     seen = np.einsum("nd,nd->n", fused, fused) > 1e-12
     scores = field_sims * (1.0 - w) if w < 1.0 else np.zeros_like(field_sims)
-    if w > 0.0:
-        unit = fused[seen] / np.linalg.norm(fused[seen], axis=1, keepdims=True)
-        scores[seen] += w * (unit @ emb.T)
+    if w > 0.0:  # cosines as (F e) / |F|: no normalised (N, D) copy of the fused features (0.3 GB at 150k)
+        norm = np.sqrt(np.einsum("nd,nd->n", fused, fused))
+        cos = (fused @ emb.T) / np.maximum(norm, 1e-12)[:, None]
+        scores[seen] += w * cos[seen]
     return np.where(seen, np.argmax(scores, axis=1), -1).astype(np.int64), scores
 
 
