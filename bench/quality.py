@@ -25,7 +25,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - vote-purity-0.8: the island vote only in segments whose majority holds 80 % (instead of 50 %)
 - vote-any-island / vote-small-islands: islands flip whatever their own evidence (no close-second test),
   islands under 150 or under 50 primitives
-- evidence-field / evidence-mix: classes of seen primitives from the field (or half field, half fused)
+- evidence-field / evidence-fused: classes of seen primitives from the field alone, or from the fused
+  features alone (full: half each)
 - vote-none / vote-reference: no vote, or the reference's vote of the whole super-primitive (purity 0.5)
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority
@@ -67,7 +68,7 @@ VARIANTS: dict[str, dict] = {
     "vote-any-island": {"labeling": {"vote_max_ratio": 0.0}},
     "vote-small-islands": {"labeling": {"vote_max_ratio": 0.0, "island_points": 50}},
     "evidence-field": {"labeling": {"evidence_fused_weight": 0.0}},
-    "evidence-mix": {"labeling": {"evidence_fused_weight": 0.5}},
+    "evidence-fused": {"labeling": {"evidence_fused_weight": 1.0}},
     "vote-none": {"labeling": {"vote": "none"}},
     "vote-reference": {"labeling": {"vote": "superprimitive"}},
     "unseen-field": {"labeling": {"unseen": "field"}},
@@ -85,7 +86,7 @@ VARIANTS: dict[str, dict] = {
 }
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
 DEFAULT_VARIANTS = ["full", "vote-none", "vote-reference", "vote-any-island", "vote-small-islands",
-                    "evidence-mix", "unseen-field", "unseen-propagate", "inst-clusters", "inst-components",
+                    "evidence-fused", "unseen-field", "unseen-propagate", "inst-clusters", "inst-components",
                     "previous", "no-pool"]  # fmt: skip
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff", "miou_seen", "miou_unseen")
 
@@ -115,7 +116,7 @@ def plain_fusion(scene, run_dir: Path, num_points: int) -> FusedFeatures:
     from panogs_core.visibility import Visibility
 
     vis = Visibility.load(run_dir / "stages" / "visibility.npz")
-    return fuse_features(scene, vis, num_points, FusionConfig(fuse_colors=False))
+    return fuse_features(scene, vis, num_points, FusionConfig(fuse_colors=False, mask_pooling=0.0))
 
 
 def baselines(points, fused, vocab, gt, seen) -> dict[str, dict]:

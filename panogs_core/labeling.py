@@ -96,7 +96,7 @@ class LabelingConfig:
     # primitive comes from (``primitive_classes``), what the unseen ones get (``label_unseen``), and how
     # instances are cut (``_assemble_components``). The values that reproduce the labelling before issue 8:
     # evidence_fused_weight=0, unseen="field", vote="superprimitive", instances="clusters".
-    evidence_fused_weight: float = 1.0
+    evidence_fused_weight: float = 0.5
     unseen: Literal["segment", "propagate", "field"] = "segment"
     island_points: int = 150
     vote_max_ratio: float = 0.1
