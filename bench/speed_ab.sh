@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Side-by-side speed of two commits on one bundle, alternating, in one sitting (shared machines are noisy:
+# compare within a run). Prints each run's total, peak RSS, per-stage seconds and standard metrics.
+#
+# Usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS]
+#   BUNDLE defaults to bench/results/speed/large-0 (make it with `panogs synth ... --preset large` or
+#   `python bench/speed.py` once). The old commit is checked out in a temporary git worktree.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+old_rev=${1:?usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS]}
+bundle=$(realpath "${2:-bench/results/speed/large-0}")
+rounds=${3:-2}
+py="$PWD/.venv/bin/python"  # not realpath: the venv link must stay a venv
+work=$(mktemp -d)
+git worktree add -q "$work/old" "$old_rev"
+trap 'git worktree remove --force "$work/old"; rm -rf "$work"' EXIT
+export HF_HUB_OFFLINE=1
+for round in $(seq "$rounds"); do
+  for side in old new; do
+    if [ "$side" = old ]; then src="$work/old"; else src="$PWD"; fi
+    (cd "$src" && "$py" -c "import sys; sys.path.insert(0, '.'); from panogs_core.cli import main; main()" \
+      run "$bundle" --out "$work/run-$side" --no-resume > "$work/$side.log" 2>&1)
+    "$py" - "$work/run-$side" "$side" "$round" <<'PY'
+import json, sys
+run, side, rnd = sys.argv[1:]
+r = json.load(open(f"{run}/report.json"))
+m = json.load(open(f"{run}/metrics.json"))["standard"] if __import__("os").path.exists(f"{run}/metrics.json") else {}
+stages = " ".join(f"{s['stage']}={s['wall_s']:.2f}" for s in r["stages"])
+print(f"{side} round {rnd}: total {r['total_wall_s']:.1f} s, peak {r['peak_rss_mb']:.0f} MB; {stages}")
+if m:
+    print(f"    mIoU {m['miou']:.3f}  PRQ(T) {m['prq_thing']:.3f}  PRQ(S) {m['prq_stuff']:.3f}")
+PY
+  done
+done
