@@ -3,7 +3,7 @@
 Labels are ours: semantic = 0-based vocabulary index, -1 = unannotated / void; instance = any int64 id,
 -1 = none.
 
-Two modes (DESIGN.md, Evaluation):
+Two modes, both defined here:
 
 ``standard``: panoptic quality as defined for images (COCO) and 3D panoptic reconstruction.
     * Ground-truth points with semantic -1 are left out of everything.

@@ -342,7 +342,7 @@ def mask_pooled_features(
     Cell c contributes to mask m with weight ``n_mc^2 / n_c`` (``n_mc`` pixels of m in c, ``n_c`` pixels of
     c): the pixel count times the share of the cell the mask holds, so a cell that straddles a border counts
     little for the mask that only grazes it. Mask pixel (i, j) lies in the feature cell of its centre, by the
-    sampling rule of SCENE_FORMAT. Row 0 (no mask) and masks without a feature are zero and marked False.
+    sampling rule of docs/scene_format.md. Row 0 (no mask) and masks without a feature are zero and marked False.
 
     Example:
         >>> fmap = np.array([[[1.0, 0.0], [0.0, 1.0]]])  # one row of two cells

@@ -84,7 +84,7 @@ class InvalidInput(ServiceError):
 
 
 class InvalidBundle(InvalidInput):
-    """The uploaded bundle breaks SCENE_FORMAT.md; ``problems`` lists every problem found."""
+    """The uploaded bundle breaks docs/scene_format.md; ``problems`` lists every problem found."""
 
     type = "invalid_bundle"
 

@@ -1,7 +1,7 @@
 """Making a scene from a complete upload: validate with the core validator, keep it only if it is valid.
 
 ``panogs_core.bundle.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
-bombs) and checks every rule of SCENE_FORMAT.md, reporting every problem at once. A refused bundle leaves
+bombs) and checks every rule of docs/scene_format.md, reporting every problem at once. A refused bundle leaves
 nothing behind: the extraction folder, the archive and the upload are deleted.
 """
 

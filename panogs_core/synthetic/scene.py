@@ -1,4 +1,4 @@
-"""``make_scene``: a complete synthetic scene bundle (SCENE_FORMAT.md) from a preset, a difficulty and a seed.
+"""``make_scene``: a complete synthetic scene bundle (docs/scene_format.md) from a preset, a difficulty and a seed.
 
 Random streams are split from the seed per purpose (layout, surface points, trajectory, feature model,
 frames), so the room and the surface points of a seed are the same at every difficulty, and a bundle is a pure

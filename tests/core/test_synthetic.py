@@ -49,7 +49,7 @@ def _pixels_world(scene: Scene, frame_index: int) -> tuple[np.ndarray, np.ndarra
 
 
 def _cells(v: np.ndarray, u: np.ndarray, shape: tuple[int, ...], scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """SCENE_FORMAT.md's pixel-to-cell rule."""
+    """docs/scene_format.md's pixel-to-cell rule."""
     rows = ((v + 0.5) * shape[0] / scene.camera.height).astype(np.int64)
     cols = ((u + 0.5) * shape[1] / scene.camera.width).astype(np.int64)
     return rows, cols

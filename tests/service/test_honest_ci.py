@@ -28,7 +28,7 @@ def test_unreachable_skips_off_ci(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_reachable_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CI", "true")
-    require_service("Redis", "redis://x:1/0", reachable=True, start="go")
+    assert require_service("Redis", "redis://x:1/0", reachable=True, start="go") is None  # no skip, no fail
 
 
 def _run_pg_test(ci: str | None) -> subprocess.CompletedProcess[str]:
