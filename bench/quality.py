@@ -57,6 +57,7 @@ from panogs_core.config import PipelineConfig
 from panogs_core.evaluation import evaluate
 from panogs_core.fusion import FusedFeatures
 from panogs_core.pipeline import resolve_scene_vocabulary, run_pipeline
+from panogs_core.primitives import Primitives
 from panogs_core.synthetic import make_scene
 
 PREVIOUS = {"evidence_fused_weight": 0.0, "unseen": "field", "vote": "superprimitive", "instances": "clusters"}
@@ -207,10 +208,8 @@ def main() -> None:
             gt = scene.read_ground_truth()
             for i, variant in enumerate(args.variants):
                 cfg = PipelineConfig().with_overrides(VARIANTS[variant])
-                res = run_pipeline(scene, scene_dir / "run", cfg)
+                run_pipeline(scene, scene_dir / "run", cfg)
                 if i == 0:  # the baselines need only the fusion, which every variant shares
-                    from panogs_core.primitives import Primitives
-
                     points = Primitives.load(scene_dir / "run" / "stages" / "primitives.npz").points
                     fused = plain_fusion(scene, scene_dir / "run", len(points))
                     seen = fused.seen_count > 0
@@ -227,7 +226,6 @@ def main() -> None:
                     file=sys.stderr,
                     flush=True,
                 )
-            del res
 
     print(
         f"\npreset {args.preset}, seeds {args.seeds}, standard mode (mean ± std over seeds); "
