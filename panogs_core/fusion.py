@@ -292,36 +292,14 @@ class _FeatureSum:
         d = self.total.shape[1]
         if fmap.ndim != 3 or fmap.shape[2] != d:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
-        hf, wf = fmap.shape[:2]
-        cells = feature_cells(row, col, (scene.camera.height, scene.camera.width), (hf, wf))  # (T_v,)
-        # Read only the cells in use (at most T_v rows) from the memory map; remember where each went.
-        used = np.zeros(hf * wf, dtype=bool)
-        used[cells] = True
-        uniq = np.flatnonzero(used)  # (U,)
-        slot = np.zeros(hf * wf, dtype=np.int64)
-        slot[uniq] = np.arange(uniq.size)
-        gathered_cells = np.ascontiguousarray(fmap.reshape(hf * wf, d)[uniq])  # (U, D) as stored
-        if gathered_cells.dtype.kind != "f" or not gathered_cells.dtype.isnative:  # torch takes native floats
-            gathered_cells = gathered_cells.astype(np.float32)
-        table = torch.from_numpy(gathered_cells).float()  # (U, D) float32
-        valid = _normalise_rows_(table, min_norm).numpy()  # (U,) bool
-        src = slot[cells]  # (T_v,) row of `table` for each seen primitive
+        image_hw = (scene.camera.height, scene.camera.width)
+        src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) row of `table` for each primitive
         if mask_pooling > 0.0:
             masks = scene.read_masks(frame)
-            mask_id = masks.reshape(-1)[feature_cells(row, col, (scene.camera.height, scene.camera.width), masks.shape)]
-            pooled, has = mask_pooled_features(fmap, masks, min_norm)  # (M + 1, D), (M + 1,)
-            own = has[mask_id]  # (T_v,) the primitive lies in a mask with a pooled feature
-            if own.any():
-                # One row per (cell, mask) pair in use: the blend depends on both.
-                pair = src[own] * pooled.shape[0] + mask_id[own]
-                pairs, inverse = np.unique(pair, return_inverse=True)
-                blend = (1.0 - mask_pooling) * table[torch.from_numpy(pairs // pooled.shape[0])]
-                blend += mask_pooling * torch.from_numpy(pooled[pairs % pooled.shape[0]])
-                _normalise_rows_(blend, min_norm)
-                src = src.copy()
-                src[own] = table.shape[0] + inverse.reshape(-1)
-                table = torch.cat([table, blend])
-                valid = np.r_[valid, np.ones(len(pairs), bool)]
+            mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
+            table, valid, src = _cells_blended_with_masks(fmap, src, masks, mask_pixel, mask_pooling, min_norm)
+        else:
+            table, valid = _unit_cells(fmap, min_norm)
         keep = valid[src]  # a zero feature is no observation
         targets, src = point_index[keep].astype(np.int64), src[keep]
         self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
@@ -332,9 +310,60 @@ class _FeatureSum:
             self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
 
 
+def _unit_cells(fmap: np.ndarray, min_norm: float, extra_rows: int = 0) -> tuple[Any, np.ndarray]:
+    """Every cell of a feature map as a unit float32 row (zero rows where the cell holds no feature).
+
+    Returns ``(C + extra_rows, D)`` rows, the extra ones left for the caller to fill, and the (C,) validity.
+    The whole map is read once: nearly every cell is used by some primitive or some mask, and torch converts
+    float16 to float32 several times faster than numpy's ``astype`` (measured on the large preset's maps).
+    """
+    import torch
+
+    hf, wf, d = fmap.shape
+    raw = np.array(fmap.reshape(hf * wf, d))  # (C, D) a private copy of the memory-mapped map, as stored
+    if raw.dtype.kind != "f" or not raw.dtype.isnative:  # torch takes native floats
+        raw = raw.astype(np.float32)
+    table = torch.empty((hf * wf + extra_rows, d), dtype=torch.float32)
+    table[: hf * wf].copy_(torch.from_numpy(raw))  # converts float16 in the copy
+    valid = _normalise_rows_(table[: hf * wf], min_norm).numpy()  # (C,) bool
+    return table, valid
+
+
+def _cells_blended_with_masks(
+    fmap: np.ndarray,  # (Hf, Wf, D)
+    src: np.ndarray,  # (T_v,) int64 cell of each primitive
+    masks: np.ndarray,  # (Hm, Wm) int mask ids, 0 = no mask
+    mask_pixel: np.ndarray,  # (T_v,) int64 flat mask pixel of each primitive
+    weight: float,
+    min_norm: float,
+) -> tuple[Any, np.ndarray, np.ndarray]:  # (C + P, D) torch rows, (C + P,) bool, (T_v,) int64 new src
+    """Unit cell rows, then one blended row per (cell, mask) pair in use; primitives in a mask read theirs.
+
+    The blend of cell c with mask m is ``unit((1 - weight) f_c + weight pool_m)``. A mask without a pooled
+    feature has ``pool_m = 0``, so its pairs come out as the plain unit cell: the same as not blending.
+    """
+    import torch
+
+    dense, mask_values = _dense_mask_ids(masks)  # (Hm Wm,) ids renumbered 0..M (0 stays "no mask")
+    num_masks = len(mask_values)
+    mask_of = dense[mask_pixel]  # (T_v,)
+    in_mask = mask_of > 0
+    pairs, number = np.unique(src[in_mask] * num_masks + mask_of[in_mask], return_inverse=True)  # (P,), (T_in,)
+    cells = fmap.shape[0] * fmap.shape[1]
+    table, valid = _unit_cells(fmap, min_norm, extra_rows=len(pairs))  # blended rows go after the C cells
+    pooled = _pool_unit_cells(table[:cells], valid, dense, num_masks, masks.shape, fmap.shape[:2], min_norm)
+    blend = table[cells:]  # (P, D) view
+    torch.index_select(pooled, 0, torch.from_numpy(pairs % num_masks), out=blend)
+    blend.mul_(weight).add_(table[torch.from_numpy(pairs // num_masks)], alpha=1.0 - weight)
+    blend_valid = _normalise_rows_(blend, min_norm).numpy()
+    src = src.copy()
+    src[in_mask] = cells + number.reshape(-1)
+    return table, np.r_[valid, blend_valid], src
+
+
 def mask_pooled_features(
     fmap: np.ndarray,  # (Hf, Wf, D) feature map
-    masks: np.ndarray,  # (Hm, Wm) int mask ids, 0 = no mask
+    masks: np.ndarray,  # (Hm, Wm) int mask ids >= 0, 0 = no mask
     min_norm: float = 1e-6,
 ) -> tuple[np.ndarray, np.ndarray]:  # (M + 1, D) float32 unit rows indexed by mask id, (M + 1,) bool
     """Mean unit feature of each 2D mask, over the feature cells it covers, weighted towards pure cells.
@@ -351,36 +380,66 @@ def mask_pooled_features(
         >>> pooled.astype(float).round(3).tolist(), has.tolist()
         ([[0.0, 0.0], [0.97, 0.243], [0.0, 1.0]], [False, True, True])
     """
-    hf, wf, d = fmap.shape
-    hm, wm = masks.shape
+    import torch
+
+    table, valid = _unit_cells(np.asarray(fmap), min_norm)
+    dense, mask_values = _dense_mask_ids(masks)
+    pooled = _pool_unit_cells(table, valid, dense, len(mask_values), masks.shape, fmap.shape[:2], min_norm)
+    has = torch.linalg.vector_norm(pooled, dim=1).numpy() > 0.5  # unit rows, or zero
+    top = int(mask_values[-1])
+    by_id = np.zeros((top + 1, fmap.shape[2]), dtype=np.float32)
+    by_id[mask_values] = pooled.numpy()
+    has_by_id = np.zeros(top + 1, dtype=bool)
+    has_by_id[mask_values] = has
+    return by_id, has_by_id
+
+
+def _dense_mask_ids(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (Hm Wm,) int64 in 0..M, (M + 1,) ids
+    """Mask ids renumbered 0..M in id order (0, "no mask", stays 0), and the id of each new number.
+
+    Ids are sparse in general (a 16-bit PNG may use 7 and 60000): tables indexed by the dense number stay
+    (M + 1) rows long. A look-up table over 0..max id (at most 65536 entries for a PNG) avoids a sort.
+    """
+    ids = masks.reshape(-1).astype(np.int64)
+    present = np.bincount(ids, minlength=1) > 0  # (max id + 1,)
+    present[0] = True
+    number = np.cumsum(present) - 1  # id -> dense number
+    return number[ids], np.flatnonzero(present)
+
+
+def _pool_unit_cells(
+    table: Any,  # (C, D) torch float32 unit cell rows (zero where no feature)
+    valid: np.ndarray,  # (C,) bool
+    dense: np.ndarray,  # (Hm Wm,) int64 dense mask number of every mask pixel
+    num_masks: int,  # M + 1
+    mask_hw: tuple[int, int],
+    feature_hw: tuple[int, int],
+    min_norm: float,
+) -> Any:  # (M + 1, D) torch float32: unit rows, zero for "no mask" (row 0) and masks without a feature
+    """Weighted mean of the unit cells under each mask (weights of :func:`mask_pooled_features`).
+
+    One weighted term per (mask, cell) pair that shares a pixel, about one per cell: a dense (M + 1) x C
+    weight matrix times the map did M + 1 times the work.
+    """
+    import torch
+
+    hf, wf = feature_hw
+    hm, wm = mask_hw
     cells = hf * wf
     # Feature cell of every mask pixel: the cell rows and columns of the pixel rows and columns (separable).
     row_cell = feature_cells(np.arange(hm), np.zeros(hm, np.int64), (hm, wm), (hf, wf)) // wf  # (Hm,)
     col_cell = feature_cells(np.zeros(wm, np.int64), np.arange(wm), (hm, wm), (hf, wf))  # (Wm,)
     cell = (row_cell[:, None] * wf + col_cell[None, :]).reshape(-1)  # (Hm Wm,)
-    ids = masks.reshape(-1).astype(np.int64)
-    num_masks = int(ids.max()) + 1 if ids.size else 1
-    pixels_in_cell = np.bincount(cell, minlength=cells).astype(np.float32)  # (C,)
-    n_mc = np.bincount(ids * cells + cell, minlength=num_masks * cells).reshape(num_masks, cells)
-    n_mc[0] = 0  # pixels in no mask pool nothing
-    feats = np.asarray(fmap, np.float32).reshape(cells, d)
-    norms = np.linalg.norm(feats, axis=1)  # (C,)
-    usable = np.isfinite(norms) & (norms > min_norm)
-    # weight n_mc^2 / n_c, divided by the cell's norm so that the product below sums unit features
-    scale = np.where(usable, 1.0 / (np.maximum(pixels_in_cell, 1.0) * np.where(usable, norms, 1.0)), 0.0)
-    weight = (n_mc.astype(np.float32) ** 2) * scale[None, :].astype(np.float32)  # (M + 1, C)
-    used = np.flatnonzero(weight.any(axis=0))  # only the cells some mask covers
-    import torch  # numpy's BLAS ran this product 10x slower than torch's on the 2-core machine
-
-    rows = feats[used]
-    if not usable[used].all():  # weight 0 times NaN is NaN: clear the unusable cells' rows
-        rows = np.where(usable[used][:, None], rows, 0.0).astype(np.float32)
-    pooled = (torch.from_numpy(np.ascontiguousarray(weight[:, used])) @ torch.from_numpy(rows)).numpy()  # (M+1, D)
-    length = np.linalg.norm(pooled, axis=1)
-    has = length > min_norm
-    has[0] = False
-    pooled = np.where(has[:, None], pooled / np.where(has, length, 1.0)[:, None], 0.0).astype(np.float32)
-    return pooled, has
+    pixels_in_cell = np.bincount(cell, minlength=cells)  # (C,)
+    n_mc = np.bincount(dense * cells + cell, minlength=num_masks * cells)  # (M + 1) C pixel counts
+    pair = np.flatnonzero(n_mc[cells:]) + cells  # sorted by mask, then cell; pixels in no mask pool nothing
+    mask_of, cell_of = pair // cells, pair % cells
+    weight = np.where(valid[cell_of], n_mc[pair].astype(np.float32) ** 2 / pixels_in_cell[cell_of], 0.0)
+    pooled = torch.zeros((num_masks, table.shape[1]), dtype=torch.float32)
+    terms = table[torch.from_numpy(cell_of)].mul_(torch.from_numpy(weight.astype(np.float32)).unsqueeze(1))
+    pooled.index_add_(0, torch.from_numpy(mask_of), terms)  # (M + 1, D)
+    _normalise_rows_(pooled, min_norm)
+    return pooled
 
 
 def _normalise_rows_(table: Any, min_norm: float) -> Any:  # (U,) torch bool: rows that are a feature
