@@ -1,4 +1,4 @@
-"""Stage 6: multi-view mask affinity between adjacent segments (PanoGS Sec. 3.3; reference sections 5.1-5.4).
+"""Stage 6: multi-view mask affinity between adjacent segments (docs/method.md §5).
 
 Inputs: the scene's 2D instance masks, the visibility of stage 2, a segment id per primitive (the
 super-primitives, or the clusters of an earlier clustering round) and the primitive kNN graph. Output: one
@@ -27,20 +27,18 @@ Example:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from scipy import sparse
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.progress import ProgressFn, report
+from panogs_core.masks import MaskLookupConfig, MaskObservations
 
 if TYPE_CHECKING:
-    from panogs_core.bundle import Scene
-    from panogs_core.superprimitives import KnnGraph
-    from panogs_core.visibility import Visibility
+    from panogs_core.neighbors import KnnGraph
 
 LN2 = math.log(2.0)
 _KEY_LIMIT = 1 << 62  # largest (segment, frame, mask id) key space that fits an int64 with room to spare
@@ -54,7 +52,7 @@ class AffinityConfig:
         mode: ``"jsd"``: mask-label Jensen-Shannon similarity (the paper). ``"language"``: the ablation that
             uses the cosine of the segments' mean language features instead, and ignores the masks.
         min_covisibility: Pairs whose co-visibility weight ``sum_m r_i r_j`` (unit: frames) is not above this
-            get affinity 0, as if never seen together. 0 reproduces the reference (5.4: ``C_ij != 0``).
+            get affinity 0, as if never seen together. 0 reproduces the reference (docs/method.md §5.4: ``C_ij != 0``).
         eps: Floor of the norm of a mean language feature before normalising (mode ``"language"``).
         chunk_rows: (pair, frame) rows joined at once; bounds memory (about 100 bytes a row), not the result.
         mask_depth_mad: A seen primitive reads its mask id only if its relative depth residual is within this
@@ -68,20 +66,20 @@ class AffinityConfig:
     min_covisibility: float = 0.0
     eps: float = 1e-8
     chunk_rows: int = 2_000_000
-    # Option, off by default (reference 5.1 reads masks with the visibility test, rtol 0.07): 7 % of depth is
-    # 20 cm at 3 m, so a surface hidden a few centimetres behind another (the inside of a bookshelf behind
-    # its neighbour's side) passes and reads the mask of the object in front. The residuals of one frame are
-    # mostly true surfaces, so their spread measures that frame's depth noise: with mask_depth_mad = 3,
-    # observations off by more than 3 spreads are left out of the mask lookups (fusion keeps the reference's
-    # test). On a synthetic easy room true residuals spread +-1 % and leaked ones sat at 3-6 %, yet the
-    # quality bench measured no gain (docs/benchmarks.md, "depth-filter"), so it stays off.
+    # Option, off by default (docs/method.md §5.1: the reference reads masks with the visibility test, rtol 0.07): 7 %
+    # of depth is 20 cm at 3 m, so a surface hidden a few centimetres behind another (the inside of a bookshelf behind
+    # its neighbour's side) passes and reads the mask of the object in front. The residuals of one frame are mostly true
+    # surfaces, so their spread measures that frame's depth noise: with mask_depth_mad = 3, observations off by more
+    # than 3 spreads are left out of the mask lookups (fusion keeps the reference's test). On a synthetic easy room true
+    # residuals spread +-1 % and leaked ones sat at 3-6 %, yet the quality bench measured no gain (docs/benchmarks.md,
+    # "depth-filter"), so it stays off.
     mask_depth_mad: float = 0.0
     mask_depth_floor: float = 0.01
-    # DEPARTURE (aggregate, reference 5.4 averages): SAM's mistakes are per-frame outliers, an occasional merge
-    # of two touching objects (similarity 1 in that frame) or split of one object into parts (1 - ln 2). A
-    # weighted mean lets one merged frame in five lift two touching bookshelves from 0.31 to 0.45 and, with a
-    # few straddling primitives, past the last threshold (0.6); the weighted median follows the majority of
-    # views. Measured in docs/benchmarks.md ("mean-affinity").
+    # DEPARTURE (aggregate, docs/method.md §5.4; the reference averages): SAM's mistakes are per-frame outliers, an
+    # occasional merge of two touching objects (similarity 1 in that frame) or split of one object into parts (1 - ln
+    # 2). A weighted mean lets one merged frame in five lift two touching bookshelves from 0.31 to 0.45 and, with a few
+    # straddling primitives, past the last threshold (0.6); the weighted median follows the majority of views. Measured
+    # in docs/benchmarks.md ("mean-affinity").
     aggregate: Literal["mean", "median"] = "median"
 
     def __post_init__(self) -> None:
@@ -100,132 +98,9 @@ class AffinityConfig:
         if isinstance(self.chunk_rows, bool) or not isinstance(self.chunk_rows, int) or self.chunk_rows < 1:
             raise ConfigError(f"affinity.chunk_rows: expected an integer >= 1, found {self.chunk_rows!r}")
 
-
-@dataclass(frozen=True)
-class MaskObservations:
-    """Per mask frame, the primitives seen AND inside a mask, with their mask id (reference 5.1, label > 0).
-
-    Frame v holds ``point_index[offsets[v]:offsets[v + 1]]`` and ``label[offsets[v]:offsets[v + 1]]``.
-    """
-
-    offsets: np.ndarray  # (V + 1,) int64
-    point_index: np.ndarray  # (T,) int32
-    label: np.ndarray  # (T,) int32, > 0, ids meaningful only within one frame
-
-    def __post_init__(self) -> None:
-        offsets, index, label = self.offsets, self.point_index, self.label
-        if offsets.ndim != 1 or offsets.size < 1 or index.ndim != 1 or label.shape != index.shape:
-            raise ShapeError(
-                f"MaskObservations: expected offsets (V + 1,), point_index (T,), label (T,); found "
-                f"{offsets.shape}, {index.shape}, {label.shape}"
-            )
-        if offsets[0] != 0 or offsets[-1] != index.size or np.any(np.diff(offsets) < 0):
-            raise ShapeError(f"MaskObservations: offsets must rise from 0 to T = {index.size}")
-
-    @property
-    def num_frames(self) -> int:
-        """V, the number of mask frames."""
-        return int(self.offsets.size - 1)
-
-    def save(self, path: str | Path) -> None:
-        """Write one ``.npz`` at exactly ``path``."""
-        with open(path, "wb") as fh:
-            np.savez(fh, offsets=self.offsets, point_index=self.point_index, label=self.label)
-
-    @classmethod
-    def load(cls, path: str | Path) -> MaskObservations:
-        """Read what :meth:`save` wrote."""
-        with np.load(path, allow_pickle=False) as data:
-            return cls(
-                offsets=data["offsets"].astype(np.int64),
-                point_index=data["point_index"].astype(np.int32),
-                label=data["label"].astype(np.int32),
-            )
-
-
-def observe_masks(
-    scene: Scene,
-    visibility: Visibility,
-    cfg: AffinityConfig | None = None,
-    *,
-    on_progress: ProgressFn | None = None,
-) -> MaskObservations:
-    """Look up the mask id under every primitive that a mask frame sees; keep those inside a mask.
-
-    Streams the frames of ``visibility`` that have a mask, one at a time (reference 5.1). The mask may have
-    any size: camera pixel (u, v) reads mask cell ``(floor((v + 0.5) Hm / H), floor((u + 0.5) Wm / W))``.
-
-    Args:
-        scene: The bundle; ``read_masks(frame)`` gives an ``(Hm, Wm)`` int32 id map, 0 = no mask.
-        visibility: Stage 2 output; its ``frame_ids`` name scene frames.
-        cfg: ``mask_depth_mad`` / ``mask_depth_floor`` (when ``visibility`` has depth residuals); default
-            :class:`AffinityConfig`.
-        on_progress: Called ``(done, total)`` after each mask frame.
-
-    Returns:
-        One entry per mask frame of ``visibility`` (frames without a mask are left out), in its order.
-
-    Raises:
-        InputError: if ``visibility`` names a frame the scene does not have.
-        ShapeError: if a mask is not a 2D array.
-    """
-    cfg = cfg if cfg is not None else AffinityConfig()
-    by_id = {frame.id: frame for frame in scene.frames}
-    missing = [fid for fid in visibility.frame_ids if fid not in by_id]
-    if missing:
-        raise InputError(f"observe_masks: visibility names frame(s) {missing[:5]} that the scene does not have")
-    views = [v for v, fid in enumerate(visibility.frame_ids) if by_id[fid].masks is not None]
-    height, width = scene.camera.height, scene.camera.width
-    index_parts: list[np.ndarray] = []
-    label_parts: list[np.ndarray] = []
-    for done, v in enumerate(views, start=1):
-        frame = by_id[visibility.frame_ids[v]]
-        point_index, row, col = visibility.frame(v)
-        label = _mask_lookup(np.asarray(scene.read_masks(frame)), row, col, height, width, frame.id)
-        inside = (label > 0) & _depth_consistent(visibility, v, cfg)
-        index_parts.append(np.asarray(point_index, dtype=np.int32)[inside])
-        label_parts.append(label[inside])
-        report(on_progress, done, len(views))
-    sizes = np.array([part.size for part in index_parts], dtype=np.int64)
-    empty = np.zeros(0, dtype=np.int32)
-    return MaskObservations(
-        offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-        point_index=np.concatenate(index_parts) if index_parts else empty,
-        label=np.concatenate(label_parts) if label_parts else empty,
-    )
-
-
-def _depth_consistent(visibility: Visibility, v: int, cfg: AffinityConfig) -> np.ndarray | bool:  # (T_v,) bool
-    """Seen pairs of frame ``v`` whose depth residual is within the frame's own noise (``mask_depth_mad``)."""
-    if visibility.depth_residual is None or cfg.mask_depth_mad <= 0:
-        return True
-    lo, hi = int(visibility.offsets[v]), int(visibility.offsets[v + 1])
-    residual = visibility.depth_residual[lo:hi].astype(np.float32)
-    if residual.size == 0:
-        return True
-    centre = float(np.median(residual))
-    spread = 1.4826 * float(np.median(np.abs(residual - centre)))  # robust standard deviation
-    tolerance = max(cfg.mask_depth_mad * spread, cfg.mask_depth_floor)
-    return np.abs(residual - centre) <= tolerance
-
-
-def _mask_lookup(
-    mask: np.ndarray,  # (Hm, Wm) int, 0 = no mask
-    row: np.ndarray,  # (T_v,) int, camera pixel row
-    col: np.ndarray,  # (T_v,) int, camera pixel column
-    height: int,
-    width: int,
-    frame_id: str,
-) -> np.ndarray:  # (T_v,) int32
-    if mask.ndim != 2:
-        raise ShapeError(f"observe_masks: frame {frame_id!r}: expected a (Hm, Wm) mask, found {mask.shape}")
-    rows_m, cols_m = mask.shape
-    # floor((v + 0.5) Hm / H) in exact integer arithmetic; the clip only guards pixels outside the image.
-    r = (2 * np.asarray(row, dtype=np.int64) + 1) * rows_m // (2 * height)
-    c = (2 * np.asarray(col, dtype=np.int64) + 1) * cols_m // (2 * width)
-    np.clip(r, 0, rows_m - 1, out=r)
-    np.clip(c, 0, cols_m - 1, out=c)
-    return mask[r, c].astype(np.int32, copy=False)
+    def mask_lookup(self) -> MaskLookupConfig:
+        """The two settings the mask look-ups read (they live in this YAML section since before that stage)."""
+        return MaskLookupConfig(depth_mad=self.mask_depth_mad, depth_floor=self.mask_depth_floor)
 
 
 def segment_adjacency(
@@ -235,7 +110,7 @@ def segment_adjacency(
     """Adjacent segment pairs, with the number of primitive kNN edges that join them.
 
     Two segments are adjacent when a primitive of one has a primitive of the other among its k nearest
-    neighbours (reference 5.2, direct adjacency). Primitives labelled -1 and neighbour slots -1 are ignored.
+    neighbours (docs/method.md §5.2, direct adjacency). Primitives labelled -1 and neighbour slots -1 are ignored.
 
     Args:
         labels: Segment id per primitive. ``(N,)``.
@@ -264,19 +139,6 @@ def segment_adjacency(
     return np.stack([keys // span, keys % span], axis=1), edges.astype(np.int64)
 
 
-def segment_pairs(labels: np.ndarray, knn: KnnGraph) -> np.ndarray:  # (E, 2) int64
-    """Unique undirected pairs of segments adjacent in the kNN graph, ``i < j`` (:func:`segment_adjacency`).
-
-    Args:
-        labels: Segment id per primitive. ``(N,)`` int64; -1 primitives are ignored.
-        knn: Primitive kNN graph, ``neighbors`` ``(N, K)`` int64, self excluded.
-
-    Returns:
-        ``(E, 2)`` int64, ascending rows.
-    """
-    return segment_adjacency(labels, knn)[0]
-
-
 def edge_affinity(
     labels: np.ndarray,  # (N,) int64, segment per primitive, -1 = none
     pairs: np.ndarray,  # (E, 2) int64, segment ids
@@ -285,7 +147,7 @@ def edge_affinity(
     *,
     features: np.ndarray | None = None,  # (N, D) float32, unit rows; mode "language" only
 ) -> np.ndarray:  # (E,) float32
-    """Affinity of each segment pair (reference 5.3-5.4; see the module docstring for the formula).
+    """Affinity of each segment pair (docs/method.md §5.3-5.4; see the module docstring for the formula).
 
     Symmetric by construction: the same value for ``(i, j)`` and ``(j, i)``.
 
@@ -309,6 +171,44 @@ def edge_affinity(
     if cfg.mode == "language":
         return _language_affinity(labels, pairs, features, cfg)
     return MaskHistograms.build(labels, observations).affinity(pairs, cfg)
+
+
+SegmentAffinity = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (segment of each sp (S0,), pairs (E, 2)) -> (E,)
+
+
+def segment_affinity(
+    sp_labels: np.ndarray,  # (N,) int64, super-primitive per primitive, -1 = none
+    observations: MaskObservations,
+    cfg: AffinityConfig,
+    *,
+    features: np.ndarray | None = None,  # (N, D) float32, unit rows; mode "language" only
+) -> SegmentAffinity:
+    """The affinity of pairs of merged segments, given the segment each super-primitive belongs to.
+
+    The clustering of stage 7 merges super-primitives round after round and measures its segments again each
+    round (docs/method.md §6); this is that measure, with every affinity setting bound, so the clustering needs
+    no affinity settings of its own.
+
+    Returns:
+        ``affinity(segment_of_sp, pairs)``: ``segment_of_sp`` ``(S0,)`` int64 maps super-primitive ids to
+        segment ids; ``pairs`` ``(E, 2)`` int64 names segments; the result is ``(E,)`` as :func:`edge_affinity`.
+    """
+    sp_labels = _as_labels(sp_labels, "segment_affinity")
+    if cfg.mode == "language":
+
+        def language(segment_of_sp: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+            labels = np.where(sp_labels >= 0, segment_of_sp[np.maximum(sp_labels, 0)], -1)
+            return edge_affinity(labels, pairs, observations, cfg, features=features)
+
+        return language
+    # The mask histograms of merged segments are the sums of their super-primitives' histograms: build those
+    # once from the T observations, then each round only re-keys the far smaller (segment, frame, id) table.
+    base = MaskHistograms.build(sp_labels, observations)
+
+    def jsd(segment_of_sp: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        return base.coarsen(segment_of_sp).affinity(pairs, cfg)
+
+    return jsd
 
 
 def _as_labels(labels: np.ndarray, where: str) -> np.ndarray:  # (N,) int64
@@ -475,7 +375,7 @@ class MaskHistograms:
     def affinity(self, pairs: np.ndarray, cfg: AffinityConfig) -> np.ndarray:  # (E,) float32
         """JSD affinity of segment ``pairs`` (``(E, 2)`` int64, any order in a row); see the module doc."""
         # DEPARTURE (pairs): the reference fills a dense S x S matrix over 200-id blocks and then symmetrises
-        # it by max (reference 5.4, pitfall 16); here only the requested pairs are computed, and the value is
+        # it by max (docs/method.md §5.4, pitfall 16); here only the requested pairs are computed, and the value is
         # symmetric by construction (JSD and r_i r_j are), so no symmetrisation is needed.
         pairs = _check_pairs(pairs, self.num_segments)
         groups = np.diff(self.segment_start)

@@ -1,4 +1,4 @@
-"""Scene bundles (``panogs-scene/1``, SCENE_FORMAT.md): open, validate, and read frames lazily.
+"""Scene bundles (``panogs-scene/1``, docs/scene_format.md): open, validate, and read frames lazily.
 
 ``open_bundle(path)`` accepts a folder or a ``.zip`` / ``.tar`` / ``.tar.gz`` archive (safely extracted to a
 temporary folder first), validates every rule of the format at once and raises :class:`BundleError` with one
@@ -35,7 +35,7 @@ __all__ = ["FORMAT_ID", "Scene", "open_bundle"]
 
 logger = logging.getLogger(__name__)
 
-ROTATION_TOL = 1e-3  # SCENE_FORMAT.md: orthonormal rotation, det 1, tolerance 1e-3
+ROTATION_TOL = 1e-3  # docs/scene_format.md §2.1: orthonormal rotation, det 1, tolerance 1e-3
 _LAST_ROW_TOL = 1e-6  # the last pose row is exact in any sane writer; allow float printing noise only
 _FEATURE_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
 _MAX_GT_POINTS = 500_000_000  # refuse absurd declared gt shapes before allocating them
@@ -99,7 +99,7 @@ class Scene:
         rgb = cv2.cvtColor(_imread(self.root, frame.color), cv2.COLOR_BGR2RGB)
         size = (self.camera.width, self.camera.height)
         if (rgb.shape[1], rgb.shape[0]) != size:
-            # Same field of view at another resolution (SCENE_FORMAT.md): resample, do not crop.
+            # Same field of view at another resolution (docs/scene_format.md §1): resample, do not crop.
             rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR)
         return rgb
 
@@ -223,7 +223,7 @@ class _Header:
 
 
 def _validate(root: Path, source: str | None = None) -> Scene:
-    """Check every rule of SCENE_FORMAT.md; return the Scene or raise one BundleError listing all problems."""
+    """Check every rule of docs/scene_format.md; return the Scene or raise one BundleError listing all problems."""
     problems: list[str] = []
     manifest = _load_manifest(root, problems)
     header = _check_header(manifest, problems) if manifest is not None else _Header(None, None, None, None, None)

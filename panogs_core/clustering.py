@@ -1,13 +1,14 @@
-"""Stage 7: progressive graph clustering of super-primitives into instances (PanoGS Sec. 3.4; reference 6).
+"""Stage 7: progressive graph clustering of super-primitives into instances (docs/method.md §6).
 
-Input: the super-primitives of stage 5, the primitive kNN graph, the mask observations of stage 6. Output: a
-cluster id per primitive.
+Input: the super-primitives of stage 5, the primitive kNN graph and the affinity measure of stage 6 (bound to
+the mask look-ups and its settings by :func:`panogs_core.affinity.segment_affinity`). Output: a cluster id per
+primitive.
 
 Each round takes the current segments (first the super-primitives, then the clusters of the round before),
-builds their graph (direct kNN adjacency plus the 2-hop pool, reference 5.2), recomputes the affinities of
+builds their graph (direct kNN adjacency plus the 2-hop pool, docs/method.md §5.2), recomputes the affinities of
 stage 6 on the merged segments, and grows clusters greedily by breadth-first search with that round's
-threshold (reference 6.1); thresholds fall from 0.9 to 0.6. After the last round, clusters of at most 2 parts
-and under 200 points join the neighbour they are most alike (reference 6.2).
+threshold (docs/method.md §6.1); thresholds fall from 0.9 to 0.6. After the last round, clusters of at most 2 parts
+and under 200 points join the neighbour they are most alike (docs/method.md §6.2).
 
 Everything between primitives and segments is done once at the super-primitive level: clusters are unions of
 super-primitives, so adjacency counts and mask histograms of a round follow by coarsening those of the
@@ -19,7 +20,6 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -27,18 +27,13 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from scipy import sparse
 
-from panogs_core.affinity import (
-    AffinityConfig,
-    MaskHistograms,
-    MaskObservations,
-    edge_affinity,
-    segment_adjacency,
-)
+from panogs_core.affinity import SegmentAffinity, segment_adjacency
 from panogs_core.errors import ConfigError
 from panogs_core.progress import ProgressFn, report
 
 if TYPE_CHECKING:
-    from panogs_core.superprimitives import KnnGraph, SuperPrimitives
+    from panogs_core.neighbors import KnnGraph
+    from panogs_core.superprimitives import SuperPrimitives
 
 UnmergedPolicy = Literal["adjacent", "void", "keep"]
 
@@ -48,13 +43,13 @@ class ClusteringConfig:
     """Settings of the progressive clustering (stage 7).
 
     Attributes:
-        thresholds: Affinity threshold of each round, one greedy pass per value, non-increasing (reference 6:
+        thresholds: Affinity threshold of each round, one greedy pass per value, non-increasing (docs/method.md §6:
             ScanNet 0.9, 0.8, 0.7, 0.6; Replica adds 0.5). Unit: affinity (``[1 - ln 2, 1]`` for mode jsd).
         two_hop_weight: Weight of a 2-hop pool member's point count in the BFS score, relative to a direct
-            neighbour's (reference 6.1: 0.5).
+            neighbour's (docs/method.md §6.1: 0.5).
         small_cluster_max_parts: A final cluster of at most this many parts (last round's segments) ...
         small_cluster_max_points: ... and fewer than this many primitives is small; it joins the neighbour
-            with the highest summed affinity (reference 6.2: 2 parts, 200 points). ``max_parts = 0``: off.
+            with the highest summed affinity (docs/method.md §6.2: 2 parts, 200 points). ``max_parts = 0``: off.
         unmerged_small: What becomes of a small cluster that has no neighbour with a positive affinity:
             ``"adjacent"`` joins the kNN-adjacent cluster it shares the most kNN edges with (kept when it has
             none), ``"void"`` labels it -1 (the reference's 0), ``"keep"`` leaves it a cluster of its own.
@@ -126,36 +121,30 @@ class _SegmentGraph:
         return int(self.sizes.size)
 
 
-AffinityFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (segment of sp, pairs (E, 2)) -> (E,)
-
-
 def progressive_clustering(
     superprimitives: SuperPrimitives,
     knn: KnnGraph,
-    observations: MaskObservations,
+    affinity: SegmentAffinity,
     cfg: ClusteringConfig,
-    affinity_cfg: AffinityConfig,
     *,
-    features: np.ndarray | None = None,  # (N, D) float32, unit rows; affinity mode "language" only
     on_progress: ProgressFn | None = None,
 ) -> Clusters:
-    """Group super-primitives into instances by progressive graph clustering (reference 6).
+    """Group super-primitives into instances by progressive graph clustering (docs/method.md §6).
 
     Args:
         superprimitives: Stage 5 output; ``labels`` ``(N,)`` int64 dense in ``[0, S)``.
         knn: Primitive kNN graph; ``neighbors`` ``(N, K)`` int64, self excluded.
-        observations: Mask ids under the primitives per mask frame (stage 6, :func:`observe_masks`).
+        affinity: How alike two merged segments are, measured again every round
+            (:func:`panogs_core.affinity.segment_affinity` over the same super-primitives).
         cfg: Thresholds, BFS weights and the small-cluster rule.
-        affinity_cfg: How segment affinities are measured (stage 6).
-        features: Per-primitive language features, for affinity mode ``"language"``. ``(N, D)``.
         on_progress: Called ``(round, rounds)`` after each round.
 
     Returns:
         Cluster per primitive, dense in ``[0, K)``; -1 only with ``unmerged_small="void"``.
 
     Raises:
-        ShapeError: if ``superprimitives``, ``knn`` and ``features`` disagree on N.
-        InputError: if mode ``"language"`` has no ``features``.
+        ShapeError: if ``superprimitives`` and ``knn`` disagree on N.
+        InputError: if the affinity cannot be measured (mode ``"language"`` without features).
     """
     sp_labels = np.asarray(superprimitives.labels, dtype=np.int64)
     sp_pairs, sp_edges = segment_adjacency(sp_labels, knn)
@@ -163,11 +152,10 @@ def progressive_clustering(
     if num_sp == 0:
         return Clusters(labels=np.full(sp_labels.shape, -1, dtype=np.int64))
     sp_sizes = np.bincount(sp_labels[sp_labels >= 0], minlength=num_sp).astype(np.float64)
-    affinity_of = _affinity_function(sp_labels, observations, affinity_cfg, features)
     segment_of_sp = np.arange(num_sp, dtype=np.int64)
     rounds = len(cfg.thresholds)
     for done, threshold in enumerate(cfg.thresholds, start=1):
-        graph = _round_graph(segment_of_sp, sp_pairs, sp_edges, sp_sizes, affinity_of)
+        graph = _round_graph(segment_of_sp, sp_pairs, sp_edges, sp_sizes, affinity)
         cluster = _grow_clusters(graph, float(threshold), cfg.two_hop_weight)
         if done == rounds:
             cluster = _merge_small(graph, cluster, cfg)
@@ -179,42 +167,19 @@ def progressive_clustering(
     return Clusters(labels=_dense(labels))  # again: an id no primitive carries must not leave a gap
 
 
-def _affinity_function(
-    sp_labels: np.ndarray,  # (N,) int64
-    observations: MaskObservations,
-    cfg: AffinityConfig,
-    features: np.ndarray | None,
-) -> AffinityFn:
-    """Affinity of segment pairs given each super-primitive's segment; recomputed every round (ref. 6)."""
-    if cfg.mode == "language":
-
-        def language(segment_of_sp: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-            labels = np.where(sp_labels >= 0, segment_of_sp[np.maximum(sp_labels, 0)], -1)
-            return edge_affinity(labels, pairs, observations, cfg, features=features)
-
-        return language
-    # The mask histograms of merged segments are the sums of their super-primitives' histograms: build those
-    # once from the T observations, then each round only re-keys the far smaller (segment, frame, id) table.
-    base = MaskHistograms.build(sp_labels, observations)
-
-    def jsd(segment_of_sp: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-        return base.coarsen(segment_of_sp).affinity(pairs, cfg)
-
-    return jsd
-
-
 def _round_graph(
     segment_of_sp: np.ndarray,  # (S0,) int64, current segment of each super-primitive
     sp_pairs: np.ndarray,  # (E0, 2) int64, adjacent super-primitives
     sp_edges: np.ndarray,  # (E0,) int64, kNN edges between them
     sp_sizes: np.ndarray,  # (S0,) float64
-    affinity_of: AffinityFn,
+    affinity_of: SegmentAffinity,
 ) -> _SegmentGraph:
     num_nodes = int(segment_of_sp.max()) + 1
     direct, edges = _coarsen_pairs(sp_pairs, sp_edges, segment_of_sp, num_nodes)
     pool = _pool_pairs(direct, num_nodes)
     # DEPARTURE (pool only): the reference also fills affinities for non-pool pairs that share a 200-id block
-    # (pitfall 16), which only its small-cluster merge can see. Here affinities exist exactly on the pool.
+    # (docs/method.md pitfall 16), which only its small-cluster merge can see. Here affinities exist exactly on the
+    # pool.
     affinity = affinity_of(segment_of_sp, pool).astype(np.float64)
     # Which pool pairs are direct, and their kNN edge count: both key lists are ascending, so one lookup.
     direct_keys = direct[:, 0] * num_nodes + direct[:, 1]
@@ -243,7 +208,7 @@ def _coarsen_pairs(
 
 
 def _pool_pairs(direct: np.ndarray, num_nodes: int) -> np.ndarray:  # (P, 2) int64, ascending, i < j
-    """Direct neighbours and 2-hop neighbours (``A @ A``), diagonal cleared (reference 5.2)."""
+    """Direct neighbours and 2-hop neighbours (``A @ A``), diagonal cleared (docs/method.md §5.2)."""
     ones = np.ones(direct.shape[0], dtype=np.int64)
     adjacency = sparse.csr_matrix((ones, (direct[:, 0], direct[:, 1])), shape=(num_nodes, num_nodes))
     adjacency = adjacency + adjacency.T
@@ -274,7 +239,7 @@ def _symmetric_graph(
 
 
 def _grow_clusters(graph: _SegmentGraph, threshold: float, two_hop_weight: float) -> np.ndarray:  # (S,) int64
-    """One greedy BFS region-growing pass, exactly as reference 6.1.
+    """One greedy BFS region-growing pass, exactly as docs/method.md §6.1.
 
     Seeds are taken in ascending id; a neighbour j of a member joins when the affinity of j to the cluster's
     members, weighted by their point counts (2-hop pool members at ``two_hop_weight``), is at least
@@ -318,7 +283,7 @@ def _merge_small(
     cluster: np.ndarray,  # (S,) int64, dense cluster per node
     cfg: ClusteringConfig,
 ) -> np.ndarray:  # (S,) int64, -1 = void
-    """Small clusters join their most alike neighbour (reference 6.2); unmergeable ones follow the policy."""
+    """Small clusters join their most alike neighbour (docs/method.md §6.2); unmergeable ones follow the policy."""
     num_clusters = int(cluster.max()) + 1
     parts = np.bincount(cluster, minlength=num_clusters)
     points = np.bincount(cluster, weights=graph.sizes, minlength=num_clusters)
@@ -352,7 +317,7 @@ def _absorb(
     """Sweep the small clusters until none changes: each joins the node with the highest summed weight.
 
     Targets still pending are skipped, and a cluster with no positive weight to any settled node waits for the
-    next sweep (reference 6.2). It takes the target's current label, so chains of merges resolve.
+    next sweep (docs/method.md §6.2). It takes the target's current label, so chains of merges resolve.
     """
     changed = True
     while changed:
@@ -376,7 +341,7 @@ def _absorb(
 
 
 def _dense(labels: np.ndarray) -> np.ndarray:  # (M,) int64 dense in [0, K), -1 kept
-    """Renumber ids to ``0..K-1`` in ascending order of the old id (reference 5.2); -1 stays -1."""
+    """Renumber ids to ``0..K-1`` in ascending order of the old id (docs/method.md §5.2); -1 stays -1."""
     out = np.full(labels.shape, -1, dtype=np.int64)
     valid = labels >= 0
     out[valid] = np.unique(labels[valid], return_inverse=True)[1].reshape(-1)

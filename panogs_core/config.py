@@ -21,7 +21,7 @@ from panogs_core.clustering import ClusteringConfig
 from panogs_core.errors import ConfigError
 from panogs_core.fusion import FusionConfig
 from panogs_core.labeling import LabelingConfig
-from panogs_core.language_field import LanguageFieldConfig
+from panogs_core.language_field_config import LanguageFieldConfig
 from panogs_core.primitives import PrimitivesConfig
 from panogs_core.superprimitives import SuperPrimitiveConfig
 from panogs_core.visibility import VisibilityConfig

@@ -20,7 +20,7 @@ class ShapeError(InputError):
 
 
 class BundleError(InputError):
-    """A scene bundle breaks ``SCENE_FORMAT.md``; carries every problem found, not just the first.
+    """A scene bundle breaks ``docs/scene_format.md``; carries every problem found, not just the first.
 
     Attributes:
         problems: One line per problem, each naming the file, the field and the value found.

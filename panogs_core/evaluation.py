@@ -1,4 +1,4 @@
-"""Evaluation: mIoU, mAcc and panoptic reconstruction quality PRQ(T) / PRQ(S) (reference section 8).
+"""Evaluation: mIoU, mAcc and panoptic reconstruction quality PRQ(T) / PRQ(S) (docs/method.md §8).
 
 Labels are ours: semantic = 0-based vocabulary index, -1 = unannotated / void; instance = any int64 id,
 -1 = none.
@@ -20,7 +20,7 @@ Two modes, both defined here:
       unmatched predicted segment with more than half of its points on void is not a false positive (COCO).
     * An average over no class is NaN (``to_json`` writes null).
 
-``paper``: the official evaluation with its quirks, reproduced exactly (reference 8.1, 8.2):
+``paper``: the official evaluation with its quirks, reproduced exactly (docs/method.md §8.1 and §8.2):
     * nothing is masked: predictions on unannotated ground truth enlarge the union of their class;
     * TP, FN and the IoU sum accumulate across the classes of one call (things, then stuff separately), FP is
       per class, every class after the first with activity counts in the average;
@@ -30,7 +30,7 @@ Two modes, both defined here:
     * classes named "other" / "otherfurniture" are left out of every average (reference: Replica 19,
       ScanNet 20);
     * thing/stuff sets: for the built-in scannet20 / matterport21 vocabularies the effective sets of the
-      reference's off-by-one thing mask (8.2), otherwise the vocabulary's kinds.
+      reference's off-by-one thing mask (docs/method.md §8.2), otherwise the vocabulary's kinds.
     Code mapping: the reference's ScanNet classes 1..20 are our 0..19 and its unannotated 0 our -1; Replica
     classes are 0-based in both. Its predicted instance 0 (removed) is our -1 and 1..K our ids >= 0; the
     orders agree (-1 and 0 are the smallest ids), so "first best" picks the same instance.
@@ -51,7 +51,7 @@ from panogs_core.labelsets import BUILTIN_VOCABULARIES
 from panogs_core.types import GroundTruth, Vocabulary
 
 PAPER_EXCLUDED_NAMES = ("other", "otherfurniture")
-# Reference 8.2 effective thing / stuff sets, 0-based (ScanNet's 1-based lists minus one).
+# The reference's effective thing / stuff sets (docs/method.md §8.2), 0-based (ScanNet's 1-based lists minus one).
 PAPER_SPLITS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
     "scannet20": ((3, 4, 5, 6, 7, 13, 17, 18), (0, 1, 2, 8, 9, 10, 11, 12, 14, 15, 16)),
     "matterport21": ((3, 4, 5, 6, 7, 11, 13, 17, 18), (0, 1, 2, 8, 9, 10, 12, 14, 15, 16, 20)),
@@ -325,7 +325,8 @@ def _iou_matrix(
 def _paper_pq(
     ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float
 ) -> _PQ:
-    """Reference 8.2 ``panoptic()``, quirks included (cumulative TP / FN / IoU sum, per-class FP)."""
+    """The reference's ``panoptic()`` (docs/method.md §8.2), quirks included (cumulative TP / FN / IoU sum,
+    per-class FP)."""
     tp = fn = n_valid = 0
     iou_sum = pq = sq = rq = 0.0
     per_class: dict[int, float] = {}

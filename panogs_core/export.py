@@ -1,4 +1,4 @@
-"""Write a run's outputs (DESIGN.md "Outputs") and compute metrics when the bundle has ground truth.
+"""Write a run's outputs (docs/architecture.md, "Outputs of a run"); compute metrics when there is ground truth.
 
 Files, all in the run's folder:
 
@@ -26,7 +26,12 @@ from typing import Any
 import numpy as np
 
 from panogs_core.bundle import Scene
+from panogs_core.clustering import Clusters
+from panogs_core.fusion import FusedFeatures
 from panogs_core.io.ply import write_ply
+from panogs_core.labeling import PanopticLabels
+from panogs_core.primitives import Primitives
+from panogs_core.superprimitives import SuperPrimitives
 from panogs_core.types import Vocabulary
 
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonics band constant (3DGS colour <-> DC coefficient)
@@ -70,7 +75,9 @@ def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> None:
     (out / "vocabulary.json").write_text(json.dumps(doc, indent=1))
 
 
-def write_gaussians(path: Path, prims: Any, colors: np.ndarray, semantic: np.ndarray, instance: np.ndarray) -> None:
+def write_gaussians(
+    path: Path, prims: Primitives, colors: np.ndarray, semantic: np.ndarray, instance: np.ndarray
+) -> None:
     """The 3DGS PLY layout (SH degree 0, identity rotations) plus label fields."""
     n = prims.points.shape[0]
     dc = (colors.astype(np.float32) - 0.5) / SH_C0
@@ -101,17 +108,24 @@ def write_gaussians(path: Path, prims: Any, colors: np.ndarray, semantic: np.nda
     )
 
 
-def primitive_colors(prims: Any, fused: Any) -> np.ndarray:  # (N, 3) float32 in [0, 1]
+def primitive_colors(prims: Primitives, fused: FusedFeatures) -> np.ndarray:  # (N, 3) float32 in [0, 1]
     """Colours of the geometry, else those fused from the colour frames, else mid grey."""
     if prims.colors is not None:
         return np.asarray(prims.colors, dtype=np.float32)
-    if getattr(fused, "colors", None) is not None:
+    if fused.colors is not None:
         return np.asarray(fused.colors, dtype=np.float32)
     return np.full((prims.points.shape[0], 3), 0.5, np.float32)
 
 
 def write_outputs(
-    out: Path, scene: Scene, prims: Any, fused: Any, graph: Any, clusters: Any, labels: Any, vocab: Vocabulary
+    out: Path,
+    scene: Scene,
+    prims: Primitives,
+    fused: FusedFeatures,
+    superprimitives: SuperPrimitives,
+    clusters: Clusters,
+    labels: PanopticLabels,
+    vocab: Vocabulary,
 ) -> tuple[dict[str, Path], dict[str, Any] | None]:
     """Write every output file; returns their paths and the metrics (None without ground truth)."""
     files: dict[str, Path] = {}
@@ -139,7 +153,7 @@ def write_outputs(
         files["labels.npz"],
         semantic=semantic,
         instance=instance,
-        superprimitive=np.asarray(graph.superprimitives.labels, dtype=np.int64),
+        superprimitive=np.asarray(superprimitives.labels, dtype=np.int64),
         cluster=np.asarray(clusters.labels, dtype=np.int64),
         class_names=np.array(vocab.names),
     )

@@ -1,23 +1,23 @@
 """Stage 3: multi-view fusion of the 2D language features onto the primitives, with a confidence for each.
 
-PanoGS reference 3.1 (``fuse_feature.py``). For every primitive p, over the feature frames that see it
+docs/method.md §3.1 (``fuse_feature.py``). For every primitive p, over the feature frames that see it
 (stage 2):
 
 * the pixel (u, v) where p lands reads the feature-map cell
-  ``(floor((v + 0.5) Hf / H), floor((u + 0.5) Wf / W))`` (SCENE_FORMAT.md; nearest cell, no bilinear, as the
-  reference's nearest-pixel lookup, pitfall 8);
+  ``(floor((v + 0.5) Hf / H), floor((u + 0.5) Wf / W))`` (docs/scene_format.md §2.3; nearest cell, no
+  bilinear, as the reference's nearest-pixel lookup, docs/method.md pitfall 8);
 * the cell's feature is unit-normalised (the reference fuses LSeg flip-sums; it notes that only the direction
   matters downstream, so unit pixels are harmless). A zero (or non-finite) feature means "no feature here": it
   adds nothing and does not count as an observation;
 * ``F(p)`` = mean of those unit features; ``S(p)`` = how many there were; ``V(p)`` = sum over dimensions of
-  their population variance. Unseen primitives get ``F = 0`` and weight 0 (pitfall 7);
+  their population variance. Unseen primitives get ``F = 0`` and weight 0 (docs/method.md pitfall 7);
 * the confidence weight, by ``FusionConfig.confidence``:
 
   - ``"code"`` (DEFAULT): the official code, ``w = 10 S' / (V' + 1)`` with ``S' = S / (max S - min S)`` and
     ``V' = V / (max V - min V)`` over all primitives (division by the range, not min-max normalisation). It is
-    the default because the published numbers were produced by it (pitfall 7), and because it stays bounded
-    where the paper form does not (a primitive seen once has V = 0);
-  - ``"paper"``: the paper's ``gamma = observations / sum of variances`` (PAPER != CODE in reference 3.1),
+    the default because the published numbers were produced by it (docs/method.md pitfall 7), and because it
+    stays bounded where the paper form does not (a primitive seen once has V = 0);
+  - ``"paper"``: the paper's ``gamma = observations / sum of variances`` (PAPER != CODE in docs/method.md §3.1),
     with ``paper_variance_eps`` added to the variance so that V = 0 gives a finite weight;
   - ``"none"``: 1 for every seen primitive (an ablation).
 
@@ -25,8 +25,8 @@ The frames are streamed: one feature map is read (memory-mapped), the cells the 
 gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. Peak memory is the (N, D)
 sum plus one frame's gathered cells; nothing is ever N x V x D.
 
-DEPARTURE (reference 13, memory): the reference holds every key frame's feature map (and N x M x 512 batches)
-at once, 11 GB for 100 frames of a real scan; streaming removes that cost.
+DEPARTURE (docs/method.md §13, memory): the reference holds every key frame's feature map (and N x M x 512
+batches) at once, 11 GB for 100 frames of a real scan; streaming removes that cost.
 
 Colours are fused the same way when the key frames have colour: mean RGB in [0, 1] over the seeing frames.
 """
@@ -65,14 +65,14 @@ class FusionConfig:
         ConfigError: naming the field, when a value is out of range.
     """
 
-    confidence: ConfidenceMode = "code"  # weight form; "code" = official code (reference 3.1, pitfall 7)
-    weight_scale: float = 10.0  # the 10 of w = 10 S' / (V' + 1); reference 3.1 (code form only)
+    confidence: ConfidenceMode = "code"  # weight form; "code" = official code (docs/method.md §3.1, pitfall 7)
+    weight_scale: float = 10.0  # the 10 of w = 10 S' / (V' + 1); docs/method.md §3.1 (code form only)
     paper_variance_eps: float = 1e-2  # added to sum of variances in the paper form (V = 0 when seen once)
     min_feature_norm: float = 1e-6  # pixel features with a smaller L2 norm are "no feature" (not counted)
     fuse_colors: bool = True  # also average the key frames' RGB onto the primitives (for exports)
-    # DEPARTURE (reference 3.1 reads each primitive's own feature cell): with ``mask_pooling`` = a > 0 a
-    # primitive that falls in a 2D mask of its frame reads ``(1 - a) f_cell + a f_mask``, where f_mask is
-    # the mean feature of the mask's cells, weighted by how much of each cell the mask covers
+    # DEPARTURE (docs/method.md §3.1; the reference reads each primitive's own feature cell): with
+    # ``mask_pooling`` = a > 0 a primitive that falls in a 2D mask of its frame reads ``(1 - a) f_cell + a f_mask``,
+    # where f_mask is the mean feature of the mask's cells, weighted by how much of each cell the mask covers
     # (``mask_pooled_features``). Feature maps are a quarter of the depth resolution on real captures, so
     # a cell on an object's border mixes both sides; the masks are sharp there. 0 = off (the reference).
     mask_pooling: float = 0.5
@@ -196,7 +196,9 @@ def feature_cells(
     image_hw: tuple[int, int],
     feature_hw: tuple[int, int],
 ) -> np.ndarray:  # (T,) int64 flat cell index r * Wf + c
-    """Feature-map cell of each pixel, ``(floor((v + 0.5) Hf / H), floor((u + 0.5) Wf / W))`` (SCENE_FORMAT).
+    """Feature-map cell of each pixel, ``(floor((v + 0.5) Hf / H), floor((u + 0.5) Wf / W))``.
+
+    The rule of docs/scene_format.md §2.3.
 
     Exact integer arithmetic: ``floor((2v + 1) Hf / 2H)``, so no cell boundary is missed by rounding.
 
@@ -216,7 +218,7 @@ def confidence_weights(
     count: np.ndarray,  # (N,) int, observations
     cfg: FusionConfig,
 ) -> np.ndarray:  # (N,) float32 >= 0, 0 where unseen
-    """Confidence of each fused feature (reference 3.1; forms described in the module docstring).
+    """Confidence of each fused feature (docs/method.md §3.1; forms described in the module docstring).
 
     The sum over dimensions of the population variance of unit vectors f_m with mean F is
     ``sum_d (mean_m f_md^2 - F_d^2) = mean_m |f_m|^2 - |F|^2 = 1 - |F|^2``, so it needs no second accumulator.
@@ -242,7 +244,7 @@ def confidence_weights(
 def _range(x: np.ndarray) -> float:
     """``max - min`` of x, the reference's divisor.
 
-    DEPARTURE (reference 3.1): when every value is equal the reference divides by zero (inf / NaN weights);
+    DEPARTURE (docs/method.md §3.1): when every value is equal the reference divides by zero (inf / NaN weights);
     then the maximum is used instead (1 when that is 0 too), so S' = 1 and V' = 1 (or 0) for everyone.
     """
     lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 0.0)

@@ -1,4 +1,4 @@
-"""Stage 8, semantic and panoptic labelling (reference section 7).
+"""Stage 8, semantic and panoptic labelling (docs/method.md §7).
 
 Inputs: primitive positions, their unit language features, the graph-cut super-primitives (stage 5), the
 clusters (stage 7) and a vocabulary with unit text embeddings. Output: :class:`PanopticLabels`, a class and an
@@ -6,9 +6,9 @@ instance id per primitive plus an :class:`InstanceInfo` (class, score, box, mean
 
 Steps:
 
-1. Class per primitive = argmax cosine of its feature against the vocabulary embeddings (reference 7.1-7.2).
+1. Class per primitive = argmax cosine of its feature against the vocabulary embeddings (docs/method.md §7.1-7.2).
    Primitives with a zero feature (never seen, in the fused-feature ablation) have no evidence: class -1.
-2. Optional vote inside each super-primitive (reference 7.3), guarded by purity (see ``LabelingConfig``).
+2. Optional vote inside each super-primitive (docs/method.md §7.3), guarded by purity (see ``LabelingConfig``).
 3. Panoptic assembly. The reference stops at per-point classes and evaluates them against raw cluster ids;
    here each cluster's THING points become one instance with one class (the majority thing class of those
    points), and all points of one STUFF class become one instance (COCO panoptic convention).
@@ -44,13 +44,13 @@ class LabelingConfig:
 
     Attributes:
         vote: ``superprimitive`` replaces the classes inside each graph-cut super-primitive by its majority
-            class (reference 7.3, ties -> smallest class index); ``none`` keeps the per-primitive argmax.
+            class (docs/method.md §7.3, ties -> smallest class index); ``none`` keeps the per-primitive argmax.
         vote_min_fraction: Purity guard of the vote, a fraction of the segment's classified primitives in
             ``[0, 1]``: a segment is voted only when its majority class holds at least this share. 0 = the
             reference (always vote).
         min_instance_points: Instances with fewer primitives are dissolved (primitives keep their class,
             instance -1). Counts primitives; the reference removes clusters < 200 points with <= 2 segments
-            (6.2).
+            (docs/method.md §6.2).
         score_temperature: Softmax temperature (cosine units) of the instance score; None = derived from the
             vocabulary's spread (``labelsets.default_temperature``; 0.01 for the CLIP label sets).
         split_classes: Split a cluster's thing primitives into one instance per class and connected part
@@ -70,15 +70,15 @@ class LabelingConfig:
         split_min_fraction: ... and this share of it, and so does at least one other cluster.
     """
 
-    # DEPARTURE (reference 7.3 always votes): reference 13 measured voting inside coarse segments lowering
-    # mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment of another majority class, and on the
-    # held-out ScanNet room of issue 8 the vote cost 4-5 mIoU points at easy and default. No vote at all loses
-    # at default and hard, where the per-primitive classes are noisy. So ``islands`` (``vote_islands``): only
-    # a connected patch of another class smaller than ``island_points`` flips to its segment's majority, and
-    # only where that majority is a close second for it (softmax ratio >= ``vote_max_ratio``); a confident
-    # patch is an object on or in a larger one (a sink in its counter), not noise. On the realistic scan
-    # rooms (seeds 0-1) this was at or above both no vote and the plain island vote at every difficulty; the
-    # four-seed table is in docs/benchmarks.md. ``vote_min_fraction`` is the purity guard of both votes.
+    # DEPARTURE (docs/method.md §7.3; the reference always votes): the reference's run on a real scan (docs/method.md
+    # §13) measured voting inside coarse segments lowering mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment
+    # of another majority class, and on the held-out ScanNet room of issue 8 the vote cost 4-5 mIoU points at easy and
+    # default. No vote at all loses at default and hard, where the per-primitive classes are noisy. So ``islands``
+    # (``vote_islands``): only a connected patch of another class smaller than ``island_points`` flips to its segment's
+    # majority, and only where that majority is a close second for it (softmax ratio >= ``vote_max_ratio``); a confident
+    # patch is an object on or in a larger one (a sink in its counter), not noise. On the realistic scan rooms (seeds
+    # 0-1) this was at or above both no vote and the plain island vote at every difficulty; the four-seed table is in
+    # docs/benchmarks.md. ``vote_min_fraction`` is the purity guard of both votes.
     vote: Literal["superprimitive", "islands", "none"] = "islands"
     vote_min_fraction: float = 0.5
     min_instance_points: int = 50
@@ -283,15 +283,15 @@ def assign_panoptic(
     cluster = np.asarray(clusters.labels, np.int64)
     pts = np.asarray(points, np.float32)
     if neighbors is None and (cfg.split_classes or cfg.instances != "clusters" or fused is not None):
-        from panogs_core.superprimitives import build_knn
+        from panogs_core.neighbors import build_knn
 
         neighbors = build_knn(points, min(cfg.split_neighbors, max(len(pts) - 1, 1))).neighbors
     nbr = None if neighbors is None else np.asarray(neighbors, np.int64)
     unseen_counts: dict[str, int] = {}
     scores = field_sims
     if fused is None:
-        # DEPARTURE (reference 7.2 takes the argmax everywhere): a zero feature has no evidence, so class -1
-        # rather than class 0 by accident of argmax; the vote can still fill it from its segment.
+        # DEPARTURE (docs/method.md §7.2; the reference takes the argmax everywhere): a zero feature has no evidence, so
+        # class -1 rather than class 0 by accident of argmax; the vote can still fill it from its segment.
         cls = np.where(sq_norm > 1e-12, np.argmax(field_sims, axis=1), -1).astype(np.int64)
     else:
         cls, scores = primitive_classes(field_sims, fused, emb, cfg)
@@ -325,9 +325,9 @@ def primitive_classes(
 ) -> tuple[np.ndarray, np.ndarray]:  # (N,) int64 class (-1 where unseen), (N, L) the scores
     """Class of each seen primitive from its fused and field cosines; -1 where no key frame saw it.
 
-    DEPARTURE (reference 7.2 labels with the field's features): on a held-out ScanNet room the argmax of the
-    fused features beat the field's on the surfaces key frames see (0.933 against 0.821 mIoU at easy, issue 8):
-    the field smooths small classes into the large ones beside them. ``evidence_fused_weight`` mixes the two
+    DEPARTURE (docs/method.md §7.2; the reference labels with the field's features): on a held-out ScanNet room the
+    argmax of the fused features beat the field's on the surfaces key frames see (0.933 against 0.821 mIoU at easy,
+    issue 8): the field smooths small classes into the large ones beside them. ``evidence_fused_weight`` mixes the two
     cosines (1 = fused only); the weight is chosen in bench/quality.py.
     """
     w = cfg.evidence_fused_weight
@@ -400,15 +400,14 @@ def label_unseen(
 ) -> tuple[np.ndarray, dict[str, int]]:  # (N,) int64 classes, how many unseen were labelled how
     """A class for every primitive no key frame saw, and how many were labelled by each rule.
 
-    ``segment``: the majority class of the seen primitives of its super-primitive (the graph cut follows the
-    geometry, so an unseen patch of floor under a table is in a floor segment), then ``propagate`` for
-    segments no key frame saw at all.
-    ``propagate``: the class of the seen primitive nearest along the kNN graph (edge length = distance), so
-    the floor under a bed takes the floor's class across the floor, not the class of the bed 10 cm above it;
-    primitives in parts of the graph with no seen primitive take the Euclidean nearest seen one's class.
-    ``field``: the argmax of the field's features there (the reference: the field extrapolates).
-    DEPARTURE (reference 7.2 uses the field everywhere): on the held-out room the field labelled window
-    vertices, 86 % of them unseen, 0.00 IoU; nearest-seen fill reached 0.55 (issue 8).
+    ``segment``: the majority class of the seen primitives of its super-primitive (the graph cut follows the geometry,
+    so an unseen patch of floor under a table is in a floor segment), then ``propagate`` for segments no key frame saw
+    at all. ``propagate``: the class of the seen primitive nearest along the kNN graph (edge length = distance), so the
+    floor under a bed takes the floor's class across the floor, not the class of the bed 10 cm above it; primitives in
+    parts of the graph with no seen primitive take the Euclidean nearest seen one's class. ``field``: the argmax of the
+    field's features there (the reference: the field extrapolates). DEPARTURE (docs/method.md §7.2; the reference uses
+    the field everywhere): on the held-out room the field labelled window vertices, 86 % of them unseen, 0.00 IoU;
+    nearest-seen fill reached 0.55 (issue 8).
     """
     unseen = classes < 0
     counts = {"unseen": int(unseen.sum()), "field": 0, "segment": 0, "graph": 0, "nearest": 0}
@@ -522,7 +521,7 @@ def _assemble(
     thing = (cls >= 0) & is_thing[np.maximum(cls, 0)]
     semantic = cls.copy()
     instance = np.full(cls.shape, -1, np.int64)
-    # DEPARTURE (reference 7: no per-instance semantics, clusters evaluated as they are): each cluster's
+    # DEPARTURE (docs/method.md §7: no per-instance semantics, clusters evaluated as they are): each cluster's
     # thing points form one instance relabelled to their majority thing class, so an instance has one class.
     member = thing & (cluster >= 0)
     thing_classes = np.zeros(0, np.int64)
@@ -536,7 +535,7 @@ def _assemble(
         instance[inst >= 0] = inst[inst >= 0]
         semantic[inst >= 0] = thing_classes[inst[inst >= 0]]
     # DEPARTURE (reference clusters stuff like things): one instance per stuff class, whatever the cluster;
-    # reference 13 found one wall split into 9-18 clusters otherwise.
+    # the reference (docs/method.md §13) found one wall split into 9-18 clusters otherwise.
     stuff = (cls >= 0) & ~thing
     stuff_size = np.bincount(cls[stuff], minlength=len(is_thing))
     stuff_classes = np.flatnonzero((stuff_size >= min_points) & ~is_thing)
@@ -638,7 +637,7 @@ def _assemble_components(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Thing instances from connected components of the classes, split by the clusters where they agree.
 
-    DEPARTURE (reference 6-7: the SAM-guided clusters are the instances): on two of three held-out real rooms
+    DEPARTURE (docs/method.md §6-7, the SAM-guided clusters are the instances): on two of three held-out real rooms
     plain connected components of the argmax classes beat the clusters on thing PQ, and the clusters made more
     false instances (7 against 2 in a bathroom, issue 8). So the classes draw the instances, as in the
     baseline (``baselines.label_components``: one class, kNN edges up to ``component_radius``), and the

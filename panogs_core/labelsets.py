@@ -1,7 +1,7 @@
 """Label sets (vocabularies): the two built-in indoor sets, ``vocabulary.json`` files, and their embeddings.
 
 A :class:`~panogs_core.types.Vocabulary` carries class names, a thing/stuff kind per class and, once resolved,
-unit text embeddings ``(L, D)`` in the feature space of the scene (reference 1.6). The built-in sets ship the
+unit text embeddings ``(L, D)`` in the feature space of the scene (docs/method.md §1.6). The built-in sets ship the
 OpenScene CLIP ViT-B/32 label embeddings of the official release (``data/label_sets/README.md``); any other
 space re-embeds the names with its text encoder (:func:`ensure_embeddings`).
 
@@ -45,7 +45,7 @@ _SCANNET20 = (
     "otherfurniture",
 )
 _MATTERPORT21 = (*_SCANNET20[:19], "other", "ceiling")
-# name -> (class names in row order, embedding file). Orders from data/label_sets/README.md (reference 1.6).
+# name -> (class names in row order, embedding file). Orders from data/label_sets/README.md (docs/method.md §1.6).
 BUILTIN_VOCABULARIES: dict[str, tuple[tuple[str, ...], str]] = {
     "scannet20": (_SCANNET20, "SCANNET_LABELS_20.npy"),
     "matterport21": (_MATTERPORT21, "MATTERPORT_LABELS_21_dim512.npy"),
@@ -95,7 +95,7 @@ def builtin_vocabulary(name: str, *, feature_space: str | None = None) -> Vocabu
 
 
 def load_vocabulary_file(path: str | Path) -> Vocabulary:
-    """Read a ``vocabulary.json`` (SCENE_FORMAT.md) and the embeddings file it names, if any.
+    """Read a ``vocabulary.json`` (docs/scene_format.md §3) and the embeddings file it names, if any.
 
     ``kind`` may be left out of a class entry: it then defaults to stuff for wall/floor/ceiling, thing
     otherwise.

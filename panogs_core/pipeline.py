@@ -1,6 +1,7 @@
 """The whole PanoGS pipeline: a scene bundle in, panoptic labels, instances and exports out.
 
-``run_pipeline`` runs the stages of DESIGN.md in order. Each stage's output is checkpointed under
+``run_pipeline`` runs the stages of ``STAGES`` in order (docs/architecture.md has the table and the data each
+passes on). Each stage's output is checkpointed under
 ``out_dir/stages/`` together with a key (a hash of the input bundle, the stage's config and its upstream keys),
 so a crashed job resumes from its last finished stage and a re-run with new clustering thresholds reuses the
 fusion and the distilled field.
@@ -13,7 +14,7 @@ import json
 import logging
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -21,6 +22,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from panogs_core import __version__
+from panogs_core import stages as st
 from panogs_core.bundle import Scene, open_bundle
 from panogs_core.config import PipelineConfig
 from panogs_core.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
@@ -36,6 +38,7 @@ STAGES = (
     "fusion",
     "language_field",
     "masks",
+    "neighbors",
     "superprimitives",
     "clustering",
     "labeling",
@@ -44,6 +47,7 @@ STAGES = (
 
 StageProgressFn = Callable[[str, int, int], None]
 T = TypeVar("T")
+C = TypeVar("C", bound=st.Checkpoint)
 
 
 @dataclass
@@ -135,28 +139,32 @@ class _Runner:
     def progress_for(self, stage: str) -> _StageProgress:
         return _StageProgress(stage, self.on_progress)
 
-    def stage(
-        self,
-        name: str,
-        key: str,
-        compute: Callable[[ProgressFn], T],
-        load: Callable[[Path], T] | None = None,
-        save: Callable[[T, Path], None] | None = None,
-    ) -> T:
-        """Load the checkpoint of ``name`` if its key matches, else compute (and save) it."""
+    def stage(self, spec: st.StageSpec[C], keys: Mapping[str, str], compute: Callable[[ProgressFn], C]) -> C:
+        """Load the checkpoint of ``spec`` if its key matches, else compute and save it."""
+        key = keys[spec.name]
+
+        def load_or_compute(report: ProgressFn, stats: StageStats) -> C:
+            if self.checkpoints.has(spec.name, key):
+                stats.cached = True
+                return spec.load(self.checkpoints.path(spec.name))
+            result = compute(report)
+            tmp = self.checkpoints.path(spec.name).with_suffix(".tmp.npz")
+            result.save(tmp)
+            tmp.replace(self.checkpoints.path(spec.name))
+            self.checkpoints.record(spec.name, key)
+            return result
+
+        return self._timed(spec.name, load_or_compute)
+
+    def step(self, name: str, compute: Callable[[ProgressFn], T]) -> T:
+        """Run a stage that has no checkpoint (it is cheap, or its outputs are the run's files)."""
+        return self._timed(name, lambda report, _: compute(report))
+
+    def _timed(self, name: str, body: Callable[[ProgressFn, StageStats], T]) -> T:
         report = self.progress_for(name)
         with StageTimer(name) as timer:
             report(0, 1)
-            if load is not None and self.checkpoints.has(name, key):
-                result = load(self.checkpoints.path(name))
-                timer.stats.cached = True
-            else:
-                result = compute(report)
-                if save is not None:
-                    tmp = self.checkpoints.path(name).with_suffix(".tmp.npz")
-                    save(result, tmp)
-                    tmp.replace(self.checkpoints.path(name))
-                    self.checkpoints.record(name, key)
+            result = body(report, timer.stats)
             report.finish()
         self.timings.append(timer.stats)
         log.info(
@@ -201,7 +209,7 @@ def run_pipeline(
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
 ) -> PipelineResult:
-    """Run every stage on a bundle and write the outputs of DESIGN.md into ``out_dir``.
+    """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
     Args:
         bundle: Bundle folder or archive, or an already opened :class:`Scene`.
@@ -218,61 +226,38 @@ def run_pipeline(
         BundleError: the bundle is invalid (every problem listed).
         Cancelled: the progress callback asked to stop.
     """
-    from panogs_core import stages as st
-
     cfg = config or PipelineConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     runner = _Runner(out, resume, on_progress)
     t_start = time.perf_counter()
 
-    scene = runner.stage(
-        "validate", "", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(bundle, workdir=out / "bundle")
+    scene = runner.step(
+        "validate", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(bundle, workdir=out / "bundle")
     )
     input_hash = hash_bundle(scene)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     keys = st.stage_keys(input_hash, cfg, vocab)
 
-    prims = runner.stage(
-        "primitives", keys["primitives"], lambda p: st.primitives(scene, cfg, p), *st.io_for("primitives")
-    )
-    vis = runner.stage(
-        "visibility", keys["visibility"], lambda p: st.visibility(scene, prims, cfg, p), *st.io_for("visibility")
-    )
-    fused = runner.stage("fusion", keys["fusion"], lambda p: st.fusion(scene, vis, prims, cfg, p), *st.io_for("fusion"))
+    prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
+    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
+    fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
     field_ = None
     if cfg.features_source == "field":
-        field_ = runner.stage(
-            "language_field",
-            keys["language_field"],
-            lambda p: st.language_field(prims, fused, cfg, p),
-            *st.io_for("language_field"),
-        )
-    features = st.primitive_features(field_, fused, cfg)
-    masks = runner.stage("masks", keys["masks"], lambda p: st.masks(scene, vis, cfg, p), *st.io_for("masks"))
-    graph = runner.stage(
-        "superprimitives",
-        keys["superprimitives"],
-        lambda p: st.superprimitives(prims, features, masks, cfg, p),
-        *st.io_for("superprimitives"),
-    )
-    clusters = runner.stage(
-        "clustering",
-        keys["clustering"],
-        lambda p: st.clustering(graph, masks, features, cfg, p),
-        *st.io_for("clustering"),
-    )
+        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
+    features = st.primitive_features(field_, fused)
+    masks = runner.stage(st.MASKS, keys, lambda p: st.masks(scene, vis, cfg, p))
+    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
+    sp = runner.stage(st.SUPERPRIMITIVES, keys, lambda p: st.superprimitives(prims, features, masks, knn, cfg, p))
+    clusters = runner.stage(st.CLUSTERING, keys, lambda p: st.clustering(sp, knn, masks, features, cfg, p))
     labels = runner.stage(
-        "labeling",
-        keys["labeling"],
-        lambda p: st.labeling(prims, features, fused, graph, clusters, vocab, cfg),
-        *st.io_for("labeling"),
+        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
     )
 
     def export(_: ProgressFn) -> PipelineResult:
         from panogs_core.export import write_outputs
 
-        files, metrics = write_outputs(out, scene, prims, fused, graph, clusters, labels, vocab)
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab)
         return PipelineResult(
             unseen=dict(labels.unseen),
             out_dir=out,
@@ -284,7 +269,7 @@ def run_pipeline(
             files=files,
         )
 
-    result = runner.stage("export", "", export)
+    result = runner.step("export", export)
     _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, time.perf_counter() - t_start, result)
     return result
 

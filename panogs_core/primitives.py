@@ -1,12 +1,12 @@
 """Stage 1: the scene's 3D primitives (Gaussian centres, colours, normals, scales, opacities).
 
-PanoGS reference section 2 (``run_recon.py`` with ``fix_ply``): one Gaussian per vertex of the scene mesh, in
+docs/method.md §2 (``run_recon.py`` with ``fix_ply``): one Gaussian per vertex of the scene mesh, in
 file order, never densified or pruned. Here:
 
 * **geometry path** (the scene has ``geometry.ply``): its vertices, in file order, are the primitives, 1:1
-  and without de-duplication (reference pitfall 1: predictions are compared with per-vertex ground truth by
+  and without de-duplication (docs/method.md pitfall 1: predictions are compared with per-vertex ground truth by
   index); colours come from the file when it has them. Normals in the file are not used: the reference
-  estimates them from the points (4.1).
+  estimates them from the points (docs/method.md §4.1).
 * **TSDF path** (no geometry): the depth frames are fused into a truncated signed distance volume (open3d
   ``t.geometry.VoxelBlockGrid``; the legacy ``ScalableTSDFVolume`` extracts nothing in open3d 0.20), its zero
   crossing is extracted as a coloured point cloud, voxel-downsampled to ``target_spacing`` and capped at
@@ -14,10 +14,10 @@ file order, never densified or pruned. Here:
   needs it for captures that come without a mesh.
 
 In both paths the normals are open3d ``estimate_normals`` (hybrid radius 0.1 m, 30 neighbours), NOT oriented
-(reference 4.1, pitfall 10), and the Gaussians are initialised as in reference section 2: isotropic log scale
+(docs/method.md §4.1, pitfall 10), and the Gaussians are initialised as in docs/method.md §2: isotropic log scale
 from the mean squared distance to the 3 nearest neighbours, opacity 0.5 (logit 0).
 
-DEPARTURE (reference 2 and 9): the photometric 3DGS colour refinement (26k iterations of L1 + D-SSIM through a
+DEPARTURE (docs/method.md §2, §9): the photometric 3DGS colour refinement (26k iterations of L1 + D-SSIM through a
 CUDA rasteriser) is not run. Downstream stages read only the Gaussian centres, and with ``fix_ply`` the
 refinement only nudges them away from the vertices (mm to a few cm, unmeasured by the authors); skipping it
 keeps the centres exactly on the vertices and the stage CPU-only.
@@ -58,15 +58,15 @@ class PrimitivesConfig:
         ConfigError: naming the field, when a value is out of range.
     """
 
-    # --- Gaussian initialisation (reference section 2, MonoGS ``fix_ply`` init, simple-knn ``distCUDA2``)
-    point_size: float = 0.05  # factor on the mean squared 3-NN distance (m^2) before sqrt; reference 2
-    scale_neighbors: int = 3  # neighbours (self excluded) whose squared distances are averaged; reference 2
-    min_sq_distance: float = 1e-7  # m^2, floor on that mean (duplicate points); reference 2
-    # --- normals (reference 4.1, pitfall 10): open3d hybrid search, not oriented
+    # --- Gaussian initialisation (docs/method.md §2, MonoGS ``fix_ply`` init, simple-knn ``distCUDA2``)
+    point_size: float = 0.05  # factor on the mean squared 3-NN distance (m^2) before sqrt; docs/method.md §2
+    scale_neighbors: int = 3  # neighbours (self excluded) whose squared distances are averaged; docs/method.md §2
+    min_sq_distance: float = 1e-7  # m^2, floor on that mean (duplicate points); docs/method.md §2
+    # --- normals (docs/method.md §4.1, pitfall 10): open3d hybrid search, not oriented
     normal_radius: float = 0.1  # m
     normal_max_nn: int = 30  # neighbours
     # --- which path
-    use_geometry: bool = True  # geometry.ply vertices when present (reference 2, pitfall 1); False: TSDF
+    use_geometry: bool = True  # geometry.ply vertices when present (docs/method.md §2, pitfall 1); False: TSDF
     # --- TSDF path (not in the reference; sized for ScanNet-like real captures)
     voxel_size: float = 0.02  # m, TSDF voxel edge (ScanNet vh_clean_2 meshes have ~2 cm vertex spacing)
     trunc_voxels: float = 4.0  # truncation distance in voxels (0.08 m at 2 cm: above real depth noise at 4 m)
@@ -80,11 +80,12 @@ class PrimitivesConfig:
     min_weight: float = 0.5
     # m, voxel-downsampling cell of the extracted cloud. The method's point-count constants (min_size 20,
     # small clusters < 200 points, instances >= 50) were set on ScanNet vh_clean_2 meshes, about 81k
-    # vertices for a whole room (reference 13): several centimetres apart. At 0.02 the TSDF cloud is 4-5x
+    # vertices for a whole room (docs/method.md §13): several centimetres apart. At 0.02 the TSDF cloud is 4-5x
     # denser, those constants shrink to slivers and fragments survive as instances: tiny synthetic room
     # without geometry, PRQ(T) 0.60 at 0.02 (147k primitives), 0.75 at 0.03, 0.76 at 0.04 (37k).
     target_spacing: float = 0.04
-    max_primitives: int = 200_000  # cap on N for the TSDF path (the geometry path is never capped: pitfall 1)
+    # cap on N for the TSDF path (the geometry path is never capped: docs/method.md pitfall 1)
+    max_primitives: int = 200_000
     spacing_growth: float = 1.2  # factor on the spacing per retry while the cloud is above max_primitives
 
     def __post_init__(self) -> None:
@@ -125,9 +126,9 @@ class Primitives:
     """The scene's primitives: 3D Gaussians of which downstream stages use the centres (and normals)."""
 
     points: np.ndarray  # (N, 3) float32, world, metres
-    normals: np.ndarray  # (N, 3) float32, unit, NOT oriented (reference 4.1)
+    normals: np.ndarray  # (N, 3) float32, unit, NOT oriented (docs/method.md §4.1)
     colors: np.ndarray | None  # (N, 3) float32 in [0, 1]
-    scales: np.ndarray  # (N, 3) float32, log scale (3DGS convention, isotropic, reference section 2)
+    scales: np.ndarray  # (N, 3) float32, log scale (3DGS convention, isotropic, docs/method.md §2)
     opacities: np.ndarray  # (N,) float32, logit (3DGS convention; 0.0 = opacity 0.5)
     source: str  # "geometry" | "tsdf"
 
@@ -203,7 +204,7 @@ def build_primitives(scene: Scene, cfg: PrimitivesConfig, *, on_progress: Progre
         source = "tsdf"
     normals = estimate_normals(points, cfg.normal_radius, cfg.normal_max_nn)
     scales = gaussian_log_scales(points, cfg.scale_neighbors, cfg.min_sq_distance, cfg.point_size)
-    opacities = np.zeros(points.shape[0], dtype=np.float32)  # logit(0.5) = 0; reference 2
+    opacities = np.zeros(points.shape[0], dtype=np.float32)  # logit(0.5) = 0; docs/method.md §2
     log.info("primitives: %d from %s", points.shape[0], source)
     return Primitives(points=points, normals=normals, colors=colors, scales=scales, opacities=opacities, source=source)
 
@@ -248,7 +249,7 @@ def gaussian_log_scales(
 
 
 def estimate_normals(points: np.ndarray, radius: float, max_nn: int) -> np.ndarray:  # (N, 3) float32
-    """Unit normals by open3d's hybrid-search PCA, deliberately NOT oriented (reference 4.1, pitfall 10).
+    """Unit normals by open3d's hybrid-search PCA, deliberately NOT oriented (docs/method.md §4.1, pitfall 10).
 
     Points open3d cannot fit (fewer than 3 neighbours in ``radius``) get ``(0, 0, 1)``: every row is unit.
     """
@@ -415,7 +416,7 @@ def _integrate_frame(grid: Any, scene: Scene, frame: Frame, cfg: PrimitivesConfi
         depth, _tensor(scene.camera.K), extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels
     )
     # open3d's integration truncates a voxel's projected pixel coordinates (floor, not round): with pixel
-    # centres at integer coordinates (SCENE_FORMAT.md) it reads the pixel half a pixel up-left, which biases
+    # centres at integer coordinates (docs/conventions.md) it reads the pixel half a pixel up-left, which biases
     # the surface (measured 2-4 mm at 320 x 240, 1-2 cm at 80 x 60). Shifting the principal point by +0.5 px
     # turns the truncation into a nearest-pixel lookup (bias measured < 0.3 mm).
     lookup = _tensor(scene.camera.K + np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))

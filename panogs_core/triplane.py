@@ -18,13 +18,13 @@ from panogs_core.errors import InputError, NumericalError
 from panogs_core.progress import ProgressFn, report
 
 if TYPE_CHECKING:
-    from panogs_core.language_field import LanguageFieldConfig
+    from panogs_core.language_field_config import LanguageFieldConfig
 
 _DECODE_BATCH = 32768  # points per decoding batch: (32768, 512) float32 is 64 MiB
 
 
 class _TriplaneDecoder(torch.nn.Module):
-    """Pyramid tri-plane encoder plus bias-free MLP decoder (reference 3.2-3.3)."""
+    """Pyramid tri-plane encoder plus bias-free MLP decoder (docs/method.md §3.2-3.3)."""
 
     def __init__(self, planes: list[torch.Tensor], weights: list[torch.Tensor]) -> None:
         super().__init__()
@@ -33,7 +33,8 @@ class _TriplaneDecoder(torch.nn.Module):
 
     def encode(self, coords: torch.Tensor) -> torch.Tensor:
         """Latent of points already mapped into the box as ``[-1, 1]^3``. ``(B, 3)`` -> ``(B, C)``."""
-        # Plane 0 is (x, y), plane 1 (x, z), plane 2 (y, z); first coordinate indexes the plane width (3.2).
+        # Plane 0 is (x, y), plane 1 (x, z), plane 2 (y, z); first coordinate indexes the plane width
+        # (docs/method.md §3.2).
         grid = torch.stack([coords[:, [0, 1]], coords[:, [0, 2]], coords[:, [1, 2]]])  # (3, B, 2)
         grid = grid.unsqueeze(1)  # (3, 1, B, 2)
         latent = coords.new_zeros(coords.shape[0], self.planes[0].shape[1])  # (B, C)
@@ -59,14 +60,14 @@ class _TriplaneDecoder(torch.nn.Module):
 def _to_unit_cube(points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
     """Map world points into ``[-1, 1]^3`` over the box. ``(B, 3)`` -> ``(B, 3)``.
 
-    DEPARTURE (reference pitfall 5): the reference feeds ``[0, 1]`` to ``grid_sample``, which expects
+    DEPARTURE (docs/method.md pitfall 5): the reference feeds ``[0, 1]`` to ``grid_sample``, which expects
     ``[-1, 1]``, so only one quadrant of every plane is ever used (effective cells twice the nominal size). We
     use the whole plane, so the cells are the nominal ``cell_sizes``.
     """
     return (points - bounds[0]) / (bounds[1] - bounds[0]) * 2.0 - 1.0
 
 
-def _init_model(resolutions: list[int], dim: int, cfg: LanguageFieldConfig) -> _TriplaneDecoder:
+def init_model(resolutions: list[int], dim: int, cfg: LanguageFieldConfig) -> _TriplaneDecoder:
     """Planes ~ N(0, init_scale^2); decoder weights ~ U(+-1/sqrt(fan_in)) (PyTorch's default Linear init).
 
     A local generator makes the initialisation reproducible without touching torch's global RNG.
@@ -81,7 +82,7 @@ def _init_model(resolutions: list[int], dim: int, cfg: LanguageFieldConfig) -> _
     return _TriplaneDecoder(planes, weights).to(torch.device(cfg.device))
 
 
-def _model_from_state(state: dict[str, np.ndarray], device: torch.device) -> _TriplaneDecoder:
+def model_from_state(state: dict[str, np.ndarray], device: torch.device) -> _TriplaneDecoder:
     """Rebuild the decoder from ``LanguageField.state`` (levels and layers in numeric order)."""
 
     def ordered(prefix: str) -> list[torch.Tensor]:
@@ -94,14 +95,14 @@ def _model_from_state(state: dict[str, np.ndarray], device: torch.device) -> _Tr
     return _TriplaneDecoder(planes, weights).to(device)
 
 
-def _state_of(model: _TriplaneDecoder) -> dict[str, np.ndarray]:
+def state_of(model: _TriplaneDecoder) -> dict[str, np.ndarray]:
     state = {f"planes.{i}": p.detach().cpu().numpy().copy() for i, p in enumerate(model.planes)}
     state.update({f"mlp.{i}": w.detach().cpu().numpy().copy() for i, w in enumerate(model.mlp)})
     return state
 
 
 @torch.no_grad()
-def _decode(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+def decode_features(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """Decoded unit features of world points, in batches. ``(P, 3)`` -> ``(P, D)`` float32."""
     device = model.planes[0].device
     bounds_t = torch.from_numpy(bounds.astype(np.float32)).to(device)
@@ -115,7 +116,7 @@ def _decode(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndarray) -> 
     return out
 
 
-def _training_set(
+def training_set(
     points: np.ndarray, features: np.ndarray, weights: np.ndarray, bounds: np.ndarray, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coordinates in [-1, 1], unit targets and weights of the primitives with weight > 0 only.
@@ -174,7 +175,7 @@ def _cosine_to_targets(
     return dot / sq_norm.clamp_min(0.0).sqrt().clamp_min(1e-8)
 
 
-def _train(
+def train_model(
     model: _TriplaneDecoder,
     coords: torch.Tensor,  # (M, 3) in [-1, 1]
     targets: torch.Tensor,  # (M, D) unit rows

@@ -1,19 +1,19 @@
 """Stage 2: which primitives each key frame sees, and at which pixel (projection + depth test).
 
-PanoGS reference 3.1 (``fuse_feature.py``) and 5.1 (``get_camp_pixel``): a primitive p is seen by view m when
-its projection lands inside the depth image and its camera depth agrees with the sensor depth there:
+docs/method.md §3.1 (the reference's ``fuse_feature.py``) and §5.1 (``get_camp_pixel``): a primitive p is seen by
+view m when its projection lands inside the depth image and its camera depth agrees with the sensor depth there:
 
 * ``X_c = inv(T_world_cam) [p, 1]``; only ``z > z_near`` is kept, so points behind the camera are out and can
-  never wrap into the image (pitfall 9);
+  never wrap into the image (docs/method.md pitfall 9);
 * pixel ``(u, v) = rint(K X_c / z)``, round half to even like ``torch.round``; in bounds when
-  ``0 <= u <= W - 1`` and ``0 <= v <= H - 1`` (pitfall 8);
+  ``0 <= u <= W - 1`` and ``0 <= v <= H - 1`` (docs/method.md pitfall 8);
 * depth test ``|z - D| <= depth_rtol * D + depth_atol`` with ``D`` the sensor depth at that pixel (the
   reference's ``np.isclose(z, D, rtol=0.07)``); ``D == 0`` (no depth) is never seen;
-* a frame whose pose is not finite (ScanNet has ``-inf`` poses, pitfall 23) sees nothing.
+* a frame whose pose is not finite (ScanNet has ``-inf`` poses, docs/method.md pitfall 23) sees nothing.
 
 The result is computed once and shared by fusion (stage 3) and mask observation (stage 6).
 
-DEPARTURE (reference 9, memory): the reference builds dense N x M arrays of camera coordinates, pixels and
+DEPARTURE (docs/method.md §9, memory): the reference builds dense N x M arrays of camera coordinates, pixels and
 flags (about 2.7 GB for 423k points x 200 views). Here the frames are streamed one at a time and only the seen
 (point, pixel) pairs are kept, in CSR form: memory is O(N + seen pairs), never O(N x M).
 """
@@ -46,7 +46,8 @@ class VisibilityConfig:
         ConfigError: naming the field, when a value is out of range.
     """
 
-    depth_rtol: float = 0.07  # |z - D| <= rtol * D, relative; reference 3.1 thres_vis_dis, pitfall 8
+    # |z - D| <= rtol * D, relative; the reference's thres_vis_dis, docs/method.md §3.1 and pitfall 8
+    depth_rtol: float = 0.07
     # m, absolute floor added to the tolerance. The reference's np.isclose uses 1e-8 m, i.e. nothing; 0 keeps
     # its behaviour. Real depth noise is relative (grows with depth), which rtol already covers: 7 cm at 1 m.
     depth_atol: float = 0.0
@@ -209,7 +210,8 @@ def frame_visibility(
     idx, z = idx[inside], z[inside]
     col, row = u[inside].astype(np.int32), v[inside].astype(np.int32)
     d = depth[row, col]  # sensor depth at the pixel
-    seen = (d > 0) & (np.abs(z - d) <= cfg.depth_rtol * d + cfg.depth_atol)  # pitfall 8; D = 0 never seen
+    # docs/method.md pitfall 8; D = 0 is never seen
+    seen = (d > 0) & (np.abs(z - d) <= cfg.depth_rtol * d + cfg.depth_atol)
     residual = ((z[seen] - d[seen]) / d[seen]).astype(np.float16)  # |residual| <= rtol: float16 keeps 3 digits
     return idx[seen].astype(np.int32), row[seen], col[seen], residual
 

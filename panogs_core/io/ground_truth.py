@@ -2,7 +2,7 @@
 
 Two sources are understood (``load_ground_truth`` picks by file name):
 
-- ``.npz`` in the bundle's ``gt/labels.npz`` layout (SCENE_FORMAT.md): ``semantic`` and ``instance`` ``(G,)``
+- ``.npz`` in the bundle's ``gt/labels.npz`` layout (docs/scene_format.md §4): ``semantic`` and ``instance`` ``(G,)``
   integers (integral floats are accepted and converted: the reference's ScanNet ground truth is float64),
   optional ``points`` ``(G, 3)``. Without points the labels are per vertex of the scene's geometry.
 - ScanNet v2's own annotations: ``<scene>_vh_clean_2.labels.ply`` (vertex property ``label`` = NYU40 id) and,
@@ -10,7 +10,7 @@ Two sources are understood (``load_ground_truth`` picks by file name):
   ``<scene>_vh_clean_2.0.010000.segs.json`` (``segIndices``: one over-segment id per vertex). Semantics map
   NYU40 ids to the ScanNet-20 order of ``labelsets`` (other ids: -1, unannotated); every segGroup is one instance
   (its ``objectId``); vertices in no group, and stuff (wall, floor), get instance -1. That is the reference's
-  coding (reference 1.7: wall and floor share instance 0, which is our -1), so both evaluation modes score the
+  coding (docs/method.md §1.7: wall and floor share instance 0, which is our -1), so both evaluation modes score the
   same as the reference's ground-truth files. Points are the mesh vertices.
 
 When the labelled points are exactly the vertices the prediction lives on (the bundle's ``geometry.ply`` at

@@ -1,4 +1,4 @@
-"""Import a Replica scene in the NICE-SLAM layout (reference §1.2) into a scene bundle.
+"""Import a Replica scene in the NICE-SLAM layout (docs/method.md §1.2) into a scene bundle.
 
 Source layout::
 
@@ -39,7 +39,7 @@ from panogs_core.types import Camera, Vocabulary
 
 logger = logging.getLogger(__name__)
 
-# NICE-SLAM's Replica intrinsics (reference §1.2), used when no argument nor cam_params.json gives any.
+# NICE-SLAM's Replica intrinsics (docs/method.md §1.2), used when no argument nor cam_params.json gives any.
 NICE_SLAM_REPLICA_CAMERA = Camera(width=1200, height=680, fx=600.0, fy=600.0, cx=599.5, cy=339.5)
 NICE_SLAM_DEPTH_SCALE = 6553.5
 _DEPTH_NAME = re.compile(r"^depth(\d+)\.png$", re.IGNORECASE)

@@ -1,4 +1,4 @@
-"""Import a ScanNet export (SensReader layout, reference §1.3) into a scene bundle.
+"""Import a ScanNet export (SensReader layout, docs/method.md §1.3) into a scene bundle.
 
 Source layout::
 
@@ -10,7 +10,7 @@ Source layout::
     <src>/masks/<i>.png                     optional per frame: 2D instance id map
 
 Frames are ordered by the integer stem ``<i>``; bundle ids are ``<i>`` zero-padded to six digits. Frames whose
-pose is not a finite rigid transform are skipped and reported (the reference keeps them, reference §10).
+pose is not a finite rigid transform are skipped and reported (the reference keeps them, docs/method.md §10).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Write scene bundles (``panogs-scene/1``, SCENE_FORMAT.md) from arrays or from existing files.
+"""Write scene bundles (``panogs-scene/1``, docs/scene_format.md) from arrays or from existing files.
 
 Used by the synthetic generator, the dataset importers and the tests. The writer checks what it is given
 against the format as it goes (sizes, dtypes, feature dimension, pose shape) so that a bundle it writes opens
@@ -526,7 +526,7 @@ def _add_source_frame(writer: BundleWriter, frame: SourceFrame, pose: np.ndarray
 def resample_nearest(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:  # (h, w, ...) same dtype
     """Nearest-neighbour resampling with pixel centres: output (v, u) reads input (floor((v+.5)·H/h), ...).
 
-    This is the lookup rule SCENE_FORMAT.md uses for feature maps, so resampled depth and intrinsics scaled by
+    This is the lookup rule docs/scene_format.md §2.3 uses for feature maps, so resampled depth and intrinsics scaled by
     :func:`scale_camera` stay consistent. (cv2's INTER_NEAREST reads floor(v·H/h), a quarter pixel off.)
 
     Args:

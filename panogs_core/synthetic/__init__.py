@@ -11,7 +11,7 @@ confusions). See ``docs/synthetic.md`` for the noise model and the presets.
 from __future__ import annotations
 
 from panogs_core.synthetic.catalog import CLASS_KINDS, CLASS_NAMES, catalogue_vocabulary, label_embeddings
-from panogs_core.synthetic.layout import Layout, build_layout
+from panogs_core.synthetic.layout import Layout
 from panogs_core.synthetic.presets import (
     DIFFICULTIES,
     PRESETS,
@@ -25,6 +25,7 @@ from panogs_core.synthetic.presets import (
     get_difficulty,
     get_preset,
 )
+from panogs_core.synthetic.rooms import build_layout
 from panogs_core.synthetic.scene import make_scene, spec_camera
 
 __all__ = [

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from panogs_core.synthetic.catalog import confusion_targets
 from panogs_core.synthetic.degrade import blob_mask
-from panogs_core.synthetic.features import FeatureModel, _cells, _frame_sources
+from panogs_core.synthetic.features import FeatureModel, feature_cells, frame_sources
 
 CLUTTER_RANDOM = 0.8  # length of the random part of a clutter feature (class rows are 0.35-0.7 apart in CLIP)
 _MAX_REGIONS = 2000  # safety bound on the number of spheres
@@ -126,7 +126,7 @@ def synthesize_anchored_features(
     """
     ids, compact = np.unique(instance, return_inverse=True)
     compact = compact.reshape(instance.shape)
-    sources, source_scale = _frame_sources(model, ids, rng)
+    sources, source_scale = frame_sources(model, ids, rng)
     blob = blob_mask(instance.shape, model.noise.confused_area, rng)
     region = anchors.region(world.reshape(-1, 3)).reshape(instance.shape)
     slots = len(anchors.radii) + 1
@@ -137,7 +137,9 @@ def synthesize_anchored_features(
     target = _region_targets(model, anchors, inst, r, annotated)
     w = np.where(target >= 0, np.append(anchors.weight, 0.0)[r], 0.0).astype(np.float32)[:, None]  # [-1]: 0
     vec = (1.0 - w) * sources[base] + w * model.class_embeddings[np.maximum(target, 0)]
-    return _cells(source.reshape(instance.shape), vec.astype(np.float32), source_scale[base], shape, model.noise, rng)
+    return feature_cells(
+        source.reshape(instance.shape), vec.astype(np.float32), source_scale[base], shape, model.noise, rng
+    )
 
 
 def _region_targets(

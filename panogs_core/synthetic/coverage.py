@@ -21,7 +21,7 @@ _CANDIDATES = 8  # frames tried per missed instance
 _PITCH_LIMIT = np.deg2rad((-60.0, 25.0))
 
 
-def _coarse(camera: Camera, factor: int = 4) -> Camera:
+def coarse_camera(camera: Camera, factor: int = 4) -> Camera:
     """The same field of view at 1/factor resolution (pixel centres kept consistent)."""
     return Camera(width=max(camera.width // factor, 8), height=max(camera.height // factor, 6),
                   fx=camera.fx / factor, fy=camera.fy / factor,
@@ -73,7 +73,7 @@ def ensure_coverage(
     Returns:
         The poses, with some key frames re-aimed; unchanged when every instance is already seen.
     """
-    coarse, out = _coarse(camera), poses.copy()
+    coarse, out = coarse_camera(camera), poses.copy()
     counts = np.stack([_counts(scene, layout, coarse, out[k]) for k in key_frames])  # (K, I)
     centres = _instance_centres(layout)
     for inst in np.flatnonzero((counts >= _MIN_PIXELS).sum(axis=0) == 0):

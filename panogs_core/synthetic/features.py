@@ -85,7 +85,7 @@ def synthesize_features(
     """One frame's feature map (steps 2-6 of the module docstring).
 
     Cell (r, c) averages the pixels (v, u) with ``floor((v + 0.5) * Hf / H) == r`` and
-    ``floor((u + 0.5) * Wf / W) == c``, the sampling rule of SCENE_FORMAT.md.
+    ``floor((u + 0.5) * Wf / W) == c``, the sampling rule of docs/scene_format.md §2.3.
 
     Args:
         model: From :func:`make_feature_model`.
@@ -98,13 +98,13 @@ def synthesize_features(
     """
     ids, compact = np.unique(instance, return_inverse=True)
     compact = compact.reshape(instance.shape)
-    sources, source_scale = _frame_sources(model, ids, rng)
+    sources, source_scale = frame_sources(model, ids, rng)
     blob = blob_mask(instance.shape, model.noise.confused_area, rng)
     source = 2 * compact + blob  # source 2k: instance k as is, 2k + 1: instance k inside a confusion blob
-    return _cells(source, sources, source_scale, shape, model.noise, rng)
+    return feature_cells(source, sources, source_scale, shape, model.noise, rng)
 
 
-def _cells(
+def feature_cells(
     source: np.ndarray,  # (H, W) int64 source index per pixel
     sources: np.ndarray,  # (S, D) float32 source vectors
     source_scale: np.ndarray,  # (S,) float32 noise unit of each source
@@ -150,7 +150,7 @@ def _blur_matrix(n: int, sigma: float) -> np.ndarray:  # (n, n) float32, rows su
     return (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
 
 
-def _frame_sources(
+def frame_sources(
     model: FeatureModel, ids: np.ndarray, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:  # (2K, D), (2K,)
     """Per visible instance: its view-perturbed vector and the same leaning towards a confusable class."""

@@ -75,7 +75,7 @@ class Layout:
         return self.instance_class[self.box_instance]
 
 
-class _Builder:
+class RoomBuilder:
     """Accumulates placed groups; refuses a placement that leaves the room or collides."""
 
     def __init__(self, room: np.ndarray, rng: np.random.Generator) -> None:
@@ -136,7 +136,7 @@ def _concat(a: Boxes, b: Boxes) -> Boxes:
 # -- pose samplers --
 
 
-def _wall_poses(b: _Builder, group: Group, zone: Zone, corner: bool) -> Iterator[np.ndarray]:
+def wall_poses(b: RoomBuilder, group: Group, zone: Zone, corner: bool) -> Iterator[np.ndarray]:
     """Random poses with the group's back on a wall of the zone (at a corner of the wall if ``corner``)."""
     bounds = group.bounds()
     half_w = (bounds[0, 1] - bounds[0, 0]) / 2
@@ -150,7 +150,7 @@ def _wall_poses(b: _Builder, group: Group, zone: Zone, corner: bool) -> Iterator
         yield wall_pose(b.room, wall, t, bounds)
 
 
-def _free_poses(b: _Builder, zone: Zone) -> Iterator[np.ndarray]:
+def free_poses(b: RoomBuilder, zone: Zone) -> Iterator[np.ndarray]:
     """Random poses inside the zone, axis-aligned give or take 15 degrees."""
     for _ in range(_TRIES):
         x = b.rng.uniform(zone[0] + 0.8, max(zone[1] - 0.8, zone[0] + 0.81))
@@ -159,14 +159,14 @@ def _free_poses(b: _Builder, zone: Zone) -> Iterator[np.ndarray]:
         yield np.array([x, y, 0.0, yaw])
 
 
-def _on_wall(b: _Builder, group: Group, zone: Zone, corner: bool = False) -> bool:
+def place_on_wall(b: RoomBuilder, group: Group, zone: Zone, corner: bool = False) -> bool:
     """Place a group against a wall of the zone (2 cm from other objects); False if it does not fit."""
-    return b.try_add(group, _wall_poses(b, group, zone, corner), clearance=0.02)
+    return b.try_add(group, wall_poses(b, group, zone, corner), clearance=0.02)
 
 
-def _free(b: _Builder, group: Group, zone: Zone) -> bool:
+def place_free(b: RoomBuilder, group: Group, zone: Zone) -> bool:
     """Place a group on the open floor of the zone, keeping a walkway around it; False if it does not fit."""
-    return b.try_add(group, _free_poses(b, zone), clearance=_WALKWAY, margin=0.3)
+    return b.try_add(group, free_poses(b, zone), clearance=_WALKWAY, margin=0.3)
 
 
 # -- families --
@@ -180,10 +180,10 @@ def _shelf(rng: np.random.Generator, room_height: float, count: int = 1) -> Grou
     return shelves[0] if count == 1 else groups.side_by_side(shelves, rng)
 
 
-def _run_on_wall(b: _Builder, make: Callable[[int], Group], count: int, zone: Zone) -> None:
+def _run_on_wall(b: RoomBuilder, make: Callable[[int], Group], count: int, zone: Zone) -> None:
     """Place a run of ``count`` touching objects on a wall; if it does not fit, a shorter run, down to one."""
     for n in range(count, 0, -1):
-        if _on_wall(b, make(n), zone):
+        if place_on_wall(b, make(n), zone):
             return
 
 
@@ -212,80 +212,80 @@ def _cabinet(rng: np.random.Generator, room_height: float, kind: str) -> Group:
     return groups.single(shapes.cabinet(rng, w, d, h))
 
 
-def _fill_living(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
+def _fill_living(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
     # Free-standing groups first: they need the most floor, wall furniture fits around them.
     if rng.random() < 0.7:
-        _free(b, groups.dining(rng), zone)
-    _free(b, groups.dining(rng, coffee=True), zone)
+        place_free(b, groups.dining(rng), zone)
+    place_free(b, groups.dining(rng, coffee=True), zone)
     for _ in range(rng.integers(1, 3)):
-        _on_wall(b, groups.single(shapes.sofa(rng)), zone)
+        place_on_wall(b, groups.single(shapes.sofa(rng)), zone)
     for _ in range(rng.integers(1, 3)):
         _run_on_wall(b, lambda n: _shelf(rng, b.room[2], n), int(rng.integers(1, 4)), zone)
     for _ in range(rng.integers(1, 3)):
-        _on_wall(b, _cabinet(rng, b.room[2], "sideboard"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "sideboard"), zone)
     _run_on_wall(b, lambda n: _chairs(rng, n), int(rng.integers(0, 4)), zone)
 
 
-def _fill_bedroom(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
-    _on_wall(b, groups.bed(rng), zone)
+def _fill_bedroom(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
+    place_on_wall(b, groups.bed(rng), zone)
     if rng.random() < 0.8:
-        _on_wall(b, _cabinet(rng, b.room[2], "wardrobe"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "wardrobe"), zone)
     if rng.random() < 0.7:
-        _on_wall(b, groups.desk(rng, hutch=rng.random() < 0.4), zone)
+        place_on_wall(b, groups.desk(rng, hutch=rng.random() < 0.4), zone)
     if rng.random() < 0.6:
-        _on_wall(b, _shelf(rng, b.room[2]), zone)
+        place_on_wall(b, _shelf(rng, b.room[2]), zone)
     if rng.random() < 0.5:
-        _on_wall(b, _cabinet(rng, b.room[2], "sideboard"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "sideboard"), zone)
 
 
-def _fill_office(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
+def _fill_office(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
     if rng.random() < 0.6:
-        _free(b, groups.dining(rng), zone)
+        place_free(b, groups.dining(rng), zone)
     for _ in range(rng.integers(1, 3)):
         _run_on_wall(b, lambda n: _desks(rng, n), int(rng.integers(1, 4)), zone)
     for _ in range(rng.integers(1, 3)):
         _run_on_wall(b, lambda n: _shelf(rng, b.room[2], n), int(rng.integers(1, 4)), zone)
     _run_on_wall(b, lambda n: _chairs(rng, n), int(rng.integers(0, 3)), zone)
     for _ in range(rng.integers(1, 3)):
-        _on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
 
 
-def _fill_kitchen(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
-    _free(b, groups.dining(rng), zone)
-    _on_wall(b, groups.kitchen(rng, b.room[2]), zone)
+def _fill_kitchen(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
+    place_free(b, groups.dining(rng), zone)
+    place_on_wall(b, groups.kitchen(rng, b.room[2]), zone)
     if rng.random() < 0.6:
-        _on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
     if rng.random() < 0.4:
-        _on_wall(b, _shelf(rng, b.room[2]), zone)
+        place_on_wall(b, _shelf(rng, b.room[2]), zone)
 
 
-def _fill_bathroom(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
+def _fill_bathroom(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
     if rng.random() < 0.8:
-        _on_wall(b, groups.single(shapes.bathtub(rng)), zone, corner=True)
-    _on_wall(b, groups.single(shapes.toilet(rng)), zone)
-    _on_wall(b, groups.vanity(rng), zone)
+        place_on_wall(b, groups.single(shapes.bathtub(rng)), zone, corner=True)
+    place_on_wall(b, groups.single(shapes.toilet(rng)), zone)
+    place_on_wall(b, groups.vanity(rng), zone)
     if rng.random() < 0.6:
-        _on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
+        place_on_wall(b, _cabinet(rng, b.room[2], "filing"), zone)
 
 
-def _fill_extra(b: _Builder, zone: Zone, rng: np.random.Generator) -> None:
+def _fill_extra(b: RoomBuilder, zone: Zone, rng: np.random.Generator) -> None:
     """More generic furniture for big zones (one item per ~8 m2 of floor beyond the first 12 m2)."""
     area = (zone[1] - zone[0]) * b.room[1]
     for _ in range(int(max(area - 12.0, 0.0) / 8.0)):
         pick = rng.integers(5)
         if pick == 0:
-            _free(b, groups.dining(rng, coffee=rng.random() < 0.3), zone)
+            place_free(b, groups.dining(rng, coffee=rng.random() < 0.3), zone)
         elif pick == 1:
-            _on_wall(b, _shelf(rng, b.room[2]), zone)
+            place_on_wall(b, _shelf(rng, b.room[2]), zone)
         elif pick == 2:
-            _on_wall(b, _cabinet(rng, b.room[2], str(rng.choice(["sideboard", "filing", "wardrobe"]))), zone)
+            place_on_wall(b, _cabinet(rng, b.room[2], str(rng.choice(["sideboard", "filing", "wardrobe"]))), zone)
         elif pick == 3:
-            _on_wall(b, groups.single(shapes.sofa(rng)), zone)
+            place_on_wall(b, groups.single(shapes.sofa(rng)), zone)
         else:
-            _on_wall(b, groups.desk(rng, hutch=rng.random() < 0.5), zone)
+            place_on_wall(b, groups.desk(rng, hutch=rng.random() < 0.5), zone)
 
 
-_FILLERS: dict[str, Callable[[_Builder, Zone, np.random.Generator], None]] = {
+_FILLERS: dict[str, Callable[[RoomBuilder, Zone, np.random.Generator], None]] = {
     "living": _fill_living, "bedroom": _fill_bedroom, "office": _fill_office, "kitchen": _fill_kitchen,
     "bathroom": _fill_bathroom,
 }  # fmt: skip
@@ -294,42 +294,38 @@ _FILLERS: dict[str, Callable[[_Builder, Zone, np.random.Generator], None]] = {
 # -- the room --
 
 
-def build_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
-    """Draw a furnished room.
+def build_zoned_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
+    """Draw a furnished room of zones, one room family each (the non-realistic presets).
 
     Args:
-        spec: Room size ranges and zone length; a realistic spec gets a studio (``scan_layout.py``).
+        spec: Room size ranges and zone length.
         rng: Source of every random choice (the layout is a pure function of its state).
 
     Returns:
         The room as boxes with instance and class ids, colours and contacts.
     """
-    if spec.realistic:
-        from panogs_core.synthetic.scan_layout import build_scan_layout  # it builds on this module's helpers
-
-        return build_scan_layout(spec, rng)
     room = np.array([rng.uniform(*spec.room_length), rng.uniform(*spec.room_width),
                      rng.uniform(*spec.room_height)])  # fmt: skip
     n_zones = max(1, round(room[0] / spec.zone_length))
     edges = np.linspace(0.0, room[0], n_zones + 1)
     zones = [(float(edges[i]), float(edges[i + 1])) for i in range(n_zones)]
     families = tuple(str(f) for f in rng.choice(FAMILIES, n_zones, replace=False, p=_FAMILY_WEIGHTS))
-    b = _Builder(room, rng)
+    b = RoomBuilder(room, rng)
     for _ in range(1 + (n_zones > 1)):
-        _on_wall(b, groups.door(rng), (0.0, float(room[0])))
+        place_on_wall(b, groups.door(rng), (0.0, float(room[0])))
     for zone in zones:
         for _ in range(rng.integers(1, 3)):
-            _on_wall(b, groups.window(rng, room[2]), zone)
+            place_on_wall(b, groups.window(rng, room[2]), zone)
     for zone, family in zip(zones, families):
         _FILLERS[family](b, zone, rng)
         _fill_extra(b, zone, rng)
     for zone in zones:
         for _ in range(rng.integers(1, 4)):
-            _on_wall(b, groups.single(shapes.picture(rng)), zone)
-    return _finish(b, families)
+            place_on_wall(b, groups.single(shapes.picture(rng)), zone)
+    return finish_layout(b, families)
 
 
-def _finish(b: _Builder, families: tuple[str, ...]) -> Layout:
+def finish_layout(b: RoomBuilder, families: tuple[str, ...]) -> Layout:
     """Prepend the floor, ceiling and wall slabs to the placed objects."""
     lx, ly, h = b.room
     t = _WALL_T

@@ -24,13 +24,13 @@ from panogs_core.synthetic import groups, shapes
 from panogs_core.synthetic.catalog import CLASS_ID
 from panogs_core.synthetic.layout import (
     Layout,
+    RoomBuilder,
     Zone,
-    _Builder,
-    _finish,
-    _free,
-    _free_poses,
-    _on_wall,
-    _wall_poses,
+    finish_layout,
+    free_poses,
+    place_free,
+    place_on_wall,
+    wall_poses,
 )
 from panogs_core.synthetic.placement import Group
 from panogs_core.synthetic.presets import SyntheticSpec
@@ -45,7 +45,7 @@ _SUPPORT_TOP = (0.3, 2.3)  # heights of furniture tops that get clutter on them,
 _SUPPORT_AREA = 0.06  # smallest top (m2) that gets clutter
 
 
-class _ScanBuilder(_Builder):
+class _ScanBuilder(RoomBuilder):
     """The layout builder, also keeping track of the unannotated (clutter) instances."""
 
     def __init__(self, room: np.ndarray, rng: np.random.Generator) -> None:
@@ -244,35 +244,35 @@ def _desk(rng: np.random.Generator) -> Model:
 
 def _retry(b: _ScanBuilder, make: Callable[[], Group], zone: Zone, tries: int = 3, corner: bool = False) -> bool:
     """Place a freshly drawn ``make()`` on a wall of the zone, up to ``tries`` draws (the room's key objects)."""
-    return any(_on_wall(b, make(), zone, corner) for _ in range(tries))
+    return any(place_on_wall(b, make(), zone, corner) for _ in range(tries))
 
 
 def _fill_service(b: _ScanBuilder, zone: Zone, rng: np.random.Generator) -> None:
     for n in (3, 2, 1):  # the longest run that fits
-        if _on_wall(b, _kitchen_run(rng, b.room[2], n), zone):
+        if place_on_wall(b, _kitchen_run(rng, b.room[2], n), zone):
             break
     _retry(b, lambda: groups.single(shapes.toilet(rng)), zone, corner=True)
     _retry(b, lambda: _vanity(rng), zone)
-    _on_wall(b, _pantry(rng, b.room[2]), zone)
-    _free(b, groups.single(shapes.table(rng, rng.uniform(1.2, 1.6), rng.uniform(0.7, 0.9))), zone)
+    place_on_wall(b, _pantry(rng, b.room[2]), zone)
+    place_free(b, groups.single(shapes.table(rng, rng.uniform(1.2, 1.6), rng.uniform(0.7, 0.9))), zone)
 
 
 def _fill_living(b: _ScanBuilder, zone: Zone, rng: np.random.Generator) -> None:
     for sofa in (_sofa_corner(rng), groups.single(_sectional(rng))):  # without its coffee table if need be
-        if b.try_add(sofa, _off_wall(_wall_poses(b, sofa, zone, False), rng.uniform(0.05, 0.25)), clearance=0.02):
+        if b.try_add(sofa, _off_wall(wall_poses(b, sofa, zone, False), rng.uniform(0.05, 0.25)), clearance=0.02):
             break
-    _free(b, groups.single(shapes.table(rng, rng.uniform(1.6, 2.0), rng.uniform(0.9, 1.05))), zone)
-    _on_wall(b, groups.single(_armchair(rng)), zone)
-    _on_wall(b, _tv_stand(rng), zone)
-    _on_wall(b, groups.single(shapes.bookshelf(rng, rng.uniform(0.5, 0.7), rng.uniform(0.28, 0.35), 0.8)), zone)
-    _on_wall(b, _storage(rng), zone)
+    place_free(b, groups.single(shapes.table(rng, rng.uniform(1.6, 2.0), rng.uniform(0.9, 1.05))), zone)
+    place_on_wall(b, groups.single(_armchair(rng)), zone)
+    place_on_wall(b, _tv_stand(rng), zone)
+    place_on_wall(b, groups.single(shapes.bookshelf(rng, rng.uniform(0.5, 0.7), rng.uniform(0.28, 0.35), 0.8)), zone)
+    place_on_wall(b, _storage(rng), zone)
 
 
 def _fill_sleeping(b: _ScanBuilder, zone: Zone, rng: np.random.Generator) -> None:
     _retry(b, lambda: groups.bed(rng), zone)
     _retry(b, lambda: groups.single(_desk(rng)), zone)
-    _on_wall(b, _wardrobe(rng, b.room[2]), zone)
-    _on_wall(b, groups.single(shapes.table(rng, rng.uniform(0.5, 0.8), rng.uniform(0.45, 0.6))), zone)
+    place_on_wall(b, _wardrobe(rng, b.room[2]), zone)
+    place_on_wall(b, groups.single(shapes.table(rng, rng.uniform(0.5, 0.8), rng.uniform(0.45, 0.6))), zone)
 
 
 _FILLERS = {"service": _fill_service, "living": _fill_living, "sleeping": _fill_sleeping}
@@ -328,9 +328,9 @@ def _floor_clutter(b: _ScanBuilder, count: int) -> None:
         else:
             group = _clutter_box(rng, rng.uniform(0.2, 0.6), rng.uniform(0.2, 0.6), rng.uniform(0.15, 0.8))
         if pick < 0.75:
-            b.add_clutter(group, _wall_poses(b, group, whole, False), clearance=0.02)
+            b.add_clutter(group, wall_poses(b, group, whole, False), clearance=0.02)
         else:
-            b.add_clutter(group, _free_poses(b, whole), clearance=0.1)
+            b.add_clutter(group, free_poses(b, whole), clearance=0.1)
 
 
 def _wall_clutter(b: _ScanBuilder, count: int) -> None:
@@ -338,7 +338,7 @@ def _wall_clutter(b: _ScanBuilder, count: int) -> None:
     whole = (0.0, float(b.room[0]))
     for _ in range(count):
         group = groups.single(shapes.picture(b.rng))
-        b.add_clutter(group, _wall_poses(b, group, whole, False), clearance=0.02)
+        b.add_clutter(group, wall_poses(b, group, whole, False), clearance=0.02)
 
 
 def _tv(b: _ScanBuilder) -> None:
@@ -376,16 +376,16 @@ def build_scan_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
     b = _ScanBuilder(room, rng)
     whole = (0.0, float(room[0]))
     for _ in range(1 + int(rng.random() < 0.3)):
-        _on_wall(b, groups.door(rng), whole)
+        place_on_wall(b, groups.door(rng), whole)
     for curtains in (True, rng.random() < 0.7):
-        _on_wall(b, _curtained_window(rng, room[2], curtains), whole)
+        place_on_wall(b, _curtained_window(rng, room[2], curtains), whole)
     for zone, family in zip(zones, families):
         _FILLERS[family](b, zone, rng)
     _tv(b)
     _surface_clutter(b, int(rng.integers(30, 40)))
     _floor_clutter(b, int(rng.integers(18, 26)))
     _wall_clutter(b, int(rng.integers(1, 4)))
-    layout = _finish(b, families)
+    layout = finish_layout(b, families)
     annotated = np.ones(len(layout.instance_class), dtype=bool)
     annotated[sorted(b.unannotated)] = False
     return replace(layout, annotated=annotated)

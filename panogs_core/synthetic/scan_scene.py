@@ -24,14 +24,14 @@ from panogs_core.io.writer import BundleWriter
 from panogs_core.progress import ProgressFn
 from panogs_core.synthetic.anchored import make_anchors, synthesize_anchored_features, with_clutter
 from panogs_core.synthetic.catalog import CLASS_ID
-from panogs_core.synthetic.coverage import _coarse
+from panogs_core.synthetic.coverage import coarse_camera
 from panogs_core.synthetic.features import make_feature_model
+from panogs_core.synthetic.frames import Streams, observed_in_view, subset, write_frames, write_static
 from panogs_core.synthetic.layout import Layout
 from panogs_core.synthetic.presets import Difficulty, SyntheticSpec, TrajectoryNoise
 from panogs_core.synthetic.render import Render, render_view
 from panogs_core.synthetic.sampling import SurfacePoints
 from panogs_core.synthetic.scan_trajectory import make_scan_trajectory
-from panogs_core.synthetic.scene import Streams, observed_in_view, subset, write_frames, write_static
 from panogs_core.types import Camera
 
 _DENSE_DIVISOR = 2  # the dense poses are rendered at 1/2 resolution to decide what the mesh holds
@@ -92,7 +92,7 @@ def observe_dense(
     scene: o3d.t.geometry.RaycastingScene, layout: Layout, camera: Camera, poses: np.ndarray, surface: SurfacePoints
 ) -> np.ndarray:  # (N,) bool
     """Which surface points any of ``poses`` observes, rendered at ``1 / _DENSE_DIVISOR`` resolution."""
-    coarse = _coarse(camera, _DENSE_DIVISOR)
+    coarse = coarse_camera(camera, _DENSE_DIVISOR)
     observed = np.zeros(len(surface.points), dtype=bool)
     for pose in poses:
         view = render_view(scene, layout, coarse, pose, shade=False)

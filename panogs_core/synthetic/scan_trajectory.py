@@ -20,7 +20,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from panogs_core.synthetic.layout import Layout
 from panogs_core.synthetic.presets import TrajectoryNoise
-from panogs_core.synthetic.trajectory import _loop, _push_clear, look_pose
+from panogs_core.synthetic.trajectory import look_pose, loop_path, push_clear
 
 _HEIGHT = 1.45  # mean camera height, metres
 _PITCH = np.deg2rad(-24.0)  # mean pitch
@@ -94,10 +94,10 @@ def make_scan_trajectory(
         ``(P, 4, 4)`` float64 poses, OpenCV camera axes.
     """
     inset = rng.uniform(*_INSET)
-    path = _loop(layout.room, inset=inset)
+    path = loop_path(layout.room, inset=inset)
     xy = _walk(path, num_poses, noise.uneven, rng)
     xy = xy + rng.normal(0, noise.position_m, xy.shape)
-    xy = _push_clear(xy, layout, min_top=_CLEAR_TOP, clearance=_CLEAR_M)
+    xy = push_clear(xy, layout, min_top=_CLEAR_TOP, clearance=_CLEAR_M)
     phase = np.linspace(0.0, 1.0, num_poses, endpoint=False)
     glance = _glances(num_poses, rng)
     outward = np.arctan2(xy[:, 1] - layout.room[1] / 2, xy[:, 0] - layout.room[0] / 2)

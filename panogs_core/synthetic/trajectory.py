@@ -40,7 +40,7 @@ def look_pose(position: np.ndarray, yaw: float, pitch: float, roll: float = 0.0)
     return pose
 
 
-def _loop(room: np.ndarray, count: int = 2000, inset: float | None = None) -> np.ndarray:  # (count, 2)
+def loop_path(room: np.ndarray, count: int = 2000, inset: float | None = None) -> np.ndarray:  # (count, 2)
     """Dense rounded rectangle (a superellipse) inset from the walls by ``inset`` metres.
 
     The default inset is a quarter of the room's side, kept within 0.9-1.6 m.
@@ -63,7 +63,7 @@ def _stations(path: np.ndarray, n: int, uneven: float, rng: np.random.Generator)
     return np.stack([np.interp(s, arc, closed[:, 0]), np.interp(s, arc, closed[:, 1])], 1)
 
 
-def _push_clear(
+def push_clear(
     xy: np.ndarray, layout: Layout, min_top: float = _HEIGHT[0] - 0.5, clearance: float = _CLEARANCE
 ) -> np.ndarray:
     """Move positions towards the room centre until no box higher than ``min_top`` is within ``clearance``."""
@@ -100,10 +100,10 @@ def make_trajectory(
     Returns:
         ``(V, 4, 4)`` float64 poses, OpenCV camera axes.
     """
-    xy = _stations(_loop(layout.room), num_frames, noise.uneven, rng)
+    xy = _stations(loop_path(layout.room), num_frames, noise.uneven, rng)
     phase = np.linspace(0.0, 1.0, num_frames, endpoint=False)
     height = 1.5 + 0.15 * np.sin(2 * np.pi * (2 * phase + rng.uniform()))
-    xy = _push_clear(xy + rng.normal(0, noise.position_m, xy.shape), layout)
+    xy = push_clear(xy + rng.normal(0, noise.position_m, xy.shape), layout)
     height = np.clip(height + rng.normal(0, noise.position_m, num_frames), *_HEIGHT)
     to_centre = layout.room[:2] / 2 - xy
     yaw = np.arctan2(to_centre[:, 1], to_centre[:, 0])

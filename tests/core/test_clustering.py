@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from panogs_core.affinity import AffinityConfig, MaskObservations
+from panogs_core.affinity import AffinityConfig, segment_affinity
 from panogs_core.clustering import (
     ClusteringConfig,
     Clusters,
@@ -18,19 +18,25 @@ from panogs_core.clustering import (
     progressive_clustering,
 )
 from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.masks import MaskObservations
+from panogs_core.neighbors import KnnGraph
+from panogs_core.progress import ProgressFn
+from panogs_core.superprimitives import SuperPrimitives
 
-try:
-    from panogs_core.superprimitives import KnnGraph, SuperPrimitives
-except ImportError:  # the stage 5 module may land later; these are the fields stage 7 reads
 
-    @dataclass(frozen=True)
-    class KnnGraph:  # type: ignore[no-redef]
-        neighbors: np.ndarray  # (N, K) int64, self excluded
-        distances: np.ndarray  # (N, K) float32
-
-    @dataclass(frozen=True)
-    class SuperPrimitives:  # type: ignore[no-redef]
-        labels: np.ndarray  # (N,) int64 dense
+def _cluster(
+    sp: SuperPrimitives,
+    knn: KnnGraph,
+    obs: MaskObservations,
+    cfg: ClusteringConfig,
+    affinity_cfg: AffinityConfig,
+    *,
+    features: np.ndarray | None = None,
+    on_progress: ProgressFn | None = None,
+) -> Clusters:
+    """The pipeline's stage 7: the affinity measure bound to the observations, then the clustering."""
+    affinity = segment_affinity(sp.labels, obs, affinity_cfg, features=features)
+    return progressive_clustering(sp, knn, affinity, cfg, on_progress=on_progress)
 
 
 FLOOR, BOX_A, BOX_B = 0, 1, 2
@@ -164,12 +170,12 @@ class TestProgressiveClustering:
         cfg = ClusteringConfig(**kwargs)  # type: ignore[arg-type]
         sp = SuperPrimitives(labels=scene.superprimitives)
         affinity = AffinityConfig(aggregate=aggregate)  # type: ignore[arg-type]
-        return progressive_clustering(sp, scene.knn, obs, cfg, affinity).labels
+        return _cluster(sp, scene.knn, obs, cfg, affinity).labels
 
     def test_two_boxes_on_floor(self, scene: _Scene) -> None:
         calls: list[tuple[int, int]] = []
         sp = SuperPrimitives(labels=scene.superprimitives)
-        clusters = progressive_clustering(
+        clusters = _cluster(
             sp,
             scene.knn,
             _observe(scene, scene.objects),
@@ -231,9 +237,7 @@ class TestProgressiveClustering:
         features = np.eye(3, dtype=np.float32)[scene.objects]
         sp = SuperPrimitives(labels=scene.superprimitives)
         obs = _observe(scene, scene.objects)
-        clusters = progressive_clustering(
-            sp, scene.knn, obs, ClusteringConfig(), AffinityConfig(mode="language"), features=features
-        )
+        clusters = _cluster(sp, scene.knn, obs, ClusteringConfig(), AffinityConfig(mode="language"), features=features)
         _assert_matches(clusters.labels, scene.objects)
 
     def test_save_load(self, scene: _Scene, tmp_path: Path) -> None:
@@ -248,15 +252,13 @@ class TestProgressiveClustering:
         obs = _observe(scene, scene.objects)
         short = KnnGraph(neighbors=scene.knn.neighbors[:-1], distances=scene.knn.distances[:-1])
         with pytest.raises(ShapeError, match=r"knn\.neighbors must be \(\d+, K\) to match labels"):
-            progressive_clustering(sp, short, obs, ClusteringConfig(), AffinityConfig())
+            _cluster(sp, short, obs, ClusteringConfig(), AffinityConfig())
         with pytest.raises(InputError, match="mode 'language' needs features"):
-            progressive_clustering(sp, scene.knn, obs, ClusteringConfig(), AffinityConfig(mode="language"))
+            _cluster(sp, scene.knn, obs, ClusteringConfig(), AffinityConfig(mode="language"))
 
     def test_sparse_ids_give_dense_clusters(self, scene: _Scene) -> None:
         sp = SuperPrimitives(labels=scene.superprimitives * 3)  # ids with no primitive in between
-        out = progressive_clustering(
-            sp, scene.knn, _observe(scene, scene.objects), ClusteringConfig(), AffinityConfig()
-        )
+        out = _cluster(sp, scene.knn, _observe(scene, scene.objects), ClusteringConfig(), AffinityConfig())
         np.testing.assert_array_equal(np.unique(out.labels), [0, 1, 2])
         _assert_matches(out.labels, scene.objects)
 
@@ -266,7 +268,7 @@ class TestProgressiveClustering:
         obs = MaskObservations(
             offsets=np.zeros(1, np.int64), point_index=np.zeros(0, np.int32), label=np.zeros(0, np.int32)
         )
-        out = progressive_clustering(sp, knn, obs, ClusteringConfig(), AffinityConfig())
+        out = _cluster(sp, knn, obs, ClusteringConfig(), AffinityConfig())
         np.testing.assert_array_equal(out.labels, 0)
 
 
@@ -287,7 +289,7 @@ def _mix_frames(own: MaskObservations, other: MaskObservations, own_frames: tupl
 
 
 class TestGrowClusters:
-    """The BFS pass of reference 6.1 on hand-made graphs."""
+    """The BFS pass of docs/method.md §6.1 on hand-made graphs."""
 
     def _graph(self, affinity: dict[tuple[int, int], float], direct: set[tuple[int, int]], sizes: list[float]):
         pool = np.array(sorted(affinity), dtype=np.int64)

@@ -152,7 +152,7 @@ class TestEvaluatePaper:
     def test_paper_split_for_builtin_vocabularies(self) -> None:
         vocab = builtin_vocabulary("scannet20")
         cabinet, counter = vocab.names.index("cabinet"), vocab.names.index("counter")
-        # A perfect cabinet: a thing by kind, but stuff in the reference's effective split (8.2).
+        # A perfect cabinet: a thing by kind, but stuff in the reference's effective split (docs/method.md §8.2).
         sem, ins = A([cabinet] * 4), A([0] * 4)
         std = evaluate(sem, ins, sem, ins, vocab)
         pap = evaluate(sem, ins, sem, ins, vocab, mode="paper")
@@ -207,7 +207,7 @@ def _reference_panoptic(
     classes: list[int],
     threshold: float,
 ) -> float | None:
-    """Reference 8.2, written as the plain loop (the oracle)."""
+    """docs/method.md §8.2, written as the plain loop (the oracle)."""
     tp = fn = n_valid = 0
     iou_sum = pq = 0.0
     for c in classes:

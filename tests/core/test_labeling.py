@@ -430,7 +430,7 @@ class TestIssue8Rules:
     def test_unseen_propagates_along_the_surface(self) -> None:
         from panogs_core.baselines import fill_nearest_seen
         from panogs_core.labeling import label_unseen
-        from panogs_core.superprimitives import build_knn
+        from panogs_core.neighbors import build_knn
 
         # A floor line (2 cm spacing), seen only at both ends, under a bed top 10 cm above its middle.
         xs = np.arange(0, 1.6, 0.02)
@@ -453,7 +453,7 @@ class TestIssue8Rules:
     def test_components_split_only_by_large_clusters(self) -> None:
         # Three touching chairs in a row (one class component), each its own cluster, and a fourth cluster
         # that is a small part (a leg) of the first chair.
-        from panogs_core.superprimitives import build_knn
+        from panogs_core.neighbors import build_knn
 
         xs = np.arange(0, 1.5, 0.01)
         points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1).astype(np.float32)

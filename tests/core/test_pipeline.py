@@ -102,6 +102,23 @@ def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     assert restored.instances == first.instances
 
 
+def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list]
+) -> None:
+    out, first, _ = tiny_run
+    # The affinity's aggregate is read by the clustering only, chunk_rows bounds its memory only; both sit in
+    # the YAML section that also holds the mask look-ups' settings.
+    measure_only = PipelineConfig().with_overrides({"affinity": {"aggregate": "mean", "chunk_rows": 5000}})
+    cached = {t.name: t.cached for t in run_pipeline(tiny_bundle, out, measure_only).timings}
+    assert [cached[s] for s in ("masks", "neighbors", "superprimitives")] == [True] * 3
+    assert cached["clustering"] is False
+    lookup = PipelineConfig().with_overrides({"affinity": {"mask_depth_mad": 3.0}})  # read by the look-ups
+    cached = {t.name: t.cached for t in run_pipeline(tiny_bundle, out, lookup).timings}
+    assert [cached[s] for s in ("fusion", "neighbors")] == [True, True]
+    assert [cached[s] for s in ("masks", "superprimitives", "clustering")] == [False] * 3
+    assert run_pipeline(tiny_bundle, out).instances == first.instances
+
+
 def test_query_by_class_name_returns_instances_of_that_class(tiny_run: tuple[Path, object, list]) -> None:
     out, _, _ = tiny_run
     loaded = load_result(out)

@@ -104,7 +104,7 @@ class TestBuildPrimitivesGeometry:
     def test_keeps_order_count_and_duplicates(self) -> None:
         rng = np.random.default_rng(1)
         points = rng.uniform(0, 2, (300, 3)).astype(np.float32)
-        points[10] = points[20]  # a duplicate vertex stays (pitfall 1: no dedup)
+        points[10] = points[20]  # a duplicate vertex stays (docs/method.md pitfall 1: no dedup)
         colors = rng.uniform(0, 1, (300, 3)).astype(np.float32)
         scene = FakeScene(camera=CAM, geometry=Geometry(points=points, colors=colors))
         prims = build_primitives(scene, PrimitivesConfig(max_primitives=10))  # the cap never applies here

@@ -1,17 +1,16 @@
-"""Tests of stage 5: kNN graph and language-guided graph cuts (known-answer scenes and a plain oracle)."""
+"""Tests of stage 5: language-guided graph cuts (known-answer scenes and a plain oracle)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from panogs_core.affinity import MaskObservations
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
+from panogs_core.masks import MaskObservations
+from panogs_core.neighbors import KnnGraph, build_knn
 from panogs_core.superprimitives import (
-    KnnGraph,
     SuperPrimitiveConfig,
     SuperPrimitives,
-    build_knn,
     edge_weights,
     graph_cut_superprimitives,
     split_straddling,
@@ -70,7 +69,7 @@ def _noisy_cloud(n: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray, n
 def _oracle_labels(
     n: int, src: np.ndarray, dst: np.ndarray, weights: np.ndarray, features: np.ndarray | None, cfg
 ) -> np.ndarray:
-    """The reference's segment_graph + small-segment merge written plainly (reference 4.5-4.7)."""
+    """The reference's segment_graph + small-segment merge written plainly (docs/method.md §4.5-4.7)."""
     parent, rank, size, tau = list(range(n)), [0] * n, [1] * n, [cfg.k_thresh] * n
 
     def find(x: int) -> int:
@@ -101,48 +100,6 @@ def _oracle_labels(
             union(a, b)
     roots = np.array([find(i) for i in range(n)])
     return np.unique(roots, return_inverse=True)[1]
-
-
-class TestBuildKnn:
-    def test_smoke(self) -> None:
-        points = np.random.default_rng(0).uniform(size=(100, 3)).astype(np.float32)
-        knn = build_knn(points, 7)
-        assert isinstance(knn, KnnGraph)
-        assert knn.neighbors.shape == (100, 7)
-        assert knn.neighbors.dtype == np.int64
-        assert knn.distances.shape == (100, 7)
-        assert knn.distances.dtype == np.float32
-        assert knn.k == 7
-        assert (np.diff(knn.distances, axis=1) >= 0).all()
-
-    def test_excludes_self(self) -> None:
-        points = np.random.default_rng(1).uniform(size=(50, 3))
-        knn = build_knn(points, 5)
-        assert not (knn.neighbors == np.arange(50)[:, None]).any()
-        assert (knn.distances > 0).all()
-
-    def test_excludes_self_with_duplicates(self) -> None:
-        rng = np.random.default_rng(2)
-        # 12 copies of one point (more than k + 1, so self can fall outside the queried columns), plus pairs.
-        points = np.concatenate([np.zeros((12, 3)), np.repeat(rng.uniform(1, 2, (20, 3)), 2, axis=0)])
-        knn = build_knn(points, 4)
-        assert knn.neighbors.shape == (52, 4)
-        assert not (knn.neighbors == np.arange(52)[:, None]).any()
-        assert (knn.distances[:12] == 0).all()
-        # Each duplicated pair finds its twin first, at distance 0.
-        twins = np.arange(12, 52) ^ 1  # (12, 13), (14, 15), ...
-        assert (knn.neighbors[12:, 0] == twins).all()
-        assert (knn.distances[12:, 0] == 0).all()
-
-    def test_exception(self) -> None:
-        with pytest.raises(ShapeError, match="points"):
-            build_knn(np.zeros((10, 2)), 3)
-        with pytest.raises(InputError, match="at least 8 points"):
-            build_knn(np.zeros((5, 3)), 7)
-        with pytest.raises(InputError, match="k: expected >= 1"):
-            build_knn(np.zeros((5, 3)), 0)
-        with pytest.raises(InputError, match="NaN"):
-            build_knn(np.full((10, 3), np.nan), 3)
 
 
 class TestEdgeWeights:
