@@ -57,6 +57,10 @@ def add_service_commands(subparsers: Any) -> None:
     k.add_argument("key", help="key id or prefix")
     k.set_defaults(func=cmd_keys_revoke)
 
+    from service.viewer.cli import add_viewer_commands
+
+    add_viewer_commands(subparsers)
+
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
     """The settings, with ``--data-dir`` (when given) in force here and in the children this process starts."""
