@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import base64
 import html
-
 from pathlib import Path
 from typing import Any
 
@@ -78,6 +77,3 @@ def describe(stats: dict[str, int], out: str | Path) -> str:
         f" (decimated from {stats['total']:,})" if stats["total"] > stats["count"] else ""
     )
     return f"wrote {out}: {kept}, {stats['bytes'] / 1e6:.1f} MB; open it in any browser, offline"
-
-
-

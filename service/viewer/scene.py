@@ -103,7 +103,9 @@ def decimation_indices(total: int, limit: int | None) -> np.ndarray | None:
     return np.sort(rng.choice(total, size=limit, replace=False))
 
 
-def build_scene(run_dir: str | Path, *, max_primitives: int | None = None, extra: dict[str, Any] | None = None) -> ViewerScene:
+def build_scene(
+    run_dir: str | Path, *, max_primitives: int | None = None, extra: dict[str, Any] | None = None
+) -> ViewerScene:
     """Encode a finished run folder for the viewer.
 
     Args:
