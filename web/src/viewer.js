@@ -10,6 +10,7 @@ const FLAG_DIM = 1;
 const FLAG_HIDDEN = 2;
 const FLAG_LIT = 3;
 const SIZE_STEP = 1.25;
+export const DEFAULT_SIZE = 1.5; // primitives are drawn a little larger than their radius: surfaces read closed
 
 const SHORTCUTS = [
   ["1 / 2 / 3", "colour by camera / semantic class / instance"],
@@ -65,7 +66,7 @@ export class Viewer {
   constructor(root, options) {
     this.root = root;
     this.options = options;
-    this.state = { mode: "semantic", size: 1, hidden: [], sel: null, q: "", cam: null, ...(options.state || {}) };
+    this.state = { mode: "semantic", size: DEFAULT_SIZE, hidden: [], sel: null, q: "", cam: null, ...(options.state || {}) };
     this.highlighted = new Set(); // instance ids lit now (hover, selection or query hits)
     this.hits = [];
     this.boxes = [];
@@ -557,7 +558,7 @@ export class Viewer {
 // The view state <-> URL hash parameters (mode, size, hidden classes, selection, query, camera).
 export function stateToParams(state, params = new URLSearchParams()) {
   params.set("mode", state.mode);
-  if (state.size !== 1) params.set("size", state.size.toFixed(3));
+  if (state.size !== DEFAULT_SIZE) params.set("size", state.size.toFixed(3));
   else params.delete("size");
   for (const [key, value] of [["hidden", state.hidden.join(",")], ["sel", state.sel ?? ""], ["q", state.q], ["cam", state.cam ? state.cam.join(",") : ""]]) {
     if (value === "" || value === null) params.delete(key);
@@ -569,7 +570,7 @@ export function stateToParams(state, params = new URLSearchParams()) {
 export function paramsToState(params) {
   const state = {};
   if (params.get("mode")) state.mode = params.get("mode");
-  if (params.get("size")) state.size = Number(params.get("size")) || 1;
+  if (params.get("size")) state.size = Number(params.get("size")) || DEFAULT_SIZE;
   if (params.get("hidden")) state.hidden = params.get("hidden").split(",").map(Number).filter(Number.isFinite);
   if (params.get("sel")) state.sel = Number(params.get("sel"));
   if (params.get("q")) state.q = params.get("q");
