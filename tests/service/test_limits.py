@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import uuid
 
+import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import make_scene
 
@@ -73,3 +74,29 @@ def test_dead_workers_job_is_requeued_at_once(
     assert requeue_dead_worker(factory, 4242) == 1
     states = [json.loads(client.get(f"/v1/jobs/{i}", headers=auth).text)["state"] for i in ids]
     assert states == ["queued", "running"]  # only the dead worker's job
+
+
+def test_supervisor_reports_a_dead_worker_before_restarting_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    from service import cli
+
+    # A "worker" that dies at once; the supervisor must report its pid (to re-queue its job) before the restart.
+    monkeypatch.setattr(cli, "WORKER_COMMAND", ("-c", "raise SystemExit(3)"))
+    monkeypatch.setattr(cli, "WORKER_RESTART_DELAY_S", 0.05)
+    seen: list[int] = []
+    reported = threading.Event()
+
+    def on_exit(pid: int) -> None:
+        seen.append(pid)
+        reported.set()
+
+    supervisor = cli.WorkerSupervisor(on_exit=on_exit)
+    supervisor.start()
+    try:
+        first = supervisor._proc
+        assert first is not None
+        assert reported.wait(30)
+        assert seen[0] == first.pid
+    finally:
+        supervisor.stop()

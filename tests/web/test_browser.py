@@ -170,6 +170,23 @@ def test_another_tenants_job_cannot_be_opened(browser: Any, job_id: str, served:
         context.close()
 
 
+def test_rerun_with_other_settings_then_cancel(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    row.locator("[data-action=re-run]").click()
+    row.locator("textarea").fill('{"clustering": {"thresholds": [0.9, 0.7]}}')
+    before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
+    row.locator("form button[type=submit]").click()
+    new = page.wait_for_selector("#jobs tbody tr[data-job-id]:not([data-state=succeeded])")
+    new_id = new.get_attribute("data-job-id")
+    assert new_id not in before
+    assert api.get(f"/v1/jobs/{new_id}").json()["config"] == {"clustering": {"thresholds": [0.9, 0.7]}}
+    page.locator(f'tr[data-job-id="{new_id}"] [data-action=cancel]').click()
+    page.wait_for_selector(f'tr[data-job-id="{new_id}"][data-state=canceled]', timeout=60_000)
+
+
 def test_deleting_the_job_removes_it_and_its_files(
     page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
 ) -> None:
