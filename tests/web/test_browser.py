@@ -51,10 +51,25 @@ def api(served: dict[str, Any]) -> Iterator[httpx.Client]:
 
 @pytest.fixture(scope="module")
 def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
-    """Upload the bundle through the form (tus-js-client), and wait in the job list for ``succeeded``."""
+    """Upload the bundle through the form (tus-js-client), with the connection dropped during the second chunk
+    (the client asks the server for its offset and resumes from there), and wait in the job list for
+    ``succeeded``."""
+    patches: list[str] = []
+
+    def drop_second_chunk(route: Any) -> None:
+        if route.request.method == "PATCH":
+            patches.append(route.request.url)
+            if len(patches) == 2:
+                route.abort("connectionreset")
+                return
+        route.continue_()
+
+    page.route("**/v1/uploads/**", drop_second_chunk)
     page.set_input_files("#upload input[type=file]", str(bundle_zip))
     page.click("#upload button[type=submit]")
     row = page.wait_for_selector("#jobs tbody tr[data-job-id]", timeout=120_000)
+    page.unroute("**/v1/uploads/**")
+    assert len(patches) > 2, patches  # the dropped chunk was sent again
     ident = row.get_attribute("data-job-id")
     try:
         page.wait_for_selector(f'tr[data-job-id="{ident}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
@@ -72,6 +87,8 @@ def _canvas_pixels(page: Any, path: Path | None = None) -> np.ndarray:  # (H, W,
 
 
 def _open_viewer(page: Any, url: str, job_id: str, view: str = "") -> None:
+    # A fresh page load: a new fragment on the same page would keep the open viewer and its state.
+    page.goto("about:blank")
     page.goto(f"{url}/app#/jobs/{job_id}{view}")
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
 
@@ -133,6 +150,34 @@ def test_class_query_lights_exactly_the_instances_the_api_returns(
     assert listed == expected  # same instances, same order
     lit = page.get_attribute(".pgs-viewer", "data-lit")
     assert sorted(int(x) for x in lit.split(",")) == sorted(expected)
+
+
+def test_clicking_a_point_selects_its_instance(page: Any, job_id: str, served: dict[str, Any]) -> None:
+    _open_viewer(page, served["url"], job_id)
+    # Every class but that of the largest thing instance hidden (hidden points cannot be picked), then the screen
+    # position of one of its primitives, projected by the viewer's own camera.
+    x, y, expected_class = page.evaluate(
+        """() => {
+          const v = window.__panogs.viewer;
+          const things = v.scene.header.instances.filter(i => i.kind === "thing");
+          const big = things.reduce((a, b) => (b.num_points > a.num_points ? b : a));
+          for (const c of v.scene.header.classes) if (c.index !== big.class_index) v.toggleClass(c.index, false);
+          const i = v.scene.instance.findIndex(id => id === big.id);
+          const p = v.scene.position;
+          const ndc = new v.camera.position.constructor(p[3 * i], p[3 * i + 1], p[3 * i + 2]).project(v.camera);
+          const r = v.renderer.domElement.getBoundingClientRect();
+          return [r.left + (ndc.x + 1) / 2 * r.width, r.top + (1 - ndc.y) / 2 * r.height, big.class_name];
+        }"""
+    )
+    page.mouse.click(x, y)
+    lit = page.get_attribute(".pgs-viewer", "data-lit")
+    assert lit, "a click on the scene selected nothing"
+    selected = int(lit)
+    assert page.locator(f'.pgs-instances li[data-instance-id="{selected}"].pgs-lit').count() == 1
+    assert f"sel={selected}" in page.url
+    picked = page.evaluate(f"window.__panogs.viewer.instanceById.get({selected}).class_name")
+    assert picked == expected_class
+    assert page.evaluate("window.__panogs.viewer.boxes.length") == 1  # its box is drawn
 
 
 def test_refused_bundle_shows_its_problems_one_per_line(
