@@ -33,8 +33,14 @@ logger = logging.getLogger(__name__)
 DISPATCH_GRACE_S = 2.0  # a new job's own request publishes it; the reaper steps in after this
 
 
-def sweep(settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage) -> dict[str, int]:
-    """One pass; returns how many jobs were re-queued, failed and published, and uploads deleted."""
+HOUSEKEEPING_EVERY = 12  # retention and orphan folders: every 12th pass (a minute by default), not every 5 s
+
+
+def sweep(
+    settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage, *, housekeeping: bool = True
+) -> dict[str, int]:
+    """One pass; returns how many jobs were re-queued, failed and published, uploads deleted, and (with
+    ``housekeeping``) jobs past their retention and orphan folders removed."""
     counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0, "expired": 0, "orphans": 0}
     silent_since = crud.stale_cutoff(settings.heartbeat_timeout_s)
     with session_scope(factory) as session:
@@ -54,9 +60,10 @@ def sweep(settings: Settings, factory: sessionmaker[Session], sender: Sender, st
             storage.remove_tree(storage.path(rel).parent)
             crud.delete_upload(session, upload_id)
             counts["uploads_deleted"] += 1
-    with session_scope(factory) as session:
-        counts["expired"] = sweep_retention(session, settings, storage)
-        counts["orphans"] = sweep_orphans(session, storage)
+    if housekeeping:
+        with session_scope(factory) as session:
+            counts["expired"] = sweep_retention(session, settings, storage)
+            counts["orphans"] = sweep_orphans(session, storage)
     for job_id, queue in pending:
         counts["published"] += dispatch(factory, sender, job_id, queue)
     return counts
@@ -97,9 +104,11 @@ class Reaper:
         self._thread.join(timeout=10)
 
     def _loop(self) -> None:
+        passes = 0
         while not self._stop.wait(self._interval):
+            passes += 1
             try:
-                counts = sweep(*self._args)
+                counts = sweep(*self._args, housekeeping=passes % HOUSEKEEPING_EVERY == 1)
             except DBAPIError as exc:
                 logger.warning("reaper: database unavailable (%r)", exc.orig)
                 continue
