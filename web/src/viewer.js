@@ -362,12 +362,15 @@ export class Viewer {
     this._reflag();
   }
 
-  // Select one instance (click in the list or the scene); null clears.
-  select(id, notify = true) {
+  // Select one instance (click in the list, a hit or the scene); null clears. A hit keeps the query's ranking.
+  select(id, notify = true, keepHits = false) {
     this.state.sel = id;
-    this.hits = [];
-    this.hitList.replaceChildren();
-    this.queryStatus.textContent = "";
+    if (!keepHits) {
+      this.hits = [];
+      this.hitList.replaceChildren();
+      this.queryStatus.textContent = "";
+      this.state.q = "";
+    }
     this._light(id === null ? [] : [id]);
     if (id !== null) {
       const row = this.instanceList.querySelector(`[data-instance-id="${id}"]`);
@@ -419,7 +422,7 @@ export class Viewer {
           "li",
           {
             "data-hit-id": hit.instance_id,
-            onclick: () => this.select(hit.instance_id),
+            onclick: () => this.select(hit.instance_id, true, true),
             onmouseenter: () => this._preview(hit.instance_id),
             onmouseleave: () => this._preview(null),
           },
@@ -436,7 +439,6 @@ export class Viewer {
   }
 
   clear() {
-    this.state.q = "";
     this.queryInput.value = "";
     this.select(null);
   }
