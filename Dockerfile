@@ -20,12 +20,23 @@ WORKDIR /app
 COPY constraints.txt ./
 RUN useradd --create-home --uid 10001 panogs && mkdir -p /data && chown panogs /data
 
+# The web app (viewer + app), built from the committed lock file; the wheel below carries the result.
+FROM node:20-slim AS web
+WORKDIR /src/web
+COPY web/package.json web/package-lock.json ./
+RUN npm ci --no-audit --no-fund --loglevel=error
+COPY web/build.mjs ./
+COPY web/src ./src
+COPY web/public ./public
+RUN node build.mjs
+
 # The package as a wheel, built once for both images: they install it like any user would (the migrations
 # travel inside it), with no source tree beside it.
 FROM base AS wheel
 COPY pyproject.toml README.md ./
 COPY panogs_core ./panogs_core
 COPY service ./service
+COPY --from=web /src/service/static/app ./service/static/app
 COPY worker ./worker
 RUN pip wheel --no-deps --wheel-dir /wheels .
 

@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed clean
+	bench-speed clean web view bench-viewer
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -27,7 +27,20 @@ $(VENV)/.installed: pyproject.toml constraints.txt | system-deps
 	$(PIP_INSTALL) -e '.[pipeline,text,service,worker,dev]'
 	touch $@
 
-install: system-deps $(VENV)/.installed ## create .venv and install panogs with every extra
+install: system-deps $(VENV)/.installed web ## create .venv and install panogs with every extra (and build the app)
+
+# The web app (viewer + app): npm ci from the committed lock file, esbuild into service/static/app (git-ignored),
+# which FastAPI serves and the wheel carries. Rebuilt when a source under web/ changes.
+WEB_BUILT := service/static/app/index.html
+WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs $(wildcard web/src/*.js web/public/*)
+
+$(WEB_BUILT): $(WEB_SOURCES)
+	cd web && npm ci --no-audit --no-fund --loglevel=error && npm run build
+
+web: $(WEB_BUILT) ## build the web app into service/static/app
+
+view: install ## open the viewer on the demo's result (after make demo)
+	$(PANOGS) view $(DEMO)/run --open
 
 constraints: ## after changing a dependency: install it, then pin the whole closure in constraints.txt
 	$(PY) -m pip install -q -e '.[pipeline,text,service,worker,dev]'
@@ -67,5 +80,8 @@ bench-quality: install ## quality table: difficulties x seeds, full method and a
 bench-speed: install ## per-stage time and peak RSS on the large preset, with the I/O floor
 	$(PY) bench/speed.py
 
+bench-viewer: install ## viewer load time to interactive in headless Chromium, 100k and 1M primitives
+	$(PY) bench/viewer_load.py
+
 clean: ## remove demo output and caches
-	rm -rf $(DEMO) .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(DEMO) .pytest_cache .ruff_cache .mypy_cache tests/web/artifacts

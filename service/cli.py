@@ -57,6 +57,10 @@ def add_service_commands(subparsers: Any) -> None:
     k.add_argument("key", help="key id or prefix")
     k.set_defaults(func=cmd_keys_revoke)
 
+    from service.viewer.cli import add_viewer_commands
+
+    add_viewer_commands(subparsers)
+
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
     """The settings, with ``--data-dir`` (when given) in force here and in the children this process starts."""
@@ -101,7 +105,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     logging.basicConfig(level=settings.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     _prepare_database(settings)
-    worker = None if args.no_worker else WorkerSupervisor()
+    worker = None if args.no_worker else WorkerSupervisor(on_exit=_requeue_jobs_of(settings))
     if worker is not None:
         worker.start()
     # The API's own array work is small (queries over a few hundred instances): one BLAS thread per call is
@@ -127,10 +131,29 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-class WorkerSupervisor:
-    """The embedded worker: a child process, restarted if it dies while ``serve`` runs, stopped in order."""
+def _requeue_jobs_of(settings: Any) -> Any:
+    """What the supervisor calls with a dead worker's pid: its running job goes back to the queue at once."""
 
-    def __init__(self) -> None:
+    def requeue(pid: int) -> None:
+        from service.db.session import get_session_factory
+        from service.reaper import requeue_dead_worker
+
+        try:
+            requeue_dead_worker(get_session_factory(settings.database), pid)
+        except Exception:  # the heartbeat timeout still catches the job; the supervisor must keep going
+            logger.exception("could not re-queue the jobs of worker %d", pid)
+
+    return requeue
+
+
+class WorkerSupervisor:
+    """The embedded worker: a child process, restarted if it dies while ``serve`` runs, stopped in order.
+
+    When the child dies, ``on_exit(pid)`` runs first (serve re-queues its running job at once: the worker is known
+    dead, no need to wait for its heartbeat to time out)."""
+
+    def __init__(self, on_exit: Any = None) -> None:
+        self._on_exit = on_exit
         self._proc: subprocess.Popen[bytes] | None = None
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._watch, name="panogs-worker-supervisor", daemon=True)
@@ -151,6 +174,10 @@ class WorkerSupervisor:
         while not self._stopping.is_set():
             assert self._proc is not None
             code = self._proc.wait()
+            if self._stopping.is_set():
+                return
+            if self._on_exit is not None:
+                self._on_exit(self._proc.pid)
             if self._stopping.wait(WORKER_RESTART_DELAY_S):
                 return
             logger.error("worker exited with %s; starting a new one (its job resumes)", code)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -117,6 +118,23 @@ class PreconditionFailed(ServiceError):
     type = "precondition_failed"
 
 
+class Forbidden(ServiceError):
+    """Authenticated, but this request is not allowed as sent."""
+
+    status_code = 403
+    type = "forbidden"
+
+
+class QuotaExceeded(ServiceError):
+    """A per-tenant limit (stored bytes: 413; concurrent jobs: 429); the message names the limit."""
+
+    type = "quota_exceeded"
+
+    def __init__(self, message: str, *, status_code: int) -> None:
+        super().__init__(message)
+        self.status_code = status_code
+
+
 class ServiceUnavailable(ServiceError):
     """A dependency (database, broker, encoder) cannot be reached right now."""
 
@@ -163,9 +181,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = [f"{_format_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in exc.errors()]
-        body = {"type": "invalid_input", "message": "the request is not valid", "problems": problems}
-        return JSONResponse(body, status_code=422)
+        return JSONResponse(validation_body(exc.errors(), app.state.settings.max_validation_problems), status_code=422)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -180,6 +196,19 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         return internal_error_response(request, exc)
+
+
+def validation_body(errors: Sequence[Any], limit: int) -> dict[str, Any]:
+    """A 422 body with the first ``limit`` problems and a count of the rest: a body with a million bad keys must
+    not come back as a megabyte of errors. Values are not echoed, only where and what."""
+    problems = [f"{_format_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}"[:300] for e in errors[:limit]]
+    if len(errors) > limit:
+        problems.append(f"... and {len(errors) - limit} more problem(s)")
+    return {
+        "type": "invalid_input",
+        "message": f"the request is not valid ({len(errors)} problem(s))",
+        "problems": problems,
+    }
 
 
 def database_error_response(request: Request, exc: DBAPIError | PoolTimeoutError) -> JSONResponse:

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
+from service.lifecycle import check_job_quota
 from service.schemas import JobCreate, JobError, JobPublic
 from service.settings import Settings
 
@@ -40,7 +41,16 @@ def validate_config(overrides: dict[str, Any], pipeline_function: str) -> None:
     try:
         config_factory(pipeline_function)(overrides)
     except ConfigError as exc:
-        raise InvalidInput("the pipeline config overrides are not valid", problems=[str(exc)]) from exc
+        raise InvalidInput("the pipeline config overrides are not valid", problems=[_shortened(str(exc))]) from exc
+
+
+MAX_PROBLEM_CHARS = 1_000  # a config with a million unknown keys must not come back as megabytes of message
+
+
+def _shortened(message: str) -> str:
+    if len(message) <= MAX_PROBLEM_CHARS:
+        return message
+    return f"{message[:MAX_PROBLEM_CHARS]} ... ({len(message) - MAX_PROBLEM_CHARS} more characters)"
 
 
 def request_hash(body: JobCreate) -> str:
@@ -66,6 +76,7 @@ def create_job(
     if crud.get_owned(session, Scene, body.scene_id, tenant_id) is None:
         raise NotFound("scene", body.scene_id)
     validate_config(body.config, settings.pipeline_function)
+    check_job_quota(session, settings, tenant_id)
     job = Job(
         api_key_id=tenant_id,
         scene_id=body.scene_id,

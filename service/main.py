@@ -13,8 +13,10 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from service.api.routes import app as app_routes
 from service.api.routes import health, jobs, results, scenes, uploads
 from service.auth import KeyVerifier
+from service.body_limit import BodyLimit
 from service.cache import TTLCache
 from service.db.session import get_session_factory
 from service.encoder import EncoderProcess
@@ -87,4 +89,6 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(health.router)
     for router in (uploads.router, scenes.router, jobs.router, results.router):
         app.include_router(router, prefix=API_PREFIX)
+    app.include_router(app_routes.router)
+    app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
     return app

@@ -8,11 +8,14 @@ once do each thing once.
   or is ``failed`` with ``WorkerLost`` once it has been started ``max_attempts`` times.
 - A ``queued`` job whose message never reached the broker (the broker was away) is published.
 - An upload untouched for ``upload_ttl_s`` is deleted with its bytes.
+- Finished jobs past ``retention_days`` are deleted with their results; job and scene folders without rows (an
+  interrupted delete) are removed.
 """
 
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 
 from sqlalchemy.exc import DBAPIError
@@ -20,6 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import crud
 from service.db.session import session_scope
+from service.lifecycle import sweep_orphans, sweep_retention
 from service.queue import Sender, dispatch
 from service.settings import Settings
 from service.storage import Storage
@@ -29,9 +33,15 @@ logger = logging.getLogger(__name__)
 DISPATCH_GRACE_S = 2.0  # a new job's own request publishes it; the reaper steps in after this
 
 
-def sweep(settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage) -> dict[str, int]:
-    """One pass; returns how many jobs were re-queued, failed and published, and uploads deleted."""
-    counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0}
+HOUSEKEEPING_EVERY = 12  # retention and orphan folders: every 12th pass (a minute by default), not every 5 s
+
+
+def sweep(
+    settings: Settings, factory: sessionmaker[Session], sender: Sender, storage: Storage, *, housekeeping: bool = True
+) -> dict[str, int]:
+    """One pass; returns how many jobs were re-queued, failed and published, uploads deleted, and (with
+    ``housekeeping``) jobs past their retention and orphan folders removed."""
+    counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0, "expired": 0, "orphans": 0}
     silent_since = crud.stale_cutoff(settings.heartbeat_timeout_s)
     with session_scope(factory) as session:
         for job in crud.lost_jobs(session, silent_since):
@@ -50,9 +60,29 @@ def sweep(settings: Settings, factory: sessionmaker[Session], sender: Sender, st
             storage.remove_tree(storage.path(rel).parent)
             crud.delete_upload(session, upload_id)
             counts["uploads_deleted"] += 1
+    if housekeeping:
+        with session_scope(factory) as session:
+            counts["expired"] = sweep_retention(session, settings, storage)
+            counts["orphans"] = sweep_orphans(session, storage)
     for job_id, queue in pending:
         counts["published"] += dispatch(factory, sender, job_id, queue)
     return counts
+
+
+def embedded_worker_name(pid: int) -> str:
+    """The prefix of the ``worker`` column of jobs run by the embedded worker process ``pid`` (``panogs worker``
+    names itself ``panogs-<pid>@<host>``; its solo pool runs jobs in that same process)."""
+    return f"panogs-{pid}@{socket.gethostname()}/"
+
+
+def requeue_dead_worker(factory: sessionmaker[Session], pid: int) -> int:
+    """Put the running jobs of a worker process that is known dead back in the queue at once (the supervisor saw
+    it exit), instead of waiting out the heartbeat timeout; the sweep publishes them. Returns how many."""
+    with session_scope(factory) as session:
+        count = crud.requeue_worker_jobs(session, embedded_worker_name(pid))
+    if count:
+        logger.warning("worker %d died; re-queued its %d running job(s) at once", pid, count)
+    return count
 
 
 class Reaper:
@@ -74,9 +104,11 @@ class Reaper:
         self._thread.join(timeout=10)
 
     def _loop(self) -> None:
+        passes = 0
         while not self._stop.wait(self._interval):
+            passes += 1
             try:
-                counts = sweep(*self._args)
+                counts = sweep(*self._args, housekeeping=passes % HOUSEKEEPING_EVERY == 1)
             except DBAPIError as exc:
                 logger.warning("reaper: database unavailable (%r)", exc.orig)
                 continue

@@ -59,6 +59,11 @@ class ResultCache:
                 self._items.popitem(last=False)
         return loaded
 
+    def drop(self, job_id: uuid.UUID) -> None:
+        """Forget a job's result (it was deleted)."""
+        with self._lock:
+            self._items.pop(job_id, None)
+
 
 def read_instances(out_dir: Path) -> list[dict[str, Any]]:
     """instances.json of a finished job."""

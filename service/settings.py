@@ -61,6 +61,15 @@ class Settings(BaseSettings):
     text_model_path: str | None = None  # local text-encoder weights (panogs_core.text_encoders)
     result_cache_size: int = Field(default=32, ge=1)  # finished results kept loaded for queries
     auto_migrate: bool = True  # `panogs serve` upgrades the database to head on start
+    max_json_body_bytes: int = Field(default=1024 * 1024, gt=0)  # JSON bodies (not uploads) above this: 413
+    max_validation_problems: int = Field(default=5, ge=1)  # a 422 lists this many problems and counts the rest
+
+    # The app and the data lifecycle (issue 9).
+    session_ttl_s: int = Field(default=8 * 3600, gt=0)  # an app sign-in (HttpOnly cookie) lasts this long
+    quota_bytes: int | None = Field(default=100 * GIB, gt=0)  # per tenant: uploads + scenes + results; None: none
+    quota_concurrent_jobs: int | None = Field(default=4, gt=0)  # per tenant: queued + running jobs; None: none
+    retention_days: float | None = Field(default=None, gt=0)  # finished jobs older than this are deleted
+    min_free_disk_bytes: int = Field(default=1 * GIB, ge=0)  # an extraction leaves at least this much free
     log_level: str = "INFO"
 
     @model_validator(mode="after")

@@ -5,18 +5,19 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.app_sessions import APP_HEADER, COOKIE_NAME, SAFE_METHODS, session_tenant
 from service.auth import KeyVerifier, Tenant
 from service.db import crud
 from service.db.models import Job, Scene, Upload
 from service.db.session import session_scope
-from service.errors import NotFound, Unauthorized
+from service.errors import Forbidden, NotFound, Unauthorized
 from service.settings import Settings
 from service.storage import Storage
 
@@ -57,6 +58,9 @@ async def _tenant(
     # A key seen in the last api_key_cache_s seconds is answered from memory; otherwise one short session of
     # its own (streaming upload routes must not hold a connection for the whole body).
     if credentials is None:
+        token = request.cookies.get(COOKIE_NAME)
+        if token:
+            return await _cookie_tenant(request, factory, token)
         raise Unauthorized("missing API key: send Authorization: Bearer <key>")
     verifier: KeyVerifier = request.app.state.key_verifier
     known, tenant = verifier.cached(credentials.credentials)
@@ -65,6 +69,22 @@ async def _tenant(
     if tenant is None:
         raise Unauthorized("invalid or revoked API key")
     return tenant
+
+
+async def _cookie_tenant(request: Request, factory: sessionmaker[Session], token: str) -> Tenant:
+    """The app's signed-in tenant. A write must carry X-Panogs-App: a cross-site page cannot set that header, so
+    a cookie alone never changes anything (defence in depth on top of SameSite=Strict)."""
+    if request.method not in SAFE_METHODS and request.headers.get(APP_HEADER) != "1":
+        raise Forbidden(f"a request signed in by cookie must send the header {APP_HEADER}: 1")
+    found = await run_in_threadpool(_in_session, factory, session_tenant, token)
+    if found is None:
+        raise Unauthorized("the app session expired or was signed out; sign in again")
+    return found[0]  # type: ignore[no-any-return]
+
+
+def _in_session(factory: sessionmaker[Session], fn: Any, *args: Any) -> Any:
+    with session_scope(factory) as session:
+        return fn(session, *args)
 
 
 def _verify(factory: sessionmaker[Session], verifier: KeyVerifier, key: str) -> Tenant | None:

@@ -152,6 +152,17 @@ def requeue_lost(session: Session, job: Job, silent_since: datetime) -> bool:
     return _one_row(result)
 
 
+def requeue_worker_jobs(session: Session, worker_prefix: str) -> int:
+    """Re-queue the running jobs of a worker known to be dead (``worker`` column starting with the prefix)."""
+    result = session.execute(
+        update(Job)
+        .where(Job.state == JobState.RUNNING, Job.worker.startswith(worker_prefix, autoescape=True))
+        .values(state=JobState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
+    )
+    session.commit()
+    return int(getattr(result, "rowcount", 0) or 0)
+
+
 def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: str, message: str) -> bool:
     """Fail a lost running job for good; False if it moved meanwhile."""
     now = utcnow()

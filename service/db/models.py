@@ -149,3 +149,14 @@ class Artifact(IdMixin, TimestampedMixin, Base):
     media_type: Mapped[str] = mapped_column(String(100))
 
     job: Mapped[Job] = relationship(back_populates="artifacts")
+
+
+class AppSession(IdMixin, TimestampedMixin, Base):
+    """A signed-in browser of the app: the API key was exchanged once for a random token held in an HttpOnly
+    cookie. Only the token's SHA-256 is stored; the row dies with its key (revoked: refused; deleted: cascade)."""
+
+    __tablename__ = "app_session"
+
+    api_key_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("api_key.id", ondelete="CASCADE"), index=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    expires_at: Mapped[datetime] = mapped_column(UTCDateTime)

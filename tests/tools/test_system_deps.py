@@ -31,6 +31,11 @@ class FakeSystem:
         self._command("id", f"echo {uid}")
         install = f"printf '%s' '{LIBRARIES}' > \"{self.cache}\""
         self._command("apt-get", f'echo "$@" >> "{self.apt_log}"; [ "$1" = install ] && {install}; exit 0')
+        # The web tools are present here (their absence is a test of its own): node 20, npm, a chromium.
+        self._command("node", "echo 20")
+        self._command("npm", "exit 0")
+        self.chromium = self.bin / "chromium"
+        self._command("chromium", "exit 0")
 
     def _command(self, name: str, body: str) -> None:
         path = self.bin / name
@@ -38,7 +43,8 @@ class FakeSystem:
         path.chmod(0o755)
 
     def run(self) -> subprocess.CompletedProcess[str]:
-        env = {**os.environ, "PATH": f"{self.bin}{os.pathsep}{os.environ['PATH']}", "PYTHON": sys.executable}
+        env = {**os.environ, "PATH": f"{self.bin}{os.pathsep}{os.environ['PATH']}", "PYTHON": sys.executable,
+               "CHROMIUM": str(self.chromium)}  # fmt: skip
         return subprocess.run([str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
 
     def apt_calls(self) -> list[str]:
@@ -66,3 +72,22 @@ def test_root_installs_what_is_missing(tmp_path: Path) -> None:
     done = system.run()
     assert done.returncode == 0, done.stderr
     assert system.apt_calls() == ["update -qq", "install -y libusb-1.0-0 -qq"]
+
+
+def test_missing_chromium_is_installed_as_root(tmp_path: Path) -> None:
+    system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
+    system.chromium.unlink()
+    # The stand-in apt-get "installs" it.
+    system._command("apt-get", f'echo "$@" >> "{system.apt_log}"; [ "$1" = install ] && touch "{system.chromium}" '
+                    f'&& chmod +x "{system.chromium}"; exit 0')  # fmt: skip
+    done = system.run()
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == ["update -qq", "install -y chromium -qq"]
+
+
+def test_old_node_is_refused(tmp_path: Path) -> None:
+    system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
+    system._command("node", "if [ \"$1\" = -v ]; then echo v16.0.0; else echo 16; fi")
+    done = system.run()
+    assert done.returncode == 1
+    assert "needs node 18 or later" in done.stderr

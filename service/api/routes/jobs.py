@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from service import jobs
-from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, TenantDep
+from service import jobs, lifecycle
+from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, StorageDep, TenantDep
 from service.cache import TTLCache
 from service.db import crud
 from service.db.models import Job, JobState
@@ -87,3 +87,20 @@ def cancel_job(job: JobDep, session: SessionDep, request: Request) -> JobPublic:
         raise Conflict(f"job {job.id} already {job.state.value}")
     request.app.state.status_cache.drop((job.api_key_id, job.id))
     return jobs.to_public(crud.request_cancel(session, job))
+
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses())
+def delete_job(
+    job_id: uuid.UUID, session: SessionDep, tenant: TenantDep, storage: StorageDep, request: Request
+) -> Response:
+    """Delete a job, its results and its files; a queued or running job is cancelled first.
+
+    Safe to retry: a job that is not there (already deleted, or never this tenant's) answers 204 as well, and
+    nothing is touched.
+    """
+    job = crud.get_owned(session, Job, job_id, tenant.id)
+    if job is not None:
+        lifecycle.delete_job(session, storage, job)
+        request.app.state.status_cache.drop((tenant.id, job_id))
+        request.app.state.results.drop(job_id)
+    return Response(status_code=204)

@@ -102,3 +102,23 @@ async def query(
     cache = request.app.state.results
     answer = await run_in_threadpool(results.answer_query, engine, cache, storage, job_id, tenant.id, body, encoder)
     return Response(answer.model_dump_json(), media_type="application/json")
+
+
+@router.get(
+    "/viewer-scene",
+    response_class=Response,
+    responses={**_ERRORS, 200: {"content": {"application/octet-stream": {}}}},
+)
+async def viewer_scene(
+    job_id: uuid.UUID, request: Request, tenant: TenantDep, settings: SettingsDep, storage: StorageDep
+) -> Response:
+    """The finished job's primitives for the viewer: a JSON header and typed arrays (``service/viewer/scene.py``
+    documents the layout): positions, camera colours, class and instance labels, scales."""
+    from service.viewer.scene import build_scene
+
+    engine = get_read_engine(settings.database)
+    await run_in_threadpool(results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
+    scene = await run_in_threadpool(build_scene, storage.job_dir(job_id), extra={"title": f"job {job_id}"})
+    return Response(
+        scene.data, media_type="application/octet-stream", headers={"Cache-Control": "private, max-age=3600"}
+    )

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import uuid
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
 
-from service import scenes
+from service import lifecycle, scenes
 from service.api.deps import SceneDep, SessionDep, SettingsDep, StorageDep, TenantDep
 from service.db import crud
 from service.db.models import Scene, Upload
-from service.errors import NotFound
+from service.errors import InvalidBundle, NotFound
 from service.schemas import MAX_OFFSET, Page, SceneCreate, ScenePublic, ScenesPublic, error_responses
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
@@ -30,7 +31,14 @@ def create_scene(
     upload = crud.get_owned(session, Upload, body.upload_id, tenant.id)
     if upload is None:
         raise NotFound("upload", body.upload_id)
-    scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=settings.bundle_max_bytes)
+    # An archive may expand only as far as the tenant's quota and the free disk allow, not to the bundle limit.
+    limit, reason = lifecycle.extraction_limit(session, settings, storage, tenant.id)
+    try:
+        scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=limit)
+    except InvalidBundle as exc:
+        if any("exceeds the limit" in p for p in exc.problems or []):
+            exc.problems = [*(exc.problems or []), f"the extraction limit of {limit:,} bytes is set by {reason}"]
+        raise
     response.headers["Location"] = f"/v1/scenes/{scene.id}"
     return scene
 
@@ -53,3 +61,19 @@ def list_scenes(
 def get_scene(scene: SceneDep) -> Scene:
     """One scene."""
     return scene
+
+
+@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses())
+def delete_scene(
+    scene_id: uuid.UUID, session: SessionDep, tenant: TenantDep, storage: StorageDep, request: Request
+) -> Response:
+    """Delete a scene, every job on it (running ones are cancelled first) and their files.
+
+    Safe to retry: a scene that is not there (already deleted, or never this tenant's) answers 204 as well, and
+    nothing is touched.
+    """
+    scene = crud.get_owned(session, Scene, scene_id, tenant.id)
+    if scene is not None:
+        for job_id in lifecycle.delete_scene(session, storage, scene):
+            request.app.state.status_cache.drop((tenant.id, job_id))
+    return Response(status_code=204)

@@ -16,8 +16,10 @@ from service.auth import Tenant
 from service.db import crud
 from service.db.models import Upload, UploadState
 from service.db.session import session_scope
-from service.errors import Conflict, NotFound
+from service.errors import Conflict, NotFound, PayloadTooLarge, ServiceError
+from service.lifecycle import check_storage_quota
 from service.schemas import UploadPublic, error_responses
+from service.settings import Settings
 from service.storage import Storage
 
 router = APIRouter(prefix="/uploads", tags=["uploads"])
@@ -73,18 +75,20 @@ async def create_upload(
     with_body = up.has_body(request)
     if with_body:
         up.check_content_type(request)
+        declared = request.headers.get("content-length", "").strip()
+        if declared.isdigit() and int(declared) > upload_length:
+            # Refused before anything is stored: no upload without an id in the answer is left behind.
+            raise PayloadTooLarge(f"the body ({declared} bytes) goes past Upload-Length {upload_length}")
     upload = await run_in_threadpool(
-        _in_session,
-        factory,
-        up.create_upload,
-        storage,
-        tenant.id,
-        upload_length,
-        metadata,
-        settings.max_upload_bytes,
+        _in_session, factory, _create_within_quota, settings, storage, tenant.id, upload_length, metadata
     )
     if with_body:
-        upload = await _write(request, factory, storage, upload, checksum)
+        try:
+            upload = await _write(request, factory, storage, upload, checksum)
+        except ServiceError:
+            # The client never learns this upload's id from an error: delete it rather than leave it on disk.
+            await run_in_threadpool(_in_session, factory, _discard_by_id, storage, upload.id)
+            raise
     elif upload.length == 0:
         upload = await run_in_threadpool(_record, factory, request, storage, upload, 0, hashlib.sha256())
     body = UploadPublic.model_validate(upload).model_dump_json()
@@ -134,6 +138,24 @@ def delete_upload(upload: UploadDep, session: SessionDep, storage: StorageDep) -
     """Abandon an upload and delete its bytes (tus termination)."""
     up.discard_upload(session, storage, upload)
     return Response(status_code=204, headers=up.tus_headers())
+
+
+def _create_within_quota(
+    session: Session,
+    settings: Settings,
+    storage: Storage,
+    tenant_id: uuid.UUID,
+    length: int,
+    metadata: dict[str, str],
+) -> Upload:
+    check_storage_quota(session, settings, tenant_id, length)
+    return up.create_upload(session, storage, tenant_id, length, metadata, settings.max_upload_bytes)
+
+
+def _discard_by_id(session: Session, storage: Storage, upload_id: uuid.UUID) -> None:
+    upload = session.get(Upload, upload_id)
+    if upload is not None:
+        up.discard_upload(session, storage, upload)
 
 
 def _in_session(factory: sessionmaker[Session], fn: Any, *args: Any) -> Any:

@@ -1,0 +1,161 @@
+"""The data lifecycle: deleting scenes and jobs with their files, per-tenant quotas, retention, orphan sweeping.
+
+- **Delete** removes the rows first, then the files: a failure between the two leaves only files without rows,
+  which :func:`sweep_orphans` removes later; a retry of a DELETE whose rows are gone answers 204 again (safe to
+  retry). A running job is asked to cancel first; its worker finds the row gone at its next progress step (a lost
+  lease) and stops, and any file it wrote after the delete is an orphan for the sweep.
+- **Quotas** per tenant: stored bytes (unconsumed uploads + scenes + job results) and concurrent jobs (queued or
+  running). A request that would pass one is refused with 413 / 429 and a message naming the limit and its setting.
+- **Retention**: finished jobs older than ``retention_days`` are deleted with their results.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import uuid
+from datetime import timedelta
+from pathlib import Path
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from service.db import crud
+from service.db.base import utcnow
+from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
+from service.errors import QuotaExceeded
+from service.settings import Settings
+from service.storage import Storage
+
+logger = logging.getLogger(__name__)
+ORPHAN_GRACE = timedelta(minutes=10)  # a folder younger than this may belong to a row not yet committed
+LIVE_STATES = (JobState.QUEUED, JobState.RUNNING)
+
+
+def stored_bytes(session: Session, tenant_id: uuid.UUID) -> int:
+    """What the tenant holds in storage: uploads not yet made into scenes, scenes, and job results."""
+    uploads = session.scalar(
+        select(func.coalesce(func.sum(Upload.length), 0)).where(
+            Upload.api_key_id == tenant_id, Upload.state != UploadState.CONSUMED
+        )
+    )
+    scenes = session.scalar(select(func.coalesce(func.sum(Scene.size_bytes), 0)).where(Scene.api_key_id == tenant_id))
+    results = session.scalar(
+        select(func.coalesce(func.sum(Artifact.size_bytes), 0))
+        .join(Job, Job.id == Artifact.job_id)
+        .where(Job.api_key_id == tenant_id)
+    )
+    return int(uploads or 0) + int(scenes or 0) + int(results or 0)
+
+
+def check_storage_quota(session: Session, settings: Settings, tenant_id: uuid.UUID, more: int) -> None:
+    """Refuse (413) when ``more`` bytes would take the tenant past ``quota_bytes``."""
+    if settings.quota_bytes is None:
+        return
+    used = stored_bytes(session, tenant_id)
+    if used + more > settings.quota_bytes:
+        raise QuotaExceeded(
+            f"storage quota exceeded: this tenant stores {used:,} bytes and this needs {more:,} more; the limit is "
+            f"{settings.quota_bytes:,} bytes (PANOGS_QUOTA_BYTES); delete scenes or jobs to make room",
+            status_code=413,
+        )
+
+
+def room_left(session: Session, settings: Settings, tenant_id: uuid.UUID) -> int | None:
+    """Bytes the tenant may still store; None when there is no quota."""
+    if settings.quota_bytes is None:
+        return None
+    return max(0, settings.quota_bytes - stored_bytes(session, tenant_id))
+
+
+def extraction_limit(session: Session, settings: Settings, storage: Storage, tenant_id: uuid.UUID) -> tuple[int, str]:
+    """The most bytes an archive may expand to, and what sets it: the bundle limit, the tenant's quota room, or the
+    free disk (less ``min_free_disk_bytes``). Never above what the core allows by default."""
+    from panogs_core.io.archive import DEFAULT_MAX_BYTES as DEFAULT_MAX_EXTRACTED_BYTES
+
+    candidates = [(settings.bundle_max_bytes or DEFAULT_MAX_EXTRACTED_BYTES, "the bundle size limit")]
+    room = room_left(session, settings, tenant_id)
+    if room is not None:
+        candidates.append((room, f"this tenant's storage quota ({settings.quota_bytes:,} bytes, PANOGS_QUOTA_BYTES)"))
+    free = shutil.disk_usage(storage.root).free - settings.min_free_disk_bytes
+    candidates.append((max(0, free), "the free disk space of the storage volume"))
+    return min(candidates, key=lambda c: c[0])
+
+
+def check_job_quota(session: Session, settings: Settings, tenant_id: uuid.UUID) -> None:
+    """Refuse (429) a new job when the tenant already has ``quota_concurrent_jobs`` queued or running."""
+    limit = settings.quota_concurrent_jobs
+    if limit is None:
+        return
+    live = session.scalar(
+        select(func.count()).select_from(Job).where(Job.api_key_id == tenant_id, Job.state.in_(LIVE_STATES))
+    )
+    if int(live or 0) >= limit:
+        raise QuotaExceeded(
+            f"concurrent job quota reached: {live} job(s) queued or running; the limit is {limit} "
+            "(PANOGS_QUOTA_CONCURRENT_JOBS); wait for one to finish or cancel one",
+            status_code=429,
+        )
+
+
+def delete_job(session: Session, storage: Storage, job: Job) -> None:
+    """Cancel (if live), delete the row (artifacts cascade) and the job's folder."""
+    if job.state in LIVE_STATES:
+        crud.request_cancel(session, job)
+    job_id = job.id
+    session.execute(delete(Artifact).where(Artifact.job_id == job_id))
+    session.execute(delete(Job).where(Job.id == job_id))
+    session.commit()
+    storage.remove_tree(storage.job_dir(job_id))
+
+
+def delete_scene(session: Session, storage: Storage, scene: Scene) -> list[uuid.UUID]:
+    """Delete a scene with every job on it (each as :func:`delete_job`) and its bundle; returns the jobs' ids."""
+    jobs = list(session.scalars(select(Job).where(Job.scene_id == scene.id)))
+    for job in jobs:
+        delete_job(session, storage, job)
+    scene_id = scene.id
+    session.execute(delete(Scene).where(Scene.id == scene_id))
+    session.commit()
+    storage.remove_tree(storage.scene_dir(scene_id))
+    return [job.id for job in jobs]
+
+
+def sweep_retention(session: Session, settings: Settings, storage: Storage) -> int:
+    """Delete finished jobs older than ``retention_days``; returns how many."""
+    if settings.retention_days is None:
+        return 0
+    cutoff = utcnow() - timedelta(days=settings.retention_days)
+    old = list(
+        session.scalars(
+            select(Job)
+            .where(Job.state.in_(tuple(s for s in JobState if s.is_terminal)), Job.finished_at < cutoff)
+            .limit(100)
+        )
+    )
+    for job in old:
+        delete_job(session, storage, job)
+    return len(old)
+
+
+def sweep_orphans(session: Session, storage: Storage) -> int:
+    """Remove job and scene folders whose rows are gone (a delete interrupted between rows and files, or a worker
+    that wrote after its job was deleted); returns how many."""
+    removed = 0
+    for folder, model in ((storage.root / "artifacts", Job), (storage.root / "scenes", Scene)):
+        for path in _old_children(folder):
+            try:
+                ident = uuid.UUID(path.name)
+            except ValueError:
+                continue
+            if session.get(model, ident) is None:
+                storage.remove_tree(path)
+                removed += 1
+    return removed
+
+
+def _old_children(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    cutoff = (utcnow() - ORPHAN_GRACE).timestamp()
+    return [p for p in folder.iterdir() if p.stat().st_mtime < cutoff]

@@ -1,0 +1,198 @@
+"""A finished run folder as the viewer's binary scene: one JSON header and typed arrays, no JSON per point.
+
+Layout (little-endian), read by ``web/src/scene.js``::
+
+    bytes 0..3    magic b"PGSV"
+    bytes 4..7    uint32 format version (1)
+    bytes 8..11   uint32 header length H
+    bytes 12..    H bytes of UTF-8 JSON, padded with spaces to a multiple of 4
+    then          the arrays, each at the byte offset the header names (offsets count from the body start and
+                  are multiples of 4, so the browser maps them as typed arrays without copying)
+
+Arrays: ``position`` float32 (N, 3), ``color`` uint8 (N, 3) camera colour, ``semantic`` int16 (N,) class index or
+-1, ``instance`` int32 (N,) instance id or -1, ``scale`` float32 (N,) the primitive's radius in metres.
+
+The header carries the classes (name, kind, palette colour, primitive count), the instances of ``instances.json``
+(with their colour), the bounds, and the primitive count before decimation. Built from ``gaussians.ply`` (colour
+and scale) and ``vocabulary.json``/``instances.json``; numpy only, so ``panogs view`` needs no pipeline.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from panogs_core.errors import InputError
+from panogs_core.io.ply import read_ply_vertices
+
+MAGIC = b"PGSV"
+FORMAT_VERSION = 1
+SH_C0 = 0.28209479177387814  # 3DGS: colour = 0.5 + SH_C0 * f_dc
+DECIMATION_SEED = 0  # the same run decimated twice keeps the same primitives
+
+# The semantic palette: fixed, so a class has the same colour in every scene, the legend and the tests. Tableau-20
+# style hues, chosen apart from each other and from grey (void).
+CLASS_PALETTE: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+    (227, 119, 194), (188, 189, 34), (23, 190, 207), (174, 199, 232), (255, 187, 120), (152, 223, 138),
+    (255, 152, 150), (197, 176, 213), (196, 156, 148), (247, 182, 210), (219, 219, 141), (158, 218, 229),
+    (57, 59, 121), (99, 121, 57), (140, 109, 49), (132, 60, 57), (123, 65, 115), (82, 84, 163),
+)  # fmt: skip
+VOID_COLOR = (128, 128, 128)
+
+
+@dataclass(frozen=True)
+class ViewerScene:
+    """The encoded scene and what callers report about it."""
+
+    data: bytes
+    count: int  # primitives in the file
+    total: int  # primitives in the run
+
+
+def class_color(index: int) -> tuple[int, int, int]:
+    """The palette colour of class ``index`` (-1: void grey)."""
+    return VOID_COLOR if index < 0 else CLASS_PALETTE[index % len(CLASS_PALETTE)]
+
+
+def instance_color(instance_id: int) -> tuple[int, int, int]:
+    """A distinct colour per instance: golden-ratio hue steps, full saturation, bright."""
+    hue = (instance_id * 0.618033988749895) % 1.0
+    r, g, b = _hsv_to_rgb(hue, 0.75, 0.95)
+    return round(r * 255), round(g * 255), round(b * 255)
+
+
+def _hsv_to_rgb(h: float, s: float, v: float) -> tuple[float, float, float]:
+    i = int(h * 6.0) % 6
+    f = h * 6.0 - int(h * 6.0)
+    p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
+    return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
+
+
+def _read_json(path: Path) -> Any:
+    if not path.is_file():
+        raise InputError(f"{path}: missing; is {path.parent} the --out folder of a finished run?")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+
+
+def _read_primitives(run_dir: Path) -> dict[str, np.ndarray]:
+    path = run_dir / "gaussians.ply"
+    if not path.is_file():
+        raise InputError(f"{path}: missing; is {run_dir} the --out folder of a finished run?")
+    vertices = read_ply_vertices(path)
+    needed = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "scale_0", "scale_1", "scale_2", "semantic", "instance"}
+    missing = sorted(needed - vertices.keys())
+    if missing:
+        raise InputError(f"{path}: vertex properties {', '.join(missing)} missing")
+    return vertices
+
+
+def decimation_indices(total: int, limit: int | None) -> np.ndarray | None:
+    """Sorted indices of ``limit`` primitives drawn evenly at random, or None when all fit."""
+    if limit is None or total <= limit:
+        return None
+    rng = np.random.default_rng(DECIMATION_SEED)
+    return np.sort(rng.choice(total, size=limit, replace=False))
+
+
+def build_scene(
+    run_dir: str | Path, *, max_primitives: int | None = None, extra: dict[str, Any] | None = None
+) -> ViewerScene:
+    """Encode a finished run folder for the viewer.
+
+    Args:
+        run_dir: The ``--out`` folder of a run (or a job's result folder).
+        max_primitives: Keep at most this many primitives (a seeded random subset); None keeps all.
+        extra: More header fields (``title``, the precomputed class queries of an offline file).
+
+    Raises:
+        InputError: a file of the run is missing or does not match the others.
+    """
+    run = Path(run_dir)
+    vocabulary = _read_json(run / "vocabulary.json")
+    instances = _read_json(run / "instances.json")
+    if isinstance(instances, dict):
+        instances = instances.get("instances", [])
+    v = _read_primitives(run)
+    total = int(v["x"].shape[0])
+    keep = decimation_indices(total, max_primitives)
+
+    def column(name: str) -> np.ndarray:
+        return v[name] if keep is None else v[name][keep]
+
+    position = np.stack([column("x"), column("y"), column("z")], axis=1).astype(np.float32)
+    dc = np.stack([column("f_dc_0"), column("f_dc_1"), column("f_dc_2")], axis=1)
+    color = np.clip((0.5 + SH_C0 * dc) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    log_scale = np.stack([column("scale_0"), column("scale_1"), column("scale_2")], axis=1)
+    scale = np.exp(log_scale.astype(np.float64)).mean(axis=1).astype(np.float32)
+    semantic = column("semantic").astype(np.int16)
+    instance = column("instance").astype(np.int32)
+
+    classes = vocabulary.get("classes", []) if isinstance(vocabulary, dict) else []
+    counts = np.bincount(semantic[semantic >= 0].astype(np.int64), minlength=len(classes))
+    header: dict[str, Any] = {
+        "count": int(position.shape[0]),
+        "total": total,
+        "bounds": _bounds(position),
+        "classes": [
+            {"index": i, "name": c["name"], "kind": c["kind"], "color": class_color(i), "count": int(counts[i])}
+            for i, c in enumerate(classes)
+        ],
+        "void": {"color": VOID_COLOR, "count": int((semantic < 0).sum())},
+        "instances": [{**row, "color": instance_color(int(row["id"]))} for row in instances],
+        **(extra or {}),
+    }
+    arrays = {"position": position, "color": color, "semantic": semantic, "instance": instance, "scale": scale}
+    return ViewerScene(data=encode(header, arrays), count=int(position.shape[0]), total=total)
+
+
+def _bounds(position: np.ndarray) -> dict[str, list[float]]:
+    if position.shape[0] == 0:
+        return {"min": [0.0, 0.0, 0.0], "max": [0.0, 0.0, 0.0]}
+    return {"min": position.min(axis=0).tolist(), "max": position.max(axis=0).tolist()}
+
+
+def encode(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
+    """The file: magic, version, header (with each array's dtype, shape and offset), then the arrays."""
+    layout: dict[str, dict[str, Any]] = {}
+    offset = 0
+    for name, array in arrays.items():
+        layout[name] = {"dtype": array.dtype.name, "shape": list(array.shape), "offset": offset}
+        offset += _padded(array.nbytes)
+    text = json.dumps({**header, "arrays": layout}, separators=(",", ":")).encode()
+    text += b" " * (_padded(len(text)) - len(text))
+    parts = [MAGIC, struct.pack("<II", FORMAT_VERSION, len(text)), text]
+    for array in arrays.values():
+        raw = np.ascontiguousarray(array).astype(array.dtype.newbyteorder("<"), copy=False).tobytes()
+        parts.append(raw + b"\0" * (_padded(len(raw)) - len(raw)))
+    return b"".join(parts)
+
+
+def decode(data: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Header and arrays of an encoded scene (the reader the tests and tools use; the browser has its own)."""
+    if data[:4] != MAGIC:
+        raise InputError(f"not a panogs viewer scene (magic {data[:4]!r}, expected {MAGIC!r})")
+    version, length = struct.unpack("<II", data[4:12])
+    if version != FORMAT_VERSION:
+        raise InputError(f"viewer scene format version {version}; this reader knows {FORMAT_VERSION}")
+    header = json.loads(data[12 : 12 + length])
+    body = 12 + length
+    arrays = {}
+    for name, spec in header["arrays"].items():
+        dtype = np.dtype(spec["dtype"]).newbyteorder("<")
+        count = int(np.prod(spec["shape"]))
+        start = body + spec["offset"]
+        arrays[name] = np.frombuffer(data, dtype=dtype, count=count, offset=start).reshape(spec["shape"])
+    return header, arrays
+
+
+def _padded(n: int) -> int:
+    return (n + 3) // 4 * 4

@@ -1,0 +1,246 @@
+"""The app and the viewer in a real browser (Chromium by Playwright, WebGL in software), against a real
+``panogs serve`` running the real pipeline on a tiny synthetic scene.
+
+One served app, one signed-in page and one finished job are shared by the module's tests, in order: sign in and
+upload, reach ``succeeded`` and open the viewer, pixels of the palette, colour modes and the URL, the query against
+the API, a refused bundle, another tenant's job, and last, deleting the job.
+"""
+
+from __future__ import annotations
+
+import uuid
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow
+
+JOB_TIMEOUT_MS = 300_000  # the tiny scene takes ~15 s alone; the machine may be shared
+VIEWPORT = {"width": 1200, "height": 760}
+
+
+def _sign_in(context: Any, url: str, key: str) -> Any:
+    page = context.new_page()
+    page.goto(f"{url}/app")
+    page.fill("#sign-in input[name=key]", key)
+    page.click("#sign-in button[type=submit]")
+    page.wait_for_selector("#upload")
+    return page
+
+
+@pytest.fixture(scope="module")
+def page(browser: Any, served: dict[str, Any]) -> Iterator[Any]:
+    context = browser.new_context(viewport=VIEWPORT)
+    page = _sign_in(context, served["url"], served["keys"]["alice"])
+    yield page
+    context.close()
+
+
+@pytest.fixture(scope="module")
+def api(served: dict[str, Any]) -> Iterator[httpx.Client]:
+    headers = {"Authorization": f"Bearer {served['keys']['alice']}"}
+    with httpx.Client(base_url=served["url"], headers=headers, timeout=30) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
+    """Upload the bundle through the form (tus-js-client), with the connection dropped during the second chunk
+    (the client asks the server for its offset and resumes from there), and wait in the job list for
+    ``succeeded``."""
+    patches: list[str] = []
+
+    def drop_second_chunk(route: Any) -> None:
+        if route.request.method == "PATCH":
+            patches.append(route.request.url)
+            if len(patches) == 2:
+                route.abort("connectionreset")
+                return
+        route.continue_()
+
+    page.route("**/v1/uploads/**", drop_second_chunk)
+    page.set_input_files("#upload input[type=file]", str(bundle_zip))
+    page.click("#upload button[type=submit]")
+    row = page.wait_for_selector("#jobs tbody tr[data-job-id]", timeout=120_000)
+    page.unroute("**/v1/uploads/**")
+    assert len(patches) > 2, patches  # the dropped chunk was sent again
+    ident = row.get_attribute("data-job-id")
+    try:
+        page.wait_for_selector(f'tr[data-job-id="{ident}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
+    except Exception:
+        print(served["log"]())
+        raise
+    return str(ident)
+
+
+def _canvas_pixels(page: Any, path: Path | None = None) -> np.ndarray:  # (H, W, 3) uint8 RGB
+    page.evaluate("window.__panogs.viewer.renderNow()")
+    png = page.locator(".pgs-canvas canvas").screenshot(path=str(path) if path else None)
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return bgr[:, :, ::-1]
+
+
+def _open_viewer(page: Any, url: str, job_id: str, view: str = "") -> None:
+    # A fresh page load: a new fragment on the same page would keep the open viewer and its state.
+    page.goto("about:blank")
+    page.goto(f"{url}/app#/jobs/{job_id}{view}")
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+
+
+def test_upload_reaches_succeeded_and_opens_the_viewer(
+    page: Any, job_id: str, served: dict[str, Any], artifacts: Path
+) -> None:
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    assert row.locator("td").nth(2).inner_text() == "succeeded"
+    row.locator("[data-action=open]").click()
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+    assert page.locator(".pgs-instances li").count() > 3
+    page.screenshot(path=str(artifacts / "viewer.png"))
+
+
+def test_canvas_draws_the_palette_where_the_scene_is(page: Any, job_id: str, served: dict[str, Any]) -> None:
+    _open_viewer(page, served["url"], job_id, "?mode=semantic")
+    pixels = _canvas_pixels(page).reshape(-1, 3).astype(int)
+    header = page.evaluate("window.__panogs.viewer.scene.header")
+    shown = [c for c in header["classes"] if c["count"] > 0]
+    # Each class's palette colour, drawn exactly (no lighting, no blending), on a share of the canvas.
+    present = [c["name"] for c in shown if (np.abs(pixels - c["color"]).sum(axis=1) == 0).mean() > 0.001]
+    assert len(present) >= 3, f"palette colours on the canvas: {present}"
+    background = (np.abs(pixels - [16, 20, 24]).sum(axis=1) <= 3).mean()
+    assert 0.05 < background < 0.95  # the scene covers part of the canvas, not none and not all
+
+
+def test_colour_modes_change_the_pixels_and_the_url_reopens_the_view(
+    page: Any, job_id: str, served: dict[str, Any], artifacts: Path
+) -> None:
+    _open_viewer(page, served["url"], job_id, "?mode=semantic")
+    semantic = _canvas_pixels(page)
+    page.keyboard.press("1")
+    camera = _canvas_pixels(page, artifacts / "camera.png")
+    page.keyboard.press("3")
+    instance = _canvas_pixels(page, artifacts / "instance.png")
+    for a, b in ((semantic, camera), (semantic, instance), (camera, instance)):
+        assert (np.abs(a.astype(int) - b).sum(axis=2) > 30).mean() > 0.02
+    assert "mode=instance" in page.url
+    page.reload()
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+    assert page.get_attribute(".pgs-viewer", "data-mode") == "instance"
+    page.keyboard.press("?")
+    assert page.locator(".pgs-help").is_visible()
+
+
+def test_class_query_lights_exactly_the_instances_the_api_returns(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    _open_viewer(page, served["url"], job_id)
+    instances = api.get(f"/v1/jobs/{job_id}/instances").json()["data"]
+    name = next(i["class_name"] for i in instances if i["kind"] == "thing")
+    expected = [h["instance_id"] for h in api.post(f"/v1/jobs/{job_id}/query", json={"text": name}).json()["hits"]]
+    assert expected
+    page.fill(".pgs-query input", name)
+    page.press(".pgs-query input", "Enter")
+    page.wait_for_selector(".pgs-viewer[data-query=done]")
+    listed = [int(x) for x in page.locator("[data-hit-id]").evaluate_all("els => els.map(e => e.dataset.hitId)")]
+    assert listed == expected  # same instances, same order
+    lit = page.get_attribute(".pgs-viewer", "data-lit")
+    assert sorted(int(x) for x in lit.split(",")) == sorted(expected)
+
+
+def test_clicking_a_point_selects_its_instance(page: Any, job_id: str, served: dict[str, Any]) -> None:
+    _open_viewer(page, served["url"], job_id)
+    # Every class but that of the largest thing instance hidden (hidden points cannot be picked), then the screen
+    # position of one of its primitives, projected by the viewer's own camera.
+    x, y, expected_class = page.evaluate(
+        """() => {
+          const v = window.__panogs.viewer;
+          const things = v.scene.header.instances.filter(i => i.kind === "thing");
+          const big = things.reduce((a, b) => (b.num_points > a.num_points ? b : a));
+          for (const c of v.scene.header.classes) if (c.index !== big.class_index) v.toggleClass(c.index, false);
+          const i = v.scene.instance.findIndex(id => id === big.id);
+          const p = v.scene.position;
+          const ndc = new v.camera.position.constructor(p[3 * i], p[3 * i + 1], p[3 * i + 2]).project(v.camera);
+          const r = v.renderer.domElement.getBoundingClientRect();
+          return [r.left + (ndc.x + 1) / 2 * r.width, r.top + (1 - ndc.y) / 2 * r.height, big.class_name];
+        }"""
+    )
+    page.mouse.click(x, y)
+    lit = page.get_attribute(".pgs-viewer", "data-lit")
+    assert lit, "a click on the scene selected nothing"
+    selected = int(lit)
+    assert page.locator(f'.pgs-instances li[data-instance-id="{selected}"].pgs-lit').count() == 1
+    assert f"sel={selected}" in page.url
+    picked = page.evaluate(f"window.__panogs.viewer.instanceById.get({selected}).class_name")
+    assert picked == expected_class
+    assert page.evaluate("window.__panogs.viewer.boxes.length") == 1  # its box is drawn
+
+
+def test_refused_bundle_shows_its_problems_one_per_line(
+    page: Any, served: dict[str, Any], api: httpx.Client, tmp_path: Path
+) -> None:
+    broken = tmp_path / "broken.zip"
+    with zipfile.ZipFile(broken, "w") as zf:
+        zf.writestr("scene.json", '{"format_version": 1, "name": "broken"}')
+        zf.writestr("frames/readme.txt", "no frames here")
+    page.goto(f"{served['url']}/app#/")
+    page.set_input_files("#upload input[type=file]", str(broken))
+    page.click("#upload button[type=submit]")
+    page.wait_for_selector("#upload-message .pgs-problems li", timeout=60_000)
+    shown = page.locator("#upload-message .pgs-problems li").all_inner_texts()
+    # The API's own answer for the same archive: the same problems, in the same order.
+    data = broken.read_bytes()
+    created = api.post("/v1/uploads", content=data, headers={"Tus-Resumable": "1.0.0", "Upload-Length": str(len(data)),
+                       "Content-Type": "application/offset+octet-stream"})  # fmt: skip
+    refused = api.post("/v1/scenes", json={"upload_id": created.json()["id"]})
+    assert refused.status_code == 422
+    assert shown == refused.json()["problems"]
+    assert len(shown) >= 2
+
+
+def test_another_tenants_job_cannot_be_opened(browser: Any, job_id: str, served: dict[str, Any]) -> None:
+    context = browser.new_context(viewport=VIEWPORT)
+    try:
+        other = _sign_in(context, served["url"], served["keys"]["mallory"])
+        other.goto(f"{served['url']}/app#/jobs/{job_id}")
+        other.wait_for_selector(".pgs-message.pgs-bad")
+        assert f"job {job_id} not found" in other.inner_text("#page")
+        assert other.locator("canvas").count() == 0
+        assert job_id not in other.inner_text("#jobs") if other.locator("#jobs").count() else True
+    finally:
+        context.close()
+
+
+def test_rerun_with_other_settings_then_cancel(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    row.locator("[data-action=re-run]").click()
+    row.locator("textarea").fill('{"clustering": {"thresholds": [0.9, 0.7]}}')
+    before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
+    row.locator("form button[type=submit]").click()
+    new = page.wait_for_selector("#jobs tbody tr[data-job-id]:not([data-state=succeeded])")
+    new_id = new.get_attribute("data-job-id")
+    assert new_id not in before
+    assert api.get(f"/v1/jobs/{new_id}").json()["config"] == {"clustering": {"thresholds": [0.9, 0.7]}}
+    page.locator(f'tr[data-job-id="{new_id}"] [data-action=cancel]').click()
+    page.wait_for_selector(f'tr[data-job-id="{new_id}"][data-state=canceled]', timeout=60_000)
+
+
+def test_deleting_the_job_removes_it_and_its_files(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    folder = served["storage"] / "artifacts" / str(uuid.UUID(job_id))
+    assert (folder / "gaussians.ply").is_file()
+    page.goto(f"{served['url']}/app#/")
+    row = page.wait_for_selector(f'tr[data-job-id="{job_id}"]')
+    page.once("dialog", lambda dialog: dialog.accept())
+    row.query_selector("[data-action=delete]").click()
+    page.wait_for_selector(f'tr[data-job-id="{job_id}"]', state="detached", timeout=15_000)
+    assert not folder.exists()
+    assert api.get(f"/v1/jobs/{job_id}").status_code == 404

@@ -1,0 +1,51 @@
+// The viewer on its own page: `panogs view RUN_DIR` (scene and queries from the local server) or the offline file
+// of `panogs export-html` (the scene inline as base64; class-name queries answered from the answers the file
+// carries, computed by the same query code as the API).
+import { Viewer, paramsToState, stateToParams } from "./viewer.js";
+import { base64ToBuffer, fetchScene, parseScene } from "./scene.js";
+
+async function localQuery(url, text) {
+  const response = await fetch(url, {
+    method: "POST",
+    headers: { "Content-Type": "application/json" },
+    body: JSON.stringify({ text }),
+  });
+  const body = await response.json();
+  if (!response.ok) throw new Error([body.message, ...(body.problems || [])].join("\n"));
+  return body;
+}
+
+function offlineQuery(header, text) {
+  const answer = (header.class_queries || {})[text.trim().toLowerCase()];
+  if (!answer) {
+    const names = Object.keys(header.class_queries || {}).join(", ");
+    return Promise.reject(new Error(`this offline file answers class names only (${names}); free text needs \`panogs view\``));
+  }
+  return Promise.resolve(answer);
+}
+
+async function main() {
+  const root = document.getElementById("viewer");
+  const inline = document.getElementById("panogs-scene");
+  const params = new URLSearchParams(location.hash.slice(1));
+  let header = null;
+  const viewer = new Viewer(root, {
+    state: paramsToState(params),
+    queryFn: (text) => (inline ? offlineQuery(header, text) : localQuery("query", text)),
+    onStateChange: (state) => history.replaceState(null, "", "#" + stateToParams(state).toString()),
+  });
+  window.__panogs = { viewer, startedAt: performance.now() };
+  try {
+    const scene = inline
+      ? parseScene(base64ToBuffer(inline.textContent.trim()))
+      : await fetchScene("scene.bin", (got, total) => viewer.showProgress(got, total));
+    header = scene.header;
+    if (header.title) document.title = `${header.title} · panogs viewer`;
+    viewer.load(scene);
+    window.__panogs.readyAt = performance.now();
+  } catch (err) {
+    viewer.showError(`Could not open the scene: ${err.message}`);
+  }
+}
+
+main();
