@@ -60,11 +60,13 @@ from panogs_core.pipeline import resolve_scene_vocabulary, run_pipeline
 from panogs_core.primitives import Primitives
 from panogs_core.synthetic import make_scene
 
-PREVIOUS = {"evidence_fused_weight": 0.0, "unseen": "field", "vote": "superprimitive", "instances": "clusters"}
+PREVIOUS = {"evidence_fused_weight": 0.0, "unseen": "field", "vote": "superprimitive", "instances": "clusters",
+            "reference_spacing": None}  # fmt: skip
 VARIANTS: dict[str, dict] = {
     "full": {},
     "previous": {"labeling": PREVIOUS, "fusion": {"mask_pooling": 0.0}},
     "no-pool": {"fusion": {"mask_pooling": 0.0}},
+    "spacing-as-given": {"labeling": {"reference_spacing": None}},
     "vote-purity-0.8": {"labeling": {"vote_min_fraction": 0.8}},
     "vote-any-island": {"labeling": {"vote_max_ratio": 0.0}},
     "vote-small-islands": {"labeling": {"vote_max_ratio": 0.0, "island_points": 50}},
@@ -88,7 +90,7 @@ VARIANTS: dict[str, dict] = {
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
 DEFAULT_VARIANTS = ["full", "vote-none", "vote-reference", "vote-any-island", "vote-small-islands",
                     "evidence-fused", "unseen-field", "unseen-propagate", "inst-clusters", "inst-components",
-                    "previous", "no-pool"]  # fmt: skip
+                    "previous", "no-pool", "spacing-as-given"]  # fmt: skip
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff", "miou_seen", "miou_unseen")
 
 # The held-out real ScanNet room of issue 8 (81,369 mesh vertices, 100 key frames).

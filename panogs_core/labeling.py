@@ -68,6 +68,10 @@ class LabelingConfig:
         component_radius: Longest kNN edge that joins two primitives of one class into a component, metres.
         split_min_points: A cluster splits a component only if it holds this many of its primitives ...
         split_min_fraction: ... and this share of it, and so does at least one other cluster.
+        reference_spacing: Point spacing (median nearest-neighbour distance, metres) at which the point counts
+            above (``min_instance_points``, ``island_points``, ``split_min_points``) and ``component_radius``
+            hold; on other clouds they are rescaled to the same surface area and gap (``scaled_to_spacing``).
+            None = use them as given.
     """
 
     # DEPARTURE (docs/method.md §7.3; the reference always votes): the reference's run on a real scan (docs/method.md
@@ -104,6 +108,13 @@ class LabelingConfig:
     component_radius: float = 0.10
     split_min_points: int = 200
     split_min_fraction: float = 0.2
+    # DEPARTURE (point counts are the reference's unit): a point count means a surface area only at one point
+    # spacing. The counts above were tuned on the scan rooms (median nearest-neighbour spacing 3.7 cm, as
+    # ScanNet meshes); on the tiny rooms (6.3 cm) the same counts asked for three times the area, so no
+    # cluster could split a component and the 10 cm joins broke coarse objects apart (thing PRQ 0.59 against
+    # 0.78 before issue 8 at default). The counts scale with the area a point stands for, the join radius
+    # never drops below ``component_radius``. Table: docs/benchmarks.md, "Point spacing".
+    reference_spacing: float | None = 0.037
 
     def __post_init__(self) -> None:
         if self.vote not in ("superprimitive", "islands", "none"):
@@ -135,6 +146,12 @@ class LabelingConfig:
             raise ConfigError(f"labeling.split_neighbors: expected >= 1, found {self.split_neighbors}")
         if self.min_instance_points < 1:
             raise ConfigError(f"labeling.min_instance_points: expected >= 1, found {self.min_instance_points}")
+        if self.reference_spacing is not None and not (
+            np.isfinite(self.reference_spacing) and self.reference_spacing > 0
+        ):
+            raise ConfigError(
+                f"labeling.reference_spacing: expected > 0 metres or None, found {self.reference_spacing}"
+            )
         if self.score_temperature is not None and not self.score_temperature > 0:
             raise ConfigError(f"labeling.score_temperature: expected > 0 or None, found {self.score_temperature}")
 
@@ -287,6 +304,8 @@ def assign_panoptic(
 
         neighbors = build_knn(points, min(cfg.split_neighbors, max(len(pts) - 1, 1))).neighbors
     nbr = None if neighbors is None else np.asarray(neighbors, np.int64)
+    if nbr is not None and cfg.reference_spacing is not None:
+        cfg = scaled_to_spacing(cfg, point_spacing(pts, nbr))
     unseen_counts: dict[str, int] = {}
     scores = field_sims
     if fused is None:
@@ -315,6 +334,49 @@ def assign_panoptic(
     temperature = cfg.score_temperature or default_temperature(None, emb)
     infos = _instance_infos(pts, feats, field_sims / temperature, instance, inst_class, vocabulary)
     return PanopticLabels(semantic=semantic, instance=instance, instances=infos, unseen=unseen_counts)
+
+
+def point_spacing(points: np.ndarray, neighbors: np.ndarray) -> float:  # metres
+    """Median distance from a primitive to its nearest neighbour (column 0 of the kNN graph).
+
+    Example:
+        >>> pts = np.array([[0.0, 0, 0], [0.02, 0, 0], [0.06, 0, 0]], np.float32)
+        >>> round(point_spacing(pts, np.array([[1], [0], [1]])), 3)
+        0.02
+    """
+    if len(points) < 2 or neighbors.size == 0:
+        return 0.0
+    nearest = np.linalg.norm(points - points[neighbors[:, 0]], axis=1)
+    return float(np.median(nearest))
+
+
+def scaled_to_spacing(cfg: LabelingConfig, spacing: float) -> LabelingConfig:
+    """The config with its point counts and join radius moved from ``cfg.reference_spacing`` to ``spacing``.
+
+    A point stands for ``spacing^2`` of surface, so a count becomes ``count (reference / spacing)^2`` (at
+    least 1 where it was); the radius that joins two primitives grows with the spacing and never shrinks.
+
+    Example:
+        >>> cfg = scaled_to_spacing(LabelingConfig(), 0.074)  # twice the reference spacing
+        >>> cfg.island_points, cfg.split_min_points, cfg.min_instance_points, round(cfg.component_radius, 2)
+        (38, 50, 12, 0.2)
+    """
+    reference = cfg.reference_spacing
+    if reference is None or not spacing > 0:
+        return cfg
+    area = (reference / spacing) ** 2
+
+    def count(value: int) -> int:
+        return max(round(value * area), 1 if value > 0 else 0)
+
+    return dataclasses.replace(
+        cfg,
+        island_points=count(cfg.island_points),
+        split_min_points=count(cfg.split_min_points),
+        min_instance_points=count(cfg.min_instance_points),
+        component_radius=cfg.component_radius * max(1.0, spacing / reference),
+        reference_spacing=None,  # applied
+    )
 
 
 def primitive_classes(

@@ -120,7 +120,10 @@ class TestVoteInSegments:
 class TestAssignPanoptic:
     # The cluster-based assembly these tests were written for (issue 2); the class-component assembly of
     # issue 8 is tested in TestComponentInstances.
-    cfg = LabelingConfig(vote="none", min_instance_points=20, score_temperature=0.5, instances="clusters")
+    # Point counts as given: these cases test the rules, not the rescaling to the point spacing.
+    cfg = LabelingConfig(
+        vote="none", min_instance_points=20, score_temperature=0.5, instances="clusters", reference_spacing=None
+    )
 
     def test_cardinality(self) -> None:
         out, cls = _run(self.cfg)
@@ -462,7 +465,9 @@ class TestIssue8Rules:
         cls = np.full(len(xs), CHAIR, np.int64)
         nbr = build_knn(points, 4).neighbors
         sims = np.eye(4, dtype=np.float32)[cls]
-        cfg = LabelingConfig(vote="none", min_instance_points=20, split_min_points=30, split_min_fraction=0.2)
+        cfg = LabelingConfig(
+            vote="none", min_instance_points=20, split_min_points=30, split_min_fraction=0.2, reference_spacing=None
+        )
         out = assign_panoptic(points, sims, _Labels(np.zeros(len(xs), np.int64)), _Labels(cluster), _vocab(), cfg,
                               neighbors=nbr)  # fmt: skip
         assert len(np.unique(out.instance)) == 3
@@ -496,3 +501,37 @@ class TestIssue8Rules:
     def test_exception(self, kwargs: dict[str, object], match: str) -> None:
         with pytest.raises(ConfigError, match=match):
             LabelingConfig(**kwargs)  # type: ignore[arg-type]
+
+
+class TestPointSpacing:
+    """Point counts and the join radius follow the point spacing (``scaled_to_spacing``)."""
+
+    def test_counts_scale_with_the_area_a_point_stands_for(self) -> None:
+        from panogs_core.labeling import scaled_to_spacing
+
+        cfg = LabelingConfig(island_points=100, split_min_points=200, min_instance_points=40, component_radius=0.1)
+        coarse = scaled_to_spacing(cfg, 2 * cfg.reference_spacing)  # a point stands for 4x the area
+        assert (coarse.island_points, coarse.split_min_points, coarse.min_instance_points) == (25, 50, 10)
+        assert coarse.component_radius == pytest.approx(0.2)
+        dense = scaled_to_spacing(cfg, cfg.reference_spacing / 2)
+        assert (dense.island_points, dense.split_min_points, dense.min_instance_points) == (400, 800, 160)
+        assert dense.component_radius == pytest.approx(0.1)  # a gap in metres does not shrink
+        assert scaled_to_spacing(dataclasses.replace(cfg, reference_spacing=None), 1.0) == dataclasses.replace(
+            cfg, reference_spacing=None
+        )
+
+    def test_a_coarse_object_stays_one_instance(self) -> None:
+        # A row of 30 chair points 6 cm apart: as given, 10 cm joins hold but 50 points are too few for an
+        # instance; at the spacing they stand for (6 cm, not 3.7 cm) they make one chair.
+        xs = np.arange(30, dtype=np.float32) * 0.06
+        points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+        nbr = np.stack([np.clip(np.arange(30) + d, 0, 29) for d in (1, -1)], axis=1)
+        nbr[-1, 0], nbr[0, 1] = 28, 1
+        feats = np.tile(np.eye(4, dtype=np.float32)[2], (30, 1))  # chair (a thing) everywhere
+        labels = _Labels(np.zeros(30, np.int64))
+        as_given = assign_panoptic(
+            points, feats, labels, labels, _vocab(), LabelingConfig(reference_spacing=None), neighbors=nbr
+        )
+        scaled = assign_panoptic(points, feats, labels, labels, _vocab(), LabelingConfig(), neighbors=nbr)
+        assert as_given.instance.max() == -1
+        assert np.unique(scaled.instance).tolist() == [0]
