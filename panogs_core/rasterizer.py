@@ -39,8 +39,9 @@ MAX_ALPHA = 0.99  # alpha is clamped here so that transmittance never reaches 0 
 MIN_TRANSMITTANCE = 1e-4  # a pixel stops once its transmittance would fall to this (3DGS)
 NEAR_PLANE = 0.01  # m, Gaussians nearer to the camera plane are culled
 SIGMA_EXTENT = 3.0  # a Gaussian's square footprint: this many standard deviations around its centre
-# Where the projection Jacobian is evaluated, the centre's x/z and y/z are clamped to the field of view plus this
-# fraction of it: Gaussians far outside the view would otherwise get huge, wrong 2D footprints (3DGS does the same).
+# Where the projection Jacobian is evaluated, the centre's x/z and y/z are clamped to the image plus this fraction
+# of half the field of view on each side: Gaussians far outside the view would otherwise get huge, wrong 2D
+# footprints (3DGS and gsplat clamp the same way).
 FOV_MARGIN = 0.3
 
 
@@ -152,10 +153,12 @@ def project(gaussians: Gaussians3D, camera: PinholeCamera) -> Projected:
     in_front = z > NEAR_PLANE
     z_safe = torch.where(in_front, z, torch.ones_like(z))
     # Jacobian of (fx x/z + cx, fy y/z + cy) at the (clamped) centre
-    lim_x = (camera.width / camera.fx) * (1 + FOV_MARGIN)
-    lim_y = (camera.height / camera.fy) * (1 + FOV_MARGIN)
-    tx = (p_cam[:, 0] / z_safe).clamp(-lim_x, lim_x) * z_safe
-    ty = (p_cam[:, 1] / z_safe).clamp(-lim_y, lim_y) * z_safe
+    margin_x = FOV_MARGIN * 0.5 * camera.width / camera.fx
+    margin_y = FOV_MARGIN * 0.5 * camera.height / camera.fy
+    lo_x, hi_x = -(camera.cx + 0.5) / camera.fx - margin_x, (camera.width - 0.5 - camera.cx) / camera.fx + margin_x
+    lo_y, hi_y = -(camera.cy + 0.5) / camera.fy - margin_y, (camera.height - 0.5 - camera.cy) / camera.fy + margin_y
+    tx = (p_cam[:, 0] / z_safe).clamp(lo_x, hi_x) * z_safe
+    ty = (p_cam[:, 1] / z_safe).clamp(lo_y, hi_y) * z_safe
     zeros = torch.zeros_like(z)
     jac = torch.stack(
         [
@@ -223,9 +226,9 @@ def bin_tiles(projected: Projected, width: int, height: int, tile_size: int) -> 
         y1 = torch.floor((centre[:, 1] + r + 0.5) / tile_size).clamp(0, tiles_y - 1).to(torch.int64)
         nx, ny = x1 - x0 + 1, y1 - y0 + 1
         per = nx * ny  # tiles touched by each seen Gaussian
-        owner = torch.repeat_interleave(torch.arange(seen.numel()), per)  # (M,) index into ``seen``
+        owner = torch.repeat_interleave(torch.arange(seen.numel(), device=per.device), per)  # (M,) index into ``seen``
         first = torch.cumsum(per, 0) - per
-        local = torch.arange(owner.numel()) - first[owner]  # 0..per-1 within each Gaussian
+        local = torch.arange(owner.numel(), device=per.device) - first[owner]  # 0..per-1 within each Gaussian
         tx = x0[owner] + local % nx[owner]
         ty = y0[owner] + local // nx[owner]
         tile = ty * tiles_x + tx
@@ -276,8 +279,11 @@ def rasterize(
     values = torch.cat([features, projected.depths[:, None]], dim=1)  # (N, C + 1)
     packed = torch.cat([projected.means2d, projected.conics, projected.opacities[:, None], values], dim=1)
     channels = values.shape[1]
-    tiles_out = torch.zeros(bins.tiles_y * bins.tiles_x, tile_size * tile_size, channels + 1, dtype=values.dtype)
-    top_out = torch.full((bins.tiles_y * bins.tiles_x, tile_size * tile_size), -1, dtype=torch.int64)
+    dev = values.device
+    tiles_out = torch.zeros(
+        bins.tiles_y * bins.tiles_x, tile_size * tile_size, channels + 1, dtype=values.dtype, device=dev
+    )
+    top_out = torch.full((bins.tiles_y * bins.tiles_x, tile_size * tile_size), -1, dtype=torch.int64, device=dev)
     busy = torch.nonzero(bins.counts > 0).squeeze(1)
     # tiles of similar list length are batched together so that padding wastes little
     busy = busy[torch.argsort(bins.counts[busy], descending=True, stable=True)]
@@ -311,7 +317,7 @@ def _tile_slots(bins: _Bins, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.T
     """(B, K) Gaussian ids of each tile's list padded to the longest, and the (B, K) mask of real entries."""
     counts = bins.counts[tiles]
     k = int(counts.max())
-    offsets = torch.arange(k)
+    offsets = torch.arange(k, device=tiles.device)
     valid = offsets[None, :] < counts[:, None]
     flat = (bins.starts[tiles][:, None] + offsets[None, :]).clamp_max(max(bins.ids.numel() - 1, 0))
     slots = torch.where(valid, bins.ids[flat], torch.zeros_like(flat))
@@ -320,7 +326,7 @@ def _tile_slots(bins: _Bins, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.T
 
 def _tile_pixels(tiles: torch.Tensor, tiles_x: int, tile_size: int, dtype: torch.dtype) -> torch.Tensor:
     """(B, P, 2) pixel coordinates (u, v) of each tile's pixels, row-major within the tile."""
-    local = torch.arange(tile_size, dtype=dtype)
+    local = torch.arange(tile_size, dtype=dtype, device=tiles.device)
     lv, lu = torch.meshgrid(local, local, indexing="ij")
     u = (tiles % tiles_x).to(dtype)[:, None] * tile_size + lu.reshape(1, -1)
     v = (tiles // tiles_x).to(dtype)[:, None] * tile_size + lv.reshape(1, -1)
@@ -342,9 +348,9 @@ def _composite(gathered: torch.Tensor, valid: torch.Tensor, pix: torch.Tensor, c
     """Step 3 for a batch of tiles: (B, P, C + 1 + 1) blended values (features, depth) and alpha."""
     b, p = pix.shape[0], pix.shape[1]
     values = gathered[..., 6:]
-    acc = torch.zeros(b, p, values.shape[-1], dtype=values.dtype)
-    acc_alpha = torch.zeros(b, p, dtype=values.dtype)
-    carry = torch.ones(b, p, dtype=values.dtype)  # transmittance before the chunk
+    acc = values.new_zeros(b, p, values.shape[-1])
+    acc_alpha = values.new_zeros(b, p)
+    carry = values.new_ones(b, p)  # transmittance before the chunk
     for k0 in range(0, gathered.shape[1], chunk):
         sl = slice(k0, k0 + chunk)
         alpha = _alphas(gathered[:, sl], valid[:, sl], pix)  # (B, P, k)
@@ -368,9 +374,9 @@ def _top_gaussian(
     ``ids`` is the (B, K) Gaussian id of each slot, -1 on padding.
     """
     b, p = pix.shape[0], pix.shape[1]
-    best_w = torch.zeros(b, p, dtype=gathered.dtype)
-    best = torch.full((b, p), -1, dtype=torch.int64)
-    carry = torch.ones(b, p, dtype=gathered.dtype)
+    best_w = gathered.new_zeros(b, p)
+    best = torch.full((b, p), -1, dtype=torch.int64, device=gathered.device)
+    carry = gathered.new_ones(b, p)
     for k0 in range(0, gathered.shape[1], chunk):
         sl = slice(k0, k0 + chunk)
         alpha = _alphas(gathered[:, sl], ids[:, sl] >= 0, pix)
