@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from panogs_core.appearance import (
     CPU_FIT_WIDTH,
@@ -61,16 +61,6 @@ def _true_image(points: np.ndarray, colors: np.ndarray, pose: np.ndarray) -> np.
     cam = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, torch.tensor(pose))
     img = rasterize(g, torch.tensor(colors), cam).features.clamp(0, 1)
     return (img.numpy() * 255).round().astype(np.uint8)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread() -> Iterator[None]:
-    """Images of a few hundred pixels: one intra-op thread is faster than two, and far faster on a loaded machine
-    (48 x 36 render: 17 ms against 90 ms median with another job on the 2 cores)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")
