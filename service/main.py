@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service.api.routes import health, jobs, results, scenes, uploads
+from service.api.routes import renders as render_routes
 from service.auth import KeyVerifier
 from service.cache import TTLCache
 from service.db.session import get_session_factory
@@ -87,4 +88,5 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(health.router)
     for router in (uploads.router, scenes.router, jobs.router, results.router):
         app.include_router(router, prefix=API_PREFIX)
+    app.include_router(render_routes.router, prefix=API_PREFIX)  # issue 10: renders of a finished job
     return app
