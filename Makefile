@@ -33,10 +33,11 @@ constraints: ## after changing a dependency: install it, then pin the whole clos
 	$(PY) -m pip install -q -e '.[pipeline,text,service,worker,dev]'
 	$(PY) tools/freeze_constraints.py > constraints.txt
 
-demo: install ## synthetic room -> whole pipeline -> instance table -> text query
+demo: install ## synthetic room -> whole pipeline -> instance table -> text query -> a rendered view
 	$(PANOGS) synth $(DEMO)/scene --preset small --difficulty default --seed 0
 	$(PANOGS) run $(DEMO)/scene --out $(DEMO)/run
 	$(PANOGS) query $(DEMO)/run chair
+	$(PANOGS) render $(DEMO)/run --frame 000000 --out $(DEMO)/render
 
 readme: install ## run the demo afresh and write its output into README.md (between the demo-output markers)
 	$(PY) tools/readme_demo.py

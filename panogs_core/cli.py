@@ -192,6 +192,16 @@ def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
     return "\n".join(lines)
 
 
+def format_appearance(summary: dict[str, Any]) -> str:
+    """One line on the Gaussian scene's fit: PSNR before and after, or why it did not run ("" without a fit)."""
+    if summary.get("psnr_after") is not None:
+        return (
+            f"gaussians: PSNR {summary['psnr_before']:.2f} -> {summary['psnr_after']:.2f} dB on "
+            f"{summary['evaluated_on']} frames ({summary['iterations']} iterations)"
+        )
+    return f"gaussians: {summary['note']}" if summary.get("note") else ""
+
+
 def format_metrics(metrics: dict[str, Any]) -> str:
     """One line per evaluation mode."""
 
@@ -226,6 +236,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
         f"{total:.1f} s -> {result.out_dir}"
     )
+    line = format_appearance(result.appearance)
+    if line:
+        print(line)
     print(format_instances(result.instances))
     if result.metrics:
         print("\n" + format_metrics(result.metrics))

@@ -39,6 +39,7 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
     c = cfg.to_dict()
     k: dict[str, str] = {}
     k["primitives"] = _key(input_hash, c["primitives"])
+    k["appearance"] = _key(k["primitives"], c["appearance"])
     k["visibility"] = _key(k["primitives"], c["visibility"], "with-depth-residual")  # older checkpoints lack it
     k["fusion"] = _key(k["visibility"], c["fusion"])
     k["language_field"] = _key(k["fusion"], c["language_field"])
@@ -74,6 +75,7 @@ class GraphStage:
 # Checkpoint class of each stage, as (module, class name): imported only when that stage is loaded or saved.
 _CHECKPOINT_CLASSES = {
     "primitives": ("panogs_core.primitives", "Primitives"),
+    "appearance": ("panogs_core.appearance", "GaussianScene"),
     "visibility": ("panogs_core.visibility", "Visibility"),
     "fusion": ("panogs_core.fusion", "FusedFeatures"),
     "language_field": ("panogs_core.language_field", "LanguageField"),
@@ -98,6 +100,15 @@ def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Any:
     from panogs_core.primitives import build_primitives
 
     return build_primitives(scene, cfg.primitives, on_progress=progress)
+
+
+def appearance(scene: Scene, prims: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
+    """The Gaussian scene fitted to the colour frames, from the primitives' colours (grey where they have none:
+    fused colours come later, and the fit learns the colour anyway)."""
+    from panogs_core.appearance import fit_appearance
+
+    colors = prims.colors if prims.colors is not None else np.full((prims.points.shape[0], 3), 0.5, np.float32)
+    return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress)
 
 
 def visibility(scene: Scene, prims: Any, cfg: PipelineConfig, progress: ProgressFn) -> Any:
