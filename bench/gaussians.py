@@ -103,7 +103,8 @@ def quality(work: Path) -> list[dict[str, Any]]:
         prims = build_primitives(scene, PrimitivesConfig())
         colors = _initial_colors(scene, prims)
         t0, c0 = time.perf_counter(), time.process_time()
-        fitted = fit_appearance(scene, prims, colors, AppearanceConfig(held_out_every=HELD_OUT_EVERY))
+        cfg = AppearanceConfig(held_out_every=HELD_OUT_EVERY, cpu_threads=None)  # --threads decides
+        fitted = fit_appearance(scene, prims, colors, cfg)
         row = {
             "scene": name,
             "gaussians": int(prims.points.shape[0]),
@@ -151,35 +152,50 @@ def _rooms_small(work: Path) -> Path:
     return path
 
 
-def cost_case(work: Path, copies: int, width: int, iterations: int) -> dict[str, Any]:
-    """One cost case in this process: seconds per fit iteration and per render, and the peak RSS."""
+def cost_case(work: Path, copies: int, width: int, iterations: int, render_only: bool) -> dict[str, Any]:
+    """One cost case in this process: seconds per fit iteration (unless ``render_only``) and per render (forward
+    only, with the top-weight ids of the label renders), and the peak RSS."""
     import torch
 
     from panogs_core.appearance import resolve_schedule
     from panogs_core.appearance_fit import Fitter
+    from panogs_core.rasterizer import rasterize
 
     scene, prims = _room_primitives(work, copies)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     cfg = AppearanceConfig(fit_width=width, iterations=iterations, device="cpu")
     fitter = Fitter(scene, prims, prims.colors, cfg, resolve_schedule(cfg, scene.camera.width, False))
+    # the fit clamps its width to the camera's (320 here); a render may be larger, at the same field of view
+    fitter.size = (width, round(scene.camera.height * width / scene.camera.width))
     frames = [f for f in scene.frames if f.color is not None]
     for f in frames:
         fitter.target(f)  # decode outside the timing
-    t0, c0 = time.perf_counter(), time.process_time()
-    fitter.train(frames, None)
-    fit_wall, fit_cpu = (time.perf_counter() - t0) / iterations, (time.process_time() - c0) / iterations
+    fit_wall = fit_cpu = float("nan")
+    if not render_only:
+        t0, c0 = time.perf_counter(), time.process_time()
+        fitter.train(frames, None)
+        fit_wall, fit_cpu = (time.perf_counter() - t0) / iterations, (time.process_time() - c0) / iterations
+    rss_fit = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    n = min(iterations, len(frames))
     t0, c0 = time.perf_counter(), time.process_time()
     with torch.no_grad():
-        for f in frames[:iterations]:
+        for f in frames[:n]:
             fitter.render(f, 0)
-    n = min(iterations, len(frames))
+    render_wall, render_cpu = (time.perf_counter() - t0) / n, (time.process_time() - c0) / n
+    t0, c0 = time.perf_counter(), time.process_time()
+    with torch.no_grad():
+        for f in frames[:n]:
+            rasterize(fitter.gaussians(), torch.zeros(len(prims.points), 1), fitter.camera(f), with_top_index=True)
+    top_wall = (time.perf_counter() - t0) / n
     return {
         "gaussians": int(prims.points.shape[0]),
         "size": list(fitter.size),
         "fit_s_per_iteration": round(fit_wall, 3),
         "fit_cpu_s_per_iteration": round(fit_cpu, 3),
-        "render_s": round((time.perf_counter() - t0) / n, 3),
-        "render_cpu_s": round((time.process_time() - c0) / n, 3),
+        "render_s": round(render_wall, 3),
+        "render_cpu_s": round(render_cpu, 3),
+        "render_with_ids_s": round(top_wall, 3),
+        "peak_rss_fit_mb": round(rss_fit, 1),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "rss_before_mb": round(rss_before, 1),
         "threads": torch.get_num_threads(),
@@ -192,15 +208,17 @@ def cost(work: Path, threads: int, iterations: int) -> list[dict[str, Any]]:
     cases = [(1, 160), (1, 320), (5, 160), (5, 320), (5, 640)]
     for copies, width in cases:
         argv = [sys.executable, __file__, "_cost-case", "--copies", str(copies), "--width", str(width)]
-        argv += ["--iterations", str(1 if width == 640 else iterations), "--threads", str(threads), "--work", str(work)]
+        argv += ["--iterations", str(iterations), "--threads", str(threads), "--work", str(work)]
+        argv += ["--render-only"] if width == 640 else []  # the render the issue asks for; a 640 fit is the GPU's
         done = subprocess.run(argv, check=True, capture_output=True, text=True, cwd=ROOT)
         row = json.loads(done.stdout.strip().splitlines()[-1])
         rows.append(row)
         print(
             f"{row['gaussians']:>7} Gaussians at {row['size'][0]}x{row['size'][1]}: "
-            f"fit {row['fit_s_per_iteration']} s/it "
-            f"({row['fit_cpu_s_per_iteration']} CPU), render {row['render_s']} s ({row['render_cpu_s']} CPU), "
-            f"peak RSS {row['peak_rss_mb']} MB (before the fit {row['rss_before_mb']} MB), {row['threads']} thread(s)",
+            f"fit {row['fit_s_per_iteration']} s/it ({row['fit_cpu_s_per_iteration']} CPU), "
+            f"render {row['render_s']} s ({row['render_cpu_s']} CPU; with label ids {row['render_with_ids_s']} s), "
+            f"peak RSS {row['peak_rss_mb']} MB (after the fit {row['peak_rss_fit_mb']}, "
+            f"before {row['rss_before_mb']}), {row['threads']} thread(s)",
             flush=True,
         )
     return rows
@@ -211,7 +229,7 @@ def stage_time(work: Path) -> dict[str, Any]:
     scene = open_bundle(_rooms_small(work))
     prims = build_primitives(scene, PrimitivesConfig())
     t0, c0 = time.perf_counter(), time.process_time()
-    fitted = fit_appearance(scene, prims, prims.colors, AppearanceConfig())
+    fitted = fit_appearance(scene, prims, prims.colors, AppearanceConfig(cpu_threads=None))  # --threads decides
     row = {
         **fitted.summary(),
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -234,6 +252,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--copies", type=int, default=1)
     ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--render-only", action="store_true", help="_cost-case: time the render only, no fit")
     ap.add_argument("--json", help="also write the numbers to this JSON file")
     args = ap.parse_args()
     import torch
@@ -243,7 +262,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     result: Any
     if args.what == "_cost-case":
-        print(json.dumps(cost_case(work, args.copies, args.width, args.iterations)))
+        print(json.dumps(cost_case(work, args.copies, args.width, args.iterations, args.render_only)))
         return
     if args.what == "quality":
         result = quality(work)

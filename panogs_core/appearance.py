@@ -78,6 +78,10 @@ class AppearanceConfig:
     max_centre_offset: float = 0.01  # m, how far a centre may move when move_centres is on
     max_frames: int = _MAX_FRAMES_DEFAULT  # key frames used at most (evenly spaced)
     held_out_every: int = 0  # > 0: frames i % n == 0 are left out of the fit and used for the PSNR (benchmarks)
+    # torch intra-op threads during a CPU fit (restored after it); None keeps torch's setting. One thread: the fit's
+    # tensors are small (160 x 120 images), and on the shared 2-core machine the stage took 29 s with one thread
+    # against 244 s with two (bench/gaussians.py stage --threads 1 / 2; docs/benchmarks.md).
+    cpu_threads: int | None = 1
     device: str = "auto"  # auto: CUDA when torch sees it (decided when the stage runs), else cpu
     backend: str = "auto"  # auto | torch | gsplat (splat_backends.resolve_backend)
     seed: int = 0  # frame order
@@ -89,7 +93,7 @@ class AppearanceConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ConfigError(f"appearance.{name}: expected an integer >= 1, got {value!r}")
-        for name in ("iterations", "fit_width"):
+        for name in ("iterations", "fit_width", "cpu_threads"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise ConfigError(f"appearance.{name}: expected null or an integer >= 1, got {value!r}")
@@ -295,11 +299,17 @@ def fit_appearance(
     schedule = resolve_schedule(cfg, scene.camera.width, torch.cuda.is_available())
     from panogs_core.appearance_fit import Fitter
 
-    fitter = Fitter(scene, prims, colors, cfg, schedule)
-    eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
-    before = fitter.evaluate(eval_frames)
-    fitter.train(fit_frames, on_progress)
-    after = fitter.evaluate(eval_frames)
+    threads = torch.get_num_threads()
+    if cfg.cpu_threads is not None and schedule.device == "cpu":
+        torch.set_num_threads(cfg.cpu_threads)
+    try:
+        fitter = Fitter(scene, prims, colors, cfg, schedule)
+        eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
+        before = fitter.evaluate(eval_frames)
+        fitter.train(fit_frames, on_progress)
+        after = fitter.evaluate(eval_frames)
+    finally:
+        torch.set_num_threads(threads)
     note = f"{len(no_color)} frame(s) without colour skipped" if no_color else ""
     log.info(
         "appearance: %d iterations at %d px wide on %s, PSNR %.2f -> %.2f dB (%s)",

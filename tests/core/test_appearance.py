@@ -120,6 +120,24 @@ def test_the_fit_raises_psnr_and_skips_frames_without_colour(wall_bundle: Path) 
     assert float(fitted.opacity_logits.mean()) > 0.5  # the wall is opaque: opacities rose from 0.5
 
 
+def test_the_cpu_fit_runs_on_its_threads_and_restores_them(wall_bundle: Path) -> None:
+    points, _ = _wall()
+    seen: list[int] = []
+    torch.set_num_threads(2)
+    try:
+        fit_appearance(
+            open_bundle(wall_bundle),
+            _prims(points),
+            np.full((len(points), 3), 0.5, np.float32),
+            AppearanceConfig(iterations=2, fit_width=24, device="cpu", cpu_threads=1),
+            on_progress=lambda d, t: seen.append(torch.get_num_threads()),
+        )
+        assert seen == [1, 1]
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)  # the module's fixture setting
+
+
 def test_held_out_frames_are_not_fitted_but_scored(wall_bundle: Path) -> None:
     fitted = _fit(wall_bundle, held_out_every=2, iterations=10)
     assert fitted.evaluated_on == "held-out"
