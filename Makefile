@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed clean
+	bench-speed bench-gaussians clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -60,13 +60,18 @@ fmt: install ## format the code
 	$(VENV)/bin/ruff format panogs_core service worker tests bench tools
 	$(VENV)/bin/ruff check --fix .
 
-bench: bench-quality bench-speed ## every benchmark
+bench: bench-quality bench-speed bench-gaussians ## every benchmark
 
 bench-quality: install ## quality table: difficulties x seeds, full method and ablations
 	$(PY) bench/quality.py
 
 bench-speed: install ## per-stage time and peak RSS on the large preset, with the I/O floor
 	$(PY) bench/speed.py
+
+bench-gaussians: install ## Gaussian scene: held-out PSNR/SSIM of the fit, CPU cost per iteration and per render
+	$(PY) bench/gaussians.py quality
+	$(PY) bench/gaussians.py cost
+	$(PY) bench/gaussians.py stage
 
 clean: ## remove demo output and caches
 	rm -rf $(DEMO) .pytest_cache .ruff_cache .mypy_cache
