@@ -234,8 +234,14 @@ class _Schedule:
 
 
 def resolve_schedule(cfg: AppearanceConfig, camera_width: int, cuda: bool) -> _Schedule:
-    """The iterations, fit width, learning-rate factor and device of a run (the per-device defaults)."""
+    """The iterations, fit width, learning-rate factor and device of a run (the per-device defaults).
+
+    Raises:
+        ConfigError: a CUDA device was asked for where torch sees none.
+    """
     device = cfg.device if cfg.device != "auto" else ("cuda" if cuda else "cpu")
+    if device.startswith("cuda") and not cuda:
+        raise ConfigError(f"appearance.device: {cfg.device!r} asked for, but torch sees no CUDA device here")
     on_gpu = device.startswith("cuda")
     iterations = cfg.iterations or (GPU_ITERATIONS if on_gpu else CPU_ITERATIONS)
     width = cfg.fit_width or (camera_width if on_gpu else CPU_FIT_WIDTH)

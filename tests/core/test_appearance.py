@@ -205,6 +205,8 @@ def test_default_schedule_depends_on_the_device() -> None:
     assert (gpu.device, gpu.iterations, gpu.fit_width) == ("cuda", GPU_ITERATIONS, 640)
     assert resolve_schedule(AppearanceConfig(device="cpu"), 640, cuda=True).device == "cpu"
     assert resolve_schedule(AppearanceConfig(fit_width=4000), 640, cuda=False).fit_width == 640
+    with pytest.raises(ConfigError, match="no CUDA device"):
+        resolve_schedule(AppearanceConfig(device="cuda"), 640, cuda=False)
 
 
 @pytest.mark.parametrize(
