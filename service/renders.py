@@ -66,6 +66,11 @@ class RenderCreate(BaseModel):
         return self
 
 
+def torch_installed() -> bool:
+    """Whether the child process can render (torch importable), checked without importing it."""
+    return importlib.util.find_spec("torch") is not None
+
+
 def check_request(body: RenderCreate, out_dir: Path) -> tuple[int, int]:
     """The render's size; refuses what the child would refuse, with the same messages (422), or 404."""
     from panogs_core.errors import InputError
@@ -95,7 +100,7 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
         ServiceUnavailable: no torch on this host, the child timed out or failed (503).
     """
     width, height = check_request(body, out_dir)
-    if importlib.util.find_spec("torch") is None:
+    if not torch_installed():
         raise ServiceUnavailable(
             "renders need the pipeline extra (torch) on the API host: pip install 'panogs[pipeline]'"
         )

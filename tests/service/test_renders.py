@@ -123,3 +123,14 @@ def test_unfinished_and_foreign_jobs(
     assert r.status_code == 409
     assert "results exist once it has succeeded" in r.json()["message"]
     assert client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=other_auth).status_code == 404
+
+
+def test_an_api_host_without_torch_answers_503_with_the_reason(
+    client: TestClient, auth: dict[str, str], finished_job: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from service import renders
+
+    monkeypatch.setattr(renders, "torch_installed", lambda: False)
+    r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist()}, headers=auth)
+    assert r.status_code == 503
+    assert "pipeline extra" in r.json()["message"]
