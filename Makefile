@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed clean web view bench-viewer
+	bench-speed bench-gaussians clean web view bench-viewer
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -46,10 +46,11 @@ constraints: ## after changing a dependency: install it, then pin the whole clos
 	$(PY) -m pip install -q -e '.[pipeline,text,service,worker,dev]'
 	$(PY) tools/freeze_constraints.py > constraints.txt
 
-demo: install ## synthetic room -> whole pipeline -> instance table -> text query
+demo: install ## synthetic room -> whole pipeline -> instance table -> text query -> a rendered view
 	$(PANOGS) synth $(DEMO)/scene --preset small --difficulty default --seed 0
 	$(PANOGS) run $(DEMO)/scene --out $(DEMO)/run
 	$(PANOGS) query $(DEMO)/run chair
+	$(PANOGS) render $(DEMO)/run --frame 000000 --out $(DEMO)/render
 
 readme: install ## run the demo afresh and write its output into README.md (between the demo-output markers)
 	$(PY) tools/readme_demo.py
@@ -72,7 +73,7 @@ fmt: install ## format the code
 	$(VENV)/bin/ruff format panogs_core service worker tests bench tools
 	$(VENV)/bin/ruff check --fix .
 
-bench: bench-quality bench-speed ## every benchmark
+bench: bench-quality bench-speed bench-gaussians ## every benchmark
 
 bench-quality: install ## quality table: difficulties x seeds, full method and ablations
 	$(PY) bench/quality.py
@@ -82,6 +83,11 @@ bench-speed: install ## per-stage time and peak RSS on the large preset, with th
 
 bench-viewer: install ## viewer load time to interactive in headless Chromium, 100k and 1M primitives
 	$(PY) bench/viewer_load.py
+
+bench-gaussians: install ## Gaussian scene: held-out PSNR/SSIM of the fit, CPU cost per iteration and per render
+	$(PY) bench/gaussians.py quality
+	$(PY) bench/gaussians.py cost
+	$(PY) bench/gaussians.py stage
 
 clean: ## remove demo output and caches
 	rm -rf $(DEMO) .pytest_cache .ruff_cache .mypy_cache tests/web/artifacts

@@ -192,6 +192,16 @@ def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
     return "\n".join(lines)
 
 
+def format_appearance(summary: dict[str, Any]) -> str:
+    """One line on the Gaussian scene's fit: PSNR before and after, or why it did not run ("" without a fit)."""
+    if summary.get("psnr_after") is not None:
+        return (
+            f"gaussians: PSNR {summary['psnr_before']:.2f} -> {summary['psnr_after']:.2f} dB on "
+            f"{summary['evaluated_on']} frames ({summary['iterations']} iterations)"
+        )
+    return f"gaussians: {summary['note']}" if summary.get("note") else ""
+
+
 def format_metrics(metrics: dict[str, Any]) -> str:
     """One line per evaluation mode."""
 
@@ -226,6 +236,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
         f"{total:.1f} s -> {result.out_dir}"
     )
+    line = format_appearance(result.appearance)
+    if line:
+        print(line)
     print(format_instances(result.instances))
     if result.metrics:
         print("\n" + format_metrics(result.metrics))
@@ -379,8 +392,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-path", help="text encoder folder or hub name (needed for free text in CLIP space)")
     p.set_defaults(func=_cmd_query)
 
+    _add_render_command(sub)
     _add_optional_commands(sub)
     return parser
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from panogs_core.errors import InputError
+    from panogs_core.views import parse_size, render_to_dir
+
+    pose = None
+    if args.pose:
+        try:
+            pose = json.loads(Path(args.pose).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"--pose {args.pose}: cannot read a JSON pose ({exc})") from exc
+    size = parse_size(args.size) if args.size else None
+    query = " ".join(args.query) if args.query else None
+    written = render_to_dir(
+        args.run, args.out, frame=args.frame, pose=pose, pose_where=args.pose or "pose", size=size, query=query
+    )
+    print(f"wrote {', '.join(sorted(written))} to {args.out}")
+    return 0
+
+
+def _add_render_command(sub: Any) -> None:
+    """``panogs render``: PNG views of a finished run's Gaussian scene (panogs_core/views.py)."""
+    p = sub.add_parser("render", help="render a view of a run: colour, depth, semantic, instance, query relevance")
+    p.add_argument("run", help="the --out folder of a run")
+    view = p.add_mutually_exclusive_group(required=True)
+    view.add_argument("--frame", help="a key frame id of the bundle (its pose and camera)")
+    view.add_argument("--pose", metavar="FILE.json", help='{"T_world_cam": 4x4 camera-to-world[, "camera": {...}]}')
+    p.add_argument("--size", metavar="WxH", help="render size (same field of view), e.g. 640x480")
+    p.add_argument("--query", nargs="+", metavar="TEXT", help="also write relevance.png for this text")
+    p.add_argument("--out", required=True, help="output folder for the PNGs")
+    p.set_defaults(func=_cmd_render)
 
 
 def _add_optional_commands(sub: Any) -> None:

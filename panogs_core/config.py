@@ -17,6 +17,7 @@ from typing import Any, Literal, TypeVar
 import yaml
 
 from panogs_core.affinity import AffinityConfig
+from panogs_core.appearance import AppearanceConfig
 from panogs_core.clustering import ClusteringConfig
 from panogs_core.errors import ConfigError
 from panogs_core.fusion import FusionConfig
@@ -34,6 +35,7 @@ class PipelineConfig:
     """Every setting of a pipeline run. Defaults follow the reference's ScanNet settings."""
 
     primitives: PrimitivesConfig = field(default_factory=PrimitivesConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     language_field: LanguageFieldConfig = field(default_factory=LanguageFieldConfig)

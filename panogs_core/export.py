@@ -12,8 +12,10 @@ Files, all in the run's folder:
 - ``instance_features.npy``: (I, D) float32 unit mean language feature per instance (row = instance id), for
   vector and text queries without the pipeline.
 - ``vocabulary.json`` + ``vocabulary.npy``: the label set the run used, with the feature space.
-- ``gaussians.ply``: the standard 3D Gaussian splatting layout (x, y, z, nx, ny, nz, f_dc_0..2, opacity,
-  scale_0..2, rot_0..3) plus ``semantic`` and ``instance``.
+- ``gaussians.ply``: the Gaussian scene (fitted by the appearance stage, else the initialisation with the
+  geometry's or fused colours) in the standard 3D Gaussian splatting layout (x, y, z, nx, ny, nz, f_dc_0..2,
+  f_rest_*, opacity, scale_0..2, rot_0..3; panogs_core/gaussian_ply.py) plus ``semantic`` and ``instance``.
+- ``cameras.json``: the camera and every frame's pose, so that ``panogs render --frame ID`` needs no bundle.
 - ``metrics.json`` when the bundle has ``gt/labels.npz`` (standard and paper modes).
 """
 
@@ -25,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from panogs_core.appearance import GaussianScene, initial_gaussians
 from panogs_core.bundle import Scene
 from panogs_core.clustering import Clusters
 from panogs_core.fusion import FusedFeatures
@@ -33,8 +36,6 @@ from panogs_core.labeling import PanopticLabels
 from panogs_core.primitives import Primitives
 from panogs_core.superprimitives import SuperPrimitives
 from panogs_core.types import Vocabulary
-
-SH_C0 = 0.28209479177387814  # zeroth spherical-harmonics band constant (3DGS colour <-> DC coefficient)
 
 
 def palette(ids: np.ndarray, salt: int = 0) -> np.ndarray:  # (M,) int64 -> (M, 3) uint8
@@ -76,36 +77,19 @@ def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> None:
 
 
 def write_gaussians(
-    path: Path, prims: Primitives, colors: np.ndarray, semantic: np.ndarray, instance: np.ndarray
+    path: Path,
+    prims: Primitives,
+    colors: np.ndarray,  # (N, 3) in [0, 1], used when the scene was not fitted
+    semantic: np.ndarray,
+    instance: np.ndarray,
+    gaussians: GaussianScene | None = None,
 ) -> None:
-    """The 3DGS PLY layout (SH degree 0, identity rotations) plus label fields."""
-    n = prims.points.shape[0]
-    dc = (colors.astype(np.float32) - 0.5) / SH_C0
-    fields: dict[str, np.ndarray] = {
-        "x": prims.points[:, 0],
-        "y": prims.points[:, 1],
-        "z": prims.points[:, 2],
-        "nx": prims.normals[:, 0],
-        "ny": prims.normals[:, 1],
-        "nz": prims.normals[:, 2],
-        "f_dc_0": dc[:, 0],
-        "f_dc_1": dc[:, 1],
-        "f_dc_2": dc[:, 2],
-        "opacity": prims.opacities,
-        "scale_0": prims.scales[:, 0],
-        "scale_1": prims.scales[:, 1],
-        "scale_2": prims.scales[:, 2],
-        "rot_0": np.ones(n, np.float32),
-        "rot_1": np.zeros(n, np.float32),
-        "rot_2": np.zeros(n, np.float32),
-        "rot_3": np.zeros(n, np.float32),
-        "semantic": semantic.astype(np.int32),
-        "instance": instance.astype(np.int32),
-    }
-    write_ply(
-        path,
-        {k: np.ascontiguousarray(v, dtype=v.dtype if v.dtype == np.int32 else np.float32) for k, v in fields.items()},
-    )
+    """``gaussians.ply``: the fitted scene, or the initialisation with ``colors`` (panogs_core/gaussian_ply.py)."""
+    from panogs_core.gaussian_ply import write_gaussian_ply
+
+    if gaussians is None or not gaussians.fitted:
+        gaussians = initial_gaussians(prims, colors)
+    write_gaussian_ply(path, gaussians, np.asarray(prims.normals, np.float32), semantic, instance)
 
 
 def primitive_colors(prims: Primitives, fused: FusedFeatures) -> np.ndarray:  # (N, 3) float32 in [0, 1]
@@ -126,6 +110,8 @@ def write_outputs(
     clusters: Clusters,
     labels: PanopticLabels,
     vocab: Vocabulary,
+    *,
+    gaussians: GaussianScene | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any] | None]:
     """Write every output file; returns their paths and the metrics (None without ground truth)."""
     files: dict[str, Path] = {}
@@ -171,7 +157,10 @@ def write_outputs(
     write_vocabulary(out, vocab, scene.feature_space)
     files["vocabulary.json"] = out / "vocabulary.json"
     files["gaussians.ply"] = out / "gaussians.ply"
-    write_gaussians(files["gaussians.ply"], prims, primitive_colors(prims, fused), semantic, instance)
+    write_gaussians(files["gaussians.ply"], prims, primitive_colors(prims, fused), semantic, instance, gaussians)
+    from panogs_core.views import write_cameras
+
+    files["cameras.json"] = write_cameras(out / "cameras.json", scene.camera, scene.frames)
 
     metrics = compute_metrics(scene, pts, semantic, instance, vocab)
     if metrics is not None:

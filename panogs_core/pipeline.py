@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 STAGES = (
     "validate",
     "primitives",
+    "appearance",
     "visibility",
     "fusion",
     "language_field",
@@ -62,6 +63,7 @@ class PipelineResult:
     metrics: dict[str, Any] | None = None
     files: dict[str, Path] = field(default_factory=dict)
     unseen: dict[str, int] = field(default_factory=dict)  # primitives no key frame saw, and how each was labelled
+    appearance: dict[str, Any] = field(default_factory=dict)  # the Gaussian scene's fit (PSNR before/after...)
 
 
 def _hash_json(obj: Any) -> str:
@@ -240,6 +242,7 @@ def run_pipeline(
     keys = st.stage_keys(input_hash, cfg, vocab)
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
+    gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p))
     vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
     fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
     field_ = None
@@ -257,8 +260,9 @@ def run_pipeline(
     def export(_: ProgressFn) -> PipelineResult:
         from panogs_core.export import write_outputs
 
-        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab)
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=gaussians)
         return PipelineResult(
+            appearance=gaussians.summary(),
             unseen=dict(labels.unseen),
             out_dir=out,
             scene_name=scene.name,
@@ -286,8 +290,11 @@ def _write_report(
 ) -> None:
     import torch
 
-    # Only the language field trains and decodes on a chosen torch device; every other stage runs on the CPU.
-    torch_device_stages = {"language_field": cfg.language_field.device}
+    from panogs_core.appearance import resolve_schedule
+
+    # The language field and the appearance fit run on a torch device; every other stage runs on the CPU.
+    fit_device = resolve_schedule(cfg.appearance, scene.camera.width, torch.cuda.is_available()).device
+    torch_device_stages = {"language_field": cfg.language_field.device, "appearance": fit_device}
     stages = [{**t.to_json(), "device": torch_device_stages.get(t.name, "cpu")} for t in timings]
     report = {
         "scene": scene.name,
@@ -296,6 +303,8 @@ def _write_report(
         "num_instances": len(result.instances),
         # Primitives that no key frame saw, and how many of them each rule labelled (labeling.label_unseen).
         "unseen_primitives": result.unseen,
+        # The Gaussian scene's appearance fit: PSNR / SSIM before and after, frames without colour, notes.
+        "appearance": result.appearance,
         "num_frames": len(scene.frames),
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,

@@ -17,10 +17,9 @@ In both paths the normals are open3d ``estimate_normals`` (hybrid radius 0.1 m, 
 (docs/method.md §4.1, pitfall 10), and the Gaussians are initialised as in docs/method.md §2: isotropic log scale
 from the mean squared distance to the 3 nearest neighbours, opacity 0.5 (logit 0).
 
-DEPARTURE (docs/method.md §2, §9): the photometric 3DGS colour refinement (26k iterations of L1 + D-SSIM through a
-CUDA rasteriser) is not run. Downstream stages read only the Gaussian centres, and with ``fix_ply`` the
-refinement only nudges them away from the vertices (mm to a few cm, unmeasured by the authors); skipping it
-keeps the centres exactly on the vertices and the stage CPU-only.
+The photometric 3DGS refinement (L1 + D-SSIM against the colour frames; docs/method.md §2, §9) is the next
+stage, :mod:`panogs_core.appearance`, with the centres kept on the vertices by default (reference ``fix_ply``;
+the reference's refinement nudges them mm to a few cm): downstream stages read the centres from here.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ from typing import Generic, Protocol, TypeVar
 import numpy as np
 
 from panogs_core.affinity import AffinityConfig, segment_affinity
+from panogs_core.appearance import GaussianScene, fit_appearance
 from panogs_core.bundle import Scene
 from panogs_core.clustering import Clusters, progressive_clustering
 from panogs_core.config import PipelineConfig
@@ -74,6 +75,8 @@ def _affinity_measure(cfg: AffinityConfig) -> dict[str, object]:
 
 
 PRIMITIVES = StageSpec("primitives", Primitives.load, ("input",), lambda c: c.primitives)
+# Reads the colour frames (covered by "input" through the primitives' key) and its own settings.
+APPEARANCE = StageSpec("appearance", GaussianScene.load, ("primitives",), lambda c: c.appearance)
 # "with-depth-residual": checkpoints written before Visibility carried depth residuals must not be reused.
 VISIBILITY = StageSpec("visibility", Visibility.load, ("primitives",), lambda c: (c.visibility, "with-depth-residual"))
 FUSION = StageSpec("fusion", FusedFeatures.load, ("visibility",), lambda c: c.fusion)
@@ -121,7 +124,7 @@ def _vocabulary_hash(vocab: Vocabulary) -> str:
 def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[str, str]:
     """Checkpoint key of every checkpointed stage (and of the inputs they name), in pipeline order."""
     keys = {"input": input_hash, "vocabulary": _vocabulary_hash(vocab)}
-    for upstream in (PRIMITIVES, VISIBILITY, FUSION, LANGUAGE_FIELD):
+    for upstream in (PRIMITIVES, APPEARANCE, VISIBILITY, FUSION, LANGUAGE_FIELD):
         keys[upstream.name] = upstream.key(keys, cfg)
     features_from = LANGUAGE_FIELD if cfg.features_source == "field" else FUSION
     keys["features"] = _key(keys[features_from.name], cfg.features_source)
@@ -133,6 +136,13 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
 def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
 
     return build_primitives(scene, cfg.primitives, on_progress=progress)
+
+
+def appearance(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> GaussianScene:
+    """The Gaussian scene fitted to the colour frames, from the primitives' colours (grey where they have none:
+    fused colours come later, and the fit learns the colour anyway)."""
+    colors = prims.colors if prims.colors is not None else np.full((prims.points.shape[0], 3), 0.5, np.float32)
+    return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress)
 
 
 def visibility(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:

@@ -15,6 +15,7 @@ from fastapi import FastAPI
 
 from service.api.routes import app as app_routes
 from service.api.routes import health, jobs, results, scenes, uploads
+from service.api.routes import renders as render_routes
 from service.auth import KeyVerifier
 from service.body_limit import BodyLimit
 from service.cache import TTLCache
@@ -89,6 +90,7 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(health.router)
     for router in (uploads.router, scenes.router, jobs.router, results.router):
         app.include_router(router, prefix=API_PREFIX)
+    app.include_router(render_routes.router, prefix=API_PREFIX)  # issue 10: renders of a finished job
     app.include_router(app_routes.router)
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
     return app

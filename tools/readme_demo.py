@@ -31,6 +31,7 @@ DEMO_COMMANDS = (
     ("synth", "demo/scene", "--preset", "small", "--difficulty", "default", "--seed", "0"),
     ("run", "demo/scene", "--out", "demo/run"),
     ("query", "demo/run", "chair"),
+    ("render", "demo/run", "--frame", "000000", "--out", "demo/render"),
 )
 INSTANCE_ROWS_SHOWN = (3, 1)  # first and last rows of the instance table kept
 HITS_SHOWN = 2

@@ -59,6 +59,7 @@ def test_run_into_a_log_prints_a_line_per_stage(tmp_path: Path) -> None:
     synth = [sys.executable, "-m", "panogs_core.cli", "synth", str(scene), "--preset", "tiny"]
     subprocess.run(synth, cwd=REPO, check=True, capture_output=True, timeout=300)
     short = ["--set", "language_field.epochs=1", "--set", "language_field.min_steps=1"]  # the log is the point
+    short += ["--set", "appearance.iterations=2"]
     run = [sys.executable, "-m", "panogs_core.cli", "run", str(scene), "--out", str(tmp_path / "run"), *short]
     # Bytes, not text: text mode would turn the carriage returns of a redrawn bar into newlines.
     done = subprocess.run(run, cwd=REPO, capture_output=True, timeout=600)

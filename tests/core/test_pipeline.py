@@ -96,7 +96,7 @@ def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     cfg = PipelineConfig().with_overrides({"clustering": {"thresholds": [0.9, 0.75, 0.6]}})
     again = run_pipeline(tiny_bundle, out, cfg)
     cached = {t.name: t.cached for t in again.timings}
-    assert [cached[s] for s in ("fusion", "language_field", "superprimitives")] == [True] * 3
+    assert [cached[s] for s in ("appearance", "fusion", "language_field", "superprimitives")] == [True] * 4
     assert [cached[s] for s in ("clustering", "labeling")] == [False, False]
     restored = run_pipeline(tiny_bundle, out)  # back to the defaults: same labels as the first run
     assert restored.instances == first.instances
@@ -163,6 +163,7 @@ def test_cli_run_and_query(
     printed = capsys.readouterr().out
     assert "instances" in printed
     assert "mIoU" in printed
+    assert "gaussians: PSNR" in printed
     assert cli_main(["query", str(out), "wall"]) == 0
     assert "wall" in capsys.readouterr().out
 
@@ -174,3 +175,19 @@ def test_cli_reports_user_errors_cleanly(tmp_path: Path, capsys: pytest.CaptureF
     assert "Traceback" not in err
     assert cli_main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "-q", "--set", "clustring.x=1"]) == 2
     assert "unknown key" in capsys.readouterr().err
+
+
+def test_the_gaussian_scene_is_fitted_reported_and_renders(tiny_run: tuple[Path, object, list], tmp_path: Path) -> None:
+    out, _, _ = tiny_run
+    report = json.loads((out / "report.json").read_text())
+    fit = report["appearance"]
+    assert fit["fitted"]
+    assert fit["psnr_after"] > fit["psnr_before"] + 3.0  # the fit improves the renders of the key frames
+    assert fit["frames_without_color"] == []
+    assert {s["stage"]: s["device"] for s in report["stages"]}["appearance"] == "cpu"
+    gauss = read_ply_vertices(out / "gaussians.ply")
+    assert float(np.mean(gauss["opacity"])) != 0.0  # no longer the initial logit 0 everywhere
+    assert (out / "cameras.json").is_file()
+    frame = json.loads((out / "cameras.json").read_text())["frames"][0]["id"]
+    assert cli_main(["render", str(out), "--frame", frame, "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "panoptic.png").is_file()

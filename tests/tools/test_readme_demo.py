@@ -1,7 +1,8 @@
-"""The README's demo output is a log of ``make demo`` as tools/readme_demo.py writes it (``make readme``): the three
-commands, a line per stage, the summary, the instance table, the metrics and the query's answer, each line in the
-form the CLI prints. The patterns are checked against the CLI's own formatting, so a change of the CLI's output
-fails here until the README is regenerated. (The numbers themselves: ``make readme-check``.)"""
+"""The README's demo output is a log of ``make demo`` as tools/readme_demo.py writes it (``make readme``): the four
+commands, a line per stage, the summary, the Gaussian scene's PSNR line, the instance table, the metrics, the
+query's answer and the render, each line in the form the CLI prints. The patterns are checked against the CLI's
+own formatting, so a change of the CLI's output fails here until the README is regenerated. (The numbers
+themselves: ``make readme-check``.)"""
 
 from __future__ import annotations
 
@@ -43,10 +44,12 @@ PATTERNS = {
     r"PRQ\(T\) (\d\.\d{3}|  n/a)  PRQ\(S\) (\d\.\d{3}|  n/a)",
     "query": r"query 'chair': \d+ instance\(s\)",
     "hit": r"  instance +\d+  .{16} score \d\.\d{3}  box \[\S+ \S+ \S+\] - \[\S+ \S+ \S+\]",
+    "gaussians": r"gaussians: PSNR \d+\.\d\d -> \d+\.\d\d dB on (training|held-out) frames \(\d+ iterations\)",
+    "render": r"wrote (\w+\.png, )+\w+\.png to demo/render",
 }
 SHAPE = re.compile(
-    r"cmd_synth synth cmd_run (stage )+blank summary header (row )+(elided_row )?(row )?blank (metric ){2}"
-    r"cmd_query query (hit )+(elided_hit )?"
+    r"cmd_synth synth cmd_run (stage )+blank summary gaussians header (row )+(elided_row )?(row )?blank (metric ){2}"
+    r"cmd_query query (hit )+(elided_hit )?cmd_render render "
 )
 
 

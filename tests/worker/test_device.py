@@ -96,7 +96,9 @@ def test_pipeline_report_names_a_device_per_stage(tmp_path: Path) -> None:
     from panogs_core.synthetic import make_scene
 
     bundle = make_scene(tmp_path / "scene", preset="tiny", seed=0)
-    config = PipelineConfig.from_dict({"language_field": {"epochs": 1, "min_steps": 1, "device": "cpu"}})
+    config = PipelineConfig.from_dict(
+        {"language_field": {"epochs": 1, "min_steps": 1, "device": "cpu"}, "appearance": {"iterations": 2}}
+    )
     run_pipeline(bundle, tmp_path / "run", config)
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     devices = {entry["stage"]: entry["device"] for entry in report["stages"]}

@@ -1,0 +1,166 @@
+"""The optimisation behind :func:`panogs_core.appearance.fit_appearance` (torch; imported only when it runs)."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import torch
+
+from panogs_core.bundle import Scene
+from panogs_core.photometric import photometric_loss, psnr, ssim
+from panogs_core.progress import ProgressFn, report
+from panogs_core.rasterizer import Gaussians3D, PinholeCamera
+from panogs_core.spherical_harmonics import num_coefficients, rgb_to_dc, sh_to_color
+from panogs_core.splat_backends import Backend, render
+from panogs_core.types import Frame
+
+if TYPE_CHECKING:
+    from panogs_core.appearance import AppearanceConfig, GaussianScene, _Schedule
+
+ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen Gaussians still move them
+
+
+class Fitter:
+    """Parameters, optimiser and target images of one appearance fit."""
+
+    def __init__(
+        self, scene: Scene, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: _Schedule
+    ) -> None:
+        self.scene = scene
+        self.cfg = cfg
+        self.schedule = schedule
+        self.device = torch.device(schedule.device)
+        dev = self.device
+        n = prims.points.shape[0]
+        height = max(1, round(scene.camera.height * schedule.fit_width / scene.camera.width))
+        self.size = (schedule.fit_width, height)
+        self.anchor = torch.as_tensor(np.asarray(prims.points, np.float32), device=dev)
+        sh = torch.zeros(n, num_coefficients(cfg.sh_degree), 3, device=dev)
+        sh[:, 0] = rgb_to_dc(torch.as_tensor(np.asarray(colors, np.float32), device=dev))
+        self.sh_dc = sh[:, :1].clone().requires_grad_(True)
+        self.sh_rest = sh[:, 1:].clone().requires_grad_(True)
+        self.opacity = torch.as_tensor(np.asarray(prims.opacities, np.float32), device=dev).clone().requires_grad_()
+        self.log_scales = torch.as_tensor(np.asarray(prims.scales, np.float32), device=dev).clone().requires_grad_()
+        self.max_log_scales = self.log_scales.detach() + float(np.log(cfg.max_scale_growth))
+        self.seconds_per_iteration: list[float] = []
+        quats = torch.zeros(n, 4, device=dev)
+        quats[:, 0] = 1.0
+        self.quats = quats.requires_grad_(True)
+        self.offsets = torch.zeros(n, 3, device=dev, requires_grad=cfg.move_centres)
+        s = schedule.lr_scale
+        groups = [
+            {"params": [self.sh_dc], "lr": cfg.lr_sh_dc * s},
+            {"params": [self.sh_rest], "lr": cfg.lr_sh_rest * s},
+            {"params": [self.opacity], "lr": cfg.lr_opacity * s},
+            {"params": [self.log_scales], "lr": cfg.lr_scale_log * s},
+            {"params": [self.quats], "lr": cfg.lr_rotation * s},
+        ]
+        if cfg.move_centres:
+            groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _scene_extent(scene)})
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
+        self._targets: dict[str, torch.Tensor] = {}
+        self.backend: Backend = cfg.backend  # type: ignore[assignment]
+
+    def camera(self, frame: Frame) -> PinholeCamera:
+        c = self.scene.camera
+        full = PinholeCamera(
+            width=c.width,
+            height=c.height,
+            fx=c.fx,
+            fy=c.fy,
+            cx=c.cx,
+            cy=c.cy,
+            T_world_cam=torch.as_tensor(np.asarray(frame.T_world_cam, np.float64)),
+        )
+        return full.scaled(*self.size)
+
+    def target(self, frame: Frame) -> torch.Tensor:  # (H, W, 3) float32 in [0, 1]
+        """The frame's colour at the fit size (area-averaged), cached as uint8."""
+        if frame.id not in self._targets:
+            rgb = self.scene.read_color(frame)
+            assert rgb is not None  # split_frames keeps colour frames only
+            if (rgb.shape[1], rgb.shape[0]) != self.size:
+                rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
+            self._targets[frame.id] = torch.as_tensor(np.ascontiguousarray(rgb), device=self.device)
+        return self._targets[frame.id].to(torch.float32) / 255.0
+
+    def gaussians(self) -> Gaussians3D:
+        return Gaussians3D(
+            means=self.anchor + self.offsets,
+            quats=self.quats,
+            log_scales=self.log_scales,
+            opacity_logits=self.opacity,
+        )
+
+    def render(self, frame: Frame, degree: int) -> torch.Tensor:  # (H, W, 3)
+        cam = self.camera(frame)
+        g = self.gaussians()
+        centre = cam.T_world_cam[:3, 3].to(dtype=g.means.dtype, device=self.device)
+        sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)
+        rgb = sh_to_color(sh, g.means, centre, degree)
+        return render(g, rgb, cam, backend=self.backend).features
+
+    def train(self, frames: list[Frame], on_progress: ProgressFn | None) -> None:
+        total = self.schedule.iterations
+        rng = np.random.default_rng(self.cfg.seed)
+        order: list[int] = []
+        for it in range(total):
+            if not order:
+                order = rng.permutation(len(frames)).tolist()
+            start = time.perf_counter()
+            frame = frames[order.pop()]
+            degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
+            loss = photometric_loss(self.render(frame, degree), self.target(frame), self.cfg.dssim_weight)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            with torch.no_grad():
+                torch.minimum(self.log_scales, self.max_log_scales, out=self.log_scales)
+            self.seconds_per_iteration.append(time.perf_counter() - start)
+            if self.cfg.move_centres:
+                self._clamp_offsets()
+            report(on_progress, it + 1, total)
+
+    def _clamp_offsets(self) -> None:
+        """Project every centre back into the ball of ``max_centre_offset`` around its vertex."""
+        with torch.no_grad():
+            norm = self.offsets.norm(dim=1, keepdim=True)
+            limit = self.cfg.max_centre_offset
+            self.offsets.mul_(torch.where(norm > limit, limit / norm.clamp_min(1e-12), torch.ones_like(norm)))
+
+    @torch.no_grad()
+    def evaluate(self, frames: list[Frame]) -> tuple[float, float]:
+        """Mean PSNR (dB) and SSIM over ``frames`` at the fit size, with the full SH degree."""
+        scores = []
+        for frame in frames:
+            img = self.render(frame, self.cfg.sh_degree).clamp(0, 1)
+            target = self.target(frame)
+            scores.append((psnr(img, target), float(ssim(img, target))))
+        return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores]))
+
+    def result(self) -> GaussianScene:
+        from panogs_core.appearance import GaussianScene
+
+        with torch.no_grad():
+            quats = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            return GaussianScene(
+                means=_np(self.anchor + self.offsets),
+                sh=_np(torch.cat([self.sh_dc, self.sh_rest], dim=1)),
+                opacity_logits=_np(self.opacity),
+                log_scales=_np(self.log_scales),
+                quats=_np(quats),
+                fitted=True,
+            )
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to("cpu", torch.float32).numpy().copy()
+
+
+def _scene_extent(scene: Scene) -> float:
+    """3DGS ``spatial_lr_scale``: 1.1 x the largest distance of a camera centre from their mean (m)."""
+    centres = np.stack([np.asarray(f.T_world_cam)[:3, 3] for f in scene.frames])
+    return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) or 1.0

@@ -1,0 +1,37 @@
+"""``POST /v1/jobs/{id}/render``: a PNG of a finished job's Gaussian scene seen from the pose in the body."""
+
+from __future__ import annotations
+
+import uuid
+
+from fastapi import APIRouter, Request, Response
+from fastapi.concurrency import run_in_threadpool
+
+from service import renders, results
+from service.api.deps import SettingsDep, StorageDep, TenantDep
+from service.db.session import get_read_engine
+from service.schemas import error_responses
+
+router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
+
+
+@router.post(
+    "/render",
+    response_class=Response,
+    responses={**error_responses(404, 409, 422, 503), 200: {"content": {"image/png": {}}}},
+)
+async def render(
+    job_id: uuid.UUID,
+    body: renders.RenderCreate,
+    request: Request,
+    tenant: TenantDep,
+    settings: SettingsDep,
+    storage: StorageDep,
+) -> Response:
+    """One layer (colour, depth in mm as 16-bit PNG, semantic, instance, panoptic overlay, or a query's relevance)
+    of the job's scene from ``T_world_cam``, at most ``MAX_RENDER_PIXELS`` pixels."""
+    engine = get_read_engine(settings.database)
+    # the tenant's job, succeeded (404 / 409 otherwise)
+    await run_in_threadpool(results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
+    png = await run_in_threadpool(renders.render_layer, body, storage.job_dir(job_id))
+    return Response(png, media_type="image/png")

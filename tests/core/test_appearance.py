@@ -1,0 +1,225 @@
+"""The appearance fit: it improves the renders, skips frames without colour, obeys cancellation and its settings."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
+
+from panogs_core.appearance import (
+    CPU_FIT_WIDTH,
+    CPU_ITERATIONS,
+    GPU_ITERATIONS,
+    AppearanceConfig,
+    GaussianScene,
+    fit_appearance,
+    resolve_schedule,
+)
+from panogs_core.bundle import open_bundle
+from panogs_core.errors import Cancelled, ConfigError
+from panogs_core.io.writer import BundleWriter
+from panogs_core.primitives import gaussian_log_scales
+from panogs_core.rasterizer import Gaussians3D, PinholeCamera, rasterize
+from panogs_core.types import Camera
+
+CAMERA = Camera(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)
+SPACING = 0.04  # m between the wall's points
+# A bundle needs features and masks on some frame; the fit reads neither.
+_EXTRAS = {"features": np.zeros((4, 4, 4), np.float32), "masks": np.ones((CAMERA.height, CAMERA.width), np.int32)}
+
+
+def _wall() -> tuple[np.ndarray, np.ndarray]:
+    """A 24 x 18 grid of points on the plane z = 1.5 with a colour pattern (stripes and a gradient)."""
+    xs, ys = np.meshgrid(np.arange(24) * SPACING - 0.46, np.arange(18) * SPACING - 0.34)
+    points = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 1.5)], axis=1).astype(np.float32)
+    stripes = (np.arange(xs.size) // 3) % 2
+    colors = np.stack([0.2 + 0.6 * stripes, np.linspace(0.1, 0.9, xs.size), 0.5 - 0.3 * stripes], 1)
+    return points, colors.astype(np.float32)
+
+
+def _pose(dx: float, dy: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = (dx, dy, 0.0)
+    return pose
+
+
+def _true_image(points: np.ndarray, colors: np.ndarray, pose: np.ndarray) -> np.ndarray:  # (H, W, 3) uint8
+    """What the camera sees: opaque Gaussians as wide as the point spacing (the 'truth' the fit must approach)."""
+    n = len(points)
+    g = Gaussians3D(
+        means=torch.tensor(points),
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        log_scales=torch.full((n, 3), math.log(SPACING * 0.6)),
+        opacity_logits=torch.full((n,), 4.0),
+    )
+    c = CAMERA
+    cam = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, torch.tensor(pose))
+    img = rasterize(g, torch.tensor(colors), cam).features.clamp(0, 1)
+    return (img.numpy() * 255).round().astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def wall_bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    points, colors = _wall()
+    root = tmp_path_factory.mktemp("wall") / "bundle"
+    with BundleWriter(root, name="wall", camera=CAMERA, feature_dim=4, feature_space="test", color_format="png") as w:
+        for i, (dx, dy) in enumerate([(0, 0), (0.05, 0), (-0.05, 0.02), (0.02, -0.04), (0.0, 0.03)]):
+            pose = _pose(dx, dy)
+            depth = np.full((CAMERA.height, CAMERA.width), 1.5, np.float32)
+            w.add_frame(f"{i:03d}", pose, depth, color=_true_image(points, colors, pose), **_EXTRAS)
+        w.add_frame("nocolor", _pose(0.01, 0.01), np.full((CAMERA.height, CAMERA.width), 1.5, np.float32))
+        w.write_geometry(points, colors=np.full_like(colors, 0.5))  # the geometry's colour is wrong: grey
+    return root
+
+
+def _prims(points: np.ndarray) -> SimpleNamespace:
+    return SimpleNamespace(
+        points=points,
+        scales=gaussian_log_scales(points),  # the primitives stage's initialisation
+        opacities=np.zeros(len(points), np.float32),
+    )
+
+
+def _fit(bundle: Path, **settings: object) -> GaussianScene:
+    points, _ = _wall()
+    scene = open_bundle(bundle)
+    cfg = AppearanceConfig(**{"iterations": 40, "fit_width": 48, "device": "cpu", **settings})  # type: ignore[arg-type]
+    return fit_appearance(scene, _prims(points), np.full((len(points), 3), 0.5, np.float32), cfg)
+
+
+def test_the_fit_raises_psnr_and_skips_frames_without_colour(wall_bundle: Path) -> None:
+    steps: list[tuple[int, int]] = []
+    points, _ = _wall()
+    scene = open_bundle(wall_bundle)
+    cfg = AppearanceConfig(iterations=40, fit_width=48, device="cpu")
+    fitted = fit_appearance(
+        scene,
+        _prims(points),
+        np.full((len(points), 3), 0.5, np.float32),
+        cfg,
+        on_progress=lambda d, t: steps.append((d, t)),
+    )
+    assert fitted.fitted
+    assert fitted.psnr_before is not None
+    assert fitted.psnr_after is not None
+    assert fitted.psnr_after > fitted.psnr_before + 3.0
+    assert fitted.ssim_after is not None
+    assert fitted.ssim_before is not None
+    assert fitted.ssim_after > fitted.ssim_before
+    assert fitted.skipped_frames == ("nocolor",)
+    assert "without colour" in fitted.note
+    assert steps[-1] == (40, 40)
+    assert len(steps) == 40
+    assert np.allclose(fitted.means, points)  # centres fixed by default
+    assert np.allclose(np.linalg.norm(fitted.quats, axis=1), 1.0, atol=1e-5)
+    assert float(fitted.opacity_logits.mean()) > 0.5  # the wall is opaque: opacities rose from 0.5
+
+
+def test_the_cpu_fit_runs_on_its_threads_and_restores_them(wall_bundle: Path) -> None:
+    points, _ = _wall()
+    seen: list[int] = []
+    torch.set_num_threads(2)
+    try:
+        fit_appearance(
+            open_bundle(wall_bundle),
+            _prims(points),
+            np.full((len(points), 3), 0.5, np.float32),
+            AppearanceConfig(iterations=2, fit_width=24, device="cpu", cpu_threads=1),
+            on_progress=lambda d, t: seen.append(torch.get_num_threads()),
+        )
+        assert seen == [1, 1]
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)  # the module's fixture setting
+
+
+def test_held_out_frames_are_not_fitted_but_scored(wall_bundle: Path) -> None:
+    fitted = _fit(wall_bundle, held_out_every=2, iterations=10)
+    assert fitted.evaluated_on == "held-out"
+
+
+def test_centres_move_within_the_radius_when_allowed(wall_bundle: Path) -> None:
+    points, _ = _wall()
+    fitted = _fit(wall_bundle, move_centres=True, max_centre_offset=0.002, lr_position=1.0, iterations=10)
+    moved = np.linalg.norm(fitted.means - points, axis=1)
+    assert moved.max() <= 0.002 + 1e-6
+    assert moved.max() > 1e-4
+
+
+def test_cancellation_stops_the_fit(wall_bundle: Path) -> None:
+    points, _ = _wall()
+    scene = open_bundle(wall_bundle)
+
+    def stop_at_three(done: int, total: int) -> None:
+        if done == 3:
+            raise Cancelled("stop")
+
+    with pytest.raises(Cancelled):
+        fit_appearance(
+            scene,
+            _prims(points),
+            np.full((len(points), 3), 0.5, np.float32),
+            AppearanceConfig(iterations=40, fit_width=24, device="cpu"),
+            on_progress=stop_at_three,
+        )
+
+
+def test_a_bundle_without_colour_skips_the_stage_with_a_message(tmp_path: Path) -> None:
+    points, _ = _wall()
+    with BundleWriter(tmp_path / "b", name="grey", camera=CAMERA, feature_dim=4, feature_space="test") as w:
+        w.add_frame("a", _pose(0, 0), np.full((CAMERA.height, CAMERA.width), 1.5, np.float32), **_EXTRAS)
+        w.write_geometry(points)
+    fitted = _fit(tmp_path / "b")
+    assert not fitted.fitted
+    assert "none of the 1 frames has a colour image" in fitted.note
+    assert fitted.psnr_after is None
+
+
+def test_turned_off_returns_the_initialisation(wall_bundle: Path) -> None:
+    points, _ = _wall()
+    fitted = _fit(wall_bundle, enabled=False)
+    assert not fitted.fitted
+    assert "turned off" in fitted.note
+    assert np.allclose(fitted.sh[:, 0], 0.0)  # grey: DC coefficient (0.5 - 0.5) / C0
+    assert np.allclose(fitted.log_scales, gaussian_log_scales(points))
+
+
+def test_checkpoint_round_trip(wall_bundle: Path, tmp_path: Path) -> None:
+    fitted = _fit(wall_bundle, iterations=3)
+    fitted.save(tmp_path / "a.npz")
+    back = GaussianScene.load(tmp_path / "a.npz")
+    assert np.array_equal(back.sh, fitted.sh)
+    assert np.array_equal(back.opacity_logits, fitted.opacity_logits)
+    assert back.summary() == fitted.summary()
+
+
+def test_default_schedule_depends_on_the_device() -> None:
+    cpu = resolve_schedule(AppearanceConfig(), 640, cuda=False)
+    gpu = resolve_schedule(AppearanceConfig(), 640, cuda=True)
+    assert (cpu.device, cpu.iterations, cpu.fit_width) == ("cpu", CPU_ITERATIONS, CPU_FIT_WIDTH)
+    assert (gpu.device, gpu.iterations, gpu.fit_width) == ("cuda", GPU_ITERATIONS, 640)
+    assert resolve_schedule(AppearanceConfig(device="cpu"), 640, cuda=True).device == "cpu"
+    assert resolve_schedule(AppearanceConfig(fit_width=4000), 640, cuda=False).fit_width == 640
+    with pytest.raises(ConfigError, match="no CUDA device"):
+        resolve_schedule(AppearanceConfig(device="cuda"), 640, cuda=False)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("sh_degree", 4, "appearance.sh_degree"),
+        ("iterations", 0, "appearance.iterations"),
+        ("lr_opacity", -1.0, "appearance.lr_opacity"),
+        ("device", "gpu", "appearance.device"),
+        ("backend", "vulkan", "appearance.backend"),
+        ("dssim_weight", 1.5, "appearance.dssim_weight"),
+    ],
+)
+def test_bad_settings_are_refused_naming_the_field(field: str, value: object, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        AppearanceConfig(**{field: value})  # type: ignore[arg-type]
