@@ -18,7 +18,7 @@ from panogs_core.splat_backends import Backend, render
 from panogs_core.types import Frame
 
 if TYPE_CHECKING:
-    from panogs_core.appearance import AppearanceConfig, GaussianScene, _Schedule
+    from panogs_core.gaussian_scene import AppearanceConfig, GaussianScene, Schedule
 
 ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen Gaussians still move them
 
@@ -26,9 +26,7 @@ ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen G
 class Fitter:
     """Parameters, optimiser and target images of one appearance fit."""
 
-    def __init__(
-        self, scene: Scene, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: _Schedule
-    ) -> None:
+    def __init__(self, scene: Scene, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule) -> None:
         self.scene = scene
         self.cfg = cfg
         self.schedule = schedule
@@ -142,7 +140,7 @@ class Fitter:
         return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores]))
 
     def result(self) -> GaussianScene:
-        from panogs_core.appearance import GaussianScene
+        from panogs_core.gaussian_scene import GaussianScene
 
         with torch.no_grad():
             quats = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)

@@ -17,10 +17,10 @@ from typing import Any, Literal, TypeVar
 import yaml
 
 from panogs_core.affinity import AffinityConfig
-from panogs_core.appearance import AppearanceConfig
 from panogs_core.clustering import ClusteringConfig
 from panogs_core.errors import ConfigError
 from panogs_core.fusion import FusionConfig
+from panogs_core.gaussian_scene import AppearanceConfig
 from panogs_core.labeling import LabelingConfig
 from panogs_core.language_field_config import LanguageFieldConfig
 from panogs_core.primitives import PrimitivesConfig

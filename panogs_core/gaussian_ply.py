@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panogs_core.appearance import GaussianScene
 from panogs_core.errors import InputError, ShapeError
+from panogs_core.gaussian_scene import GaussianScene
 from panogs_core.io.ply import read_ply_vertices, write_ply
 
 

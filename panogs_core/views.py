@@ -261,7 +261,7 @@ def view_pngs(images: ViewImages, is_thing: np.ndarray) -> dict[str, bytes]:
     panoptic (the labels' colours over the colour) and, with a query, relevance (a colour map)."""
     import cv2
 
-    from panogs_core.export import palette, panoptic_colors
+    from panogs_core.palette import palette, panoptic_colors
 
     def png(rgb_or_gray: np.ndarray) -> bytes:
         img = rgb_or_gray[..., ::-1] if rgb_or_gray.ndim == 3 else rgb_or_gray  # OpenCV writes BGR

@@ -11,17 +11,17 @@ import pytest
 import torch
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
-from panogs_core.appearance import (
+from panogs_core.appearance import fit_appearance
+from panogs_core.bundle import open_bundle
+from panogs_core.errors import Cancelled, ConfigError
+from panogs_core.gaussian_scene import (
     CPU_FIT_WIDTH,
     CPU_ITERATIONS,
     GPU_ITERATIONS,
     AppearanceConfig,
     GaussianScene,
-    fit_appearance,
     resolve_schedule,
 )
-from panogs_core.bundle import open_bundle
-from panogs_core.errors import Cancelled, ConfigError
 from panogs_core.io.writer import BundleWriter
 from panogs_core.primitives import gaussian_log_scales
 from panogs_core.rasterizer import Gaussians3D, PinholeCamera, rasterize

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
-from panogs_core.appearance import GaussianScene
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import InputError
 from panogs_core.export import write_vocabulary
 from panogs_core.gaussian_ply import write_gaussian_ply
+from panogs_core.gaussian_scene import GaussianScene
 from panogs_core.spherical_harmonics import SH_C0
 from panogs_core.types import Camera, Frame, Vocabulary
 from panogs_core.views import (

@@ -14,9 +14,9 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import make_scene
 
-from panogs_core.appearance import GaussianScene
 from panogs_core.export import write_vocabulary
 from panogs_core.gaussian_ply import write_gaussian_ply
+from panogs_core.gaussian_scene import GaussianScene
 from panogs_core.spherical_harmonics import SH_C0
 from panogs_core.types import Camera, Frame, Vocabulary
 from panogs_core.views import write_cameras
