@@ -105,7 +105,7 @@ def fit_appearance(
         return _with(initial_gaussians(prims, colors, note=note), skipped_frames=tuple(no_color))
     if no_color:
         log.info("appearance: %d frame(s) without colour skipped", len(no_color))
-    schedule = resolve_schedule(cfg, scene.camera.width, torch.cuda.is_available())
+    schedule = resolve_schedule(cfg, scene.camera.width, torch.cuda.is_available(), len(prims.points))
     from panogs_core.appearance_fit import Fitter
 
     threads = torch.get_num_threads()

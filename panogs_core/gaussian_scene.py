@@ -19,6 +19,11 @@ from panogs_core.errors import ConfigError, ShapeError
 
 # Per-device defaults (see the module docstring and docs/benchmarks.md for the measurements behind them).
 CPU_ITERATIONS = 120
+# The CPU's time budget, as Gaussian-iterations: one iteration costs about 7 us per Gaussian at the CPU fit width
+# (0.21 s at 30k, ~1 s at 144k on the 2-core machine; bench/gaussians.py cost and the large preset), so 3.6M keeps
+# the fit near 25 s whatever the scene's size: 120 iterations up to 30k Gaussians, 25 at the large preset's 144k.
+CPU_GAUSSIAN_ITERATIONS = 3_600_000
+CPU_MIN_ITERATIONS = 10
 CPU_FIT_WIDTH = 160  # px
 CPU_LR_SCALE = 4.0
 GPU_ITERATIONS = 7000
@@ -211,8 +216,13 @@ class Schedule:
     device: str
 
 
-def resolve_schedule(cfg: AppearanceConfig, camera_width: int, cuda: bool) -> Schedule:
+def resolve_schedule(
+    cfg: AppearanceConfig, camera_width: int, cuda: bool, num_gaussians: int | None = None
+) -> Schedule:
     """The iterations, fit width, learning-rate factor and device of a run (the per-device defaults).
+
+    On the CPU the default iterations shrink with the number of Gaussians to fit the time budget
+    (``CPU_GAUSSIAN_ITERATIONS``); iterations set in the config are kept as they are.
 
     Raises:
         ConfigError: a CUDA device was asked for where torch sees none.
@@ -222,6 +232,9 @@ def resolve_schedule(cfg: AppearanceConfig, camera_width: int, cuda: bool) -> Sc
         raise ConfigError(f"appearance.device: {cfg.device!r} asked for, but torch sees no CUDA device here")
     on_gpu = device.startswith("cuda")
     iterations = cfg.iterations or (GPU_ITERATIONS if on_gpu else CPU_ITERATIONS)
+    if not cfg.iterations and not on_gpu and num_gaussians:
+        budget = CPU_GAUSSIAN_ITERATIONS // num_gaussians
+        iterations = min(iterations, max(CPU_MIN_ITERATIONS, budget))
     width = cfg.fit_width or (camera_width if on_gpu else CPU_FIT_WIDTH)
     lr_scale = cfg.lr_scale or (GPU_LR_SCALE if on_gpu else CPU_LR_SCALE)
     return Schedule(iterations=iterations, fit_width=min(width, camera_width), lr_scale=lr_scale, device=device)

@@ -204,6 +204,13 @@ def test_default_schedule_depends_on_the_device() -> None:
     assert (cpu.device, cpu.iterations, cpu.fit_width) == ("cpu", CPU_ITERATIONS, CPU_FIT_WIDTH)
     assert (gpu.device, gpu.iterations, gpu.fit_width) == ("cuda", GPU_ITERATIONS, 640)
     assert resolve_schedule(AppearanceConfig(device="cpu"), 640, cuda=True).device == "cpu"
+    # The CPU default fits its time budget: fewer iterations for more Gaussians, never fewer than the floor,
+    # and iterations asked for are kept.
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=30_000).iterations == CPU_ITERATIONS
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=144_000).iterations == 25
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=10**8).iterations == 10
+    assert resolve_schedule(AppearanceConfig(iterations=300), 640, cuda=False, num_gaussians=10**6).iterations == 300
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=True, num_gaussians=10**6).iterations == GPU_ITERATIONS
     assert resolve_schedule(AppearanceConfig(fit_width=4000), 640, cuda=False).fit_width == 640
     with pytest.raises(ConfigError, match="no CUDA device"):
         resolve_schedule(AppearanceConfig(device="cuda"), 640, cuda=False)
