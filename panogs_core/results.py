@@ -7,7 +7,6 @@ by :func:`panogs_core.export.write_outputs`.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
+from panogs_core.io.run_json import read_run_json
 from panogs_core.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
 
@@ -38,18 +38,9 @@ class RunLabels:
     vocabulary: Vocabulary
 
 
-def _read_json(path: Path) -> object:
-    if not path.is_file():
-        raise InputError(f"{path}: missing; is {path.parent} the --out folder of a finished run?")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
-
-
 def load_vocabulary(out_dir: Path) -> tuple[Vocabulary, str]:
     """The run's vocabulary (with embeddings) and its feature space."""
-    doc = _read_json(out_dir / "vocabulary.json")
+    doc = read_run_json(out_dir / "vocabulary.json")
     assert isinstance(doc, dict)
     classes = doc.get("classes", [])
     embeddings = None
@@ -69,7 +60,7 @@ def load_result(out_dir: str | Path) -> LoadedResult:
     """
     out = Path(out_dir)
     vocab, space = load_vocabulary(out)
-    rows = _read_json(out / "instances.json")
+    rows = read_run_json(out / "instances.json")
     assert isinstance(rows, list)
     feats_path = out / "instance_features.npy"
     if not feats_path.is_file():

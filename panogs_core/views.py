@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import InputError
+from panogs_core.io.run_json import read_run_json
 from panogs_core.types import Camera
 
 CAMERAS_FILE = "cameras.json"
@@ -60,15 +61,6 @@ def write_cameras(path: Path, camera: Camera, frames: Any) -> Path:
     }
     path.write_text(json.dumps(doc))
     return path
-
-
-def _read_json(path: Path) -> Any:
-    if not path.is_file():
-        raise InputError(f"{path}: not found (is this a finished run's folder?)")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON: {exc}") from exc
 
 
 def parse_camera(doc: Any, where: str) -> Camera:
@@ -137,7 +129,7 @@ def resize_camera(camera: Camera, size: tuple[int, int] | None) -> Camera:
 def run_camera(run_dir: Path) -> tuple[Camera, dict[str, np.ndarray]]:
     """The run's camera and its frames' poses by id, from ``cameras.json``."""
     path = run_dir / CAMERAS_FILE
-    doc = _read_json(path)
+    doc = read_run_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
         raise InputError(f"{path}: expected an object with 'camera' and a 'frames' list")
     camera = parse_camera(doc.get("camera"), f"{path}: camera")

@@ -29,6 +29,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
+from panogs_core.io.run_json import read_run_json
 
 MAGIC = b"PGSV"
 FORMAT_VERSION = 1
@@ -74,15 +75,6 @@ def _hsv_to_rgb(h: float, s: float, v: float) -> tuple[float, float, float]:
     return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
 
 
-def _read_json(path: Path) -> Any:
-    if not path.is_file():
-        raise InputError(f"{path}: missing; is {path.parent} the --out folder of a finished run?")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
-
-
 def _read_primitives(run_dir: Path) -> dict[str, np.ndarray]:
     path = run_dir / "gaussians.ply"
     if not path.is_file():
@@ -117,8 +109,8 @@ def build_scene(
         InputError: a file of the run is missing or does not match the others.
     """
     run = Path(run_dir)
-    vocabulary = _read_json(run / "vocabulary.json")
-    instances = _read_json(run / "instances.json")
+    vocabulary = read_run_json(run / "vocabulary.json")
+    instances = read_run_json(run / "instances.json")
     if isinstance(instances, dict):
         instances = instances.get("instances", [])
     v = _read_primitives(run)

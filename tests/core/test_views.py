@@ -3,20 +3,18 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from gaussian_runs import opaque_gaussians
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import InputError
 from panogs_core.export import write_vocabulary
 from panogs_core.gaussian_ply import write_gaussian_ply
-from panogs_core.gaussian_scene import GaussianScene
-from panogs_core.spherical_harmonics import SH_C0
 from panogs_core.types import Camera, Frame, Vocabulary
 from panogs_core.views import (
     load_run_scene,
@@ -44,19 +42,8 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     wall, chair = _grid(-1.2, 1.2, 2.0), _grid(-1.2, -0.1, 1.0, step=0.02)
     means = np.concatenate([wall, chair])
     n = len(means)
-    sh = np.zeros((n, 1, 3), np.float32)
-    sh[: len(wall), 0] = (np.array(BLUE) - 0.5) / SH_C0
-    sh[len(wall) :, 0] = (np.array(RED) - 0.5) / SH_C0
-    quats = np.zeros((n, 4), np.float32)
-    quats[:, 0] = 1
-    scene = GaussianScene(
-        means=means,
-        sh=sh,
-        opacity_logits=np.full(n, 5.0, np.float32),
-        log_scales=np.full((n, 3), math.log(0.03), np.float32),
-        quats=quats,
-        fitted=True,
-    )
+    colors = np.array([BLUE] * len(wall) + [RED] * len(chair), np.float32)
+    scene = opaque_gaussians(means, colors, 0.03)
     semantic = np.array([0] * len(wall) + [1] * len(chair))
     instance = np.array([-1] * len(wall) + [0] * len(chair))
     write_gaussian_ply(out / "gaussians.ply", scene, np.zeros((n, 3), np.float32), semantic, instance)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import uuid
 from pathlib import Path
 from typing import Any
@@ -12,12 +11,11 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from gaussian_runs import opaque_gaussians
 from svc_helpers import make_scene
 
 from panogs_core.export import write_vocabulary
 from panogs_core.gaussian_ply import write_gaussian_ply
-from panogs_core.gaussian_scene import GaussianScene
-from panogs_core.spherical_harmonics import SH_C0
 from panogs_core.types import Camera, Frame, Vocabulary
 from panogs_core.views import write_cameras
 from service.db.models import Job, JobState
@@ -36,18 +34,7 @@ def write_scene_result(out_dir: Path) -> None:
     xs, ys = np.meshgrid(np.arange(-1.5, 1.5, 0.04), np.arange(-1.2, 1.2, 0.04))
     means = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 2.0)], 1).astype(np.float32)
     n = len(means)
-    sh = np.zeros((n, 1, 3), np.float32)
-    sh[:, 0] = (np.array([0.9, 0.1, 0.1]) - 0.5) / SH_C0
-    quats = np.zeros((n, 4), np.float32)
-    quats[:, 0] = 1
-    scene = GaussianScene(
-        means=means,
-        sh=sh,
-        opacity_logits=np.full(n, 5.0, np.float32),
-        log_scales=np.full((n, 3), math.log(0.04), np.float32),
-        quats=quats,
-        fitted=True,
-    )
+    scene = opaque_gaussians(means, np.tile([0.9, 0.1, 0.1], (n, 1)), 0.04)
     zeros = np.zeros(n, np.int64)
     write_gaussian_ply(out_dir / "gaussians.ply", scene, np.zeros((n, 3), np.float32), zeros, zeros - 1)
     write_cameras(out_dir / "cameras.json", CAMERA, [Frame(id="f0", T_world_cam=np.eye(4), depth="d.png")])
