@@ -30,6 +30,23 @@ class Camera:
         """The 3x3 intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera at another resolution: same field of view, pixel centres (at integers) kept.
+
+        Example:
+            >>> Camera(width=640, height=480, fx=500.0, fy=500.0, cx=319.5, cy=239.5).scaled(320, 240).cx
+            159.5
+        """
+        sx, sy = width / self.width, height / self.height
+        return Camera(
+            width=width,
+            height=height,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+        )
+
 
 @dataclass(frozen=True)
 class Frame:

@@ -111,16 +111,7 @@ def resize_camera(camera: Camera, size: tuple[int, int] | None) -> Camera:
         InputError: when the size exceeds ``MAX_PIXELS``.
     """
     if size is not None:
-        w, h = size
-        sx, sy = w / camera.width, h / camera.height
-        camera = Camera(
-            width=w,
-            height=h,
-            fx=camera.fx * sx,
-            fy=camera.fy * sy,
-            cx=(camera.cx + 0.5) * sx - 0.5,
-            cy=(camera.cy + 0.5) * sy - 0.5,
-        )
+        camera = camera.scaled(*size)
     if camera.width * camera.height > MAX_PIXELS:
         raise InputError(f"size {camera.width}x{camera.height}: at most {MAX_PIXELS} pixels per render")
     return camera
