@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.bundle import open_bundle  # noqa: E402
-from panogs_core.io.writer import resample_nearest, scale_camera  # noqa: E402
+from panogs_core.io.writer import resample_nearest  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
 SCANNET_COLOR_SIZE = (1296, 968)  # (width, height) of ScanNet v2 colour frames
@@ -91,7 +91,7 @@ def write_scannet_export(
     invalid = set(rng.choice(indices, size=min(n_invalid, n), replace=False).tolist())
     cam = scene.camera
     _write_matrix(dst / "intrinsic" / "intrinsic_depth.txt", _K44(cam))
-    _write_matrix(dst / "intrinsic" / "intrinsic_color.txt", _K44(scale_camera(cam, *color_size)))
+    _write_matrix(dst / "intrinsic" / "intrinsic_color.txt", _K44(cam.scaled(*color_size)))
     for name in ("extrinsic_depth.txt", "extrinsic_color.txt"):
         _write_matrix(dst / "intrinsic" / name, np.eye(4))
     feature_hw = (cam.height // FEATURE_DIVISOR, cam.width // FEATURE_DIVISOR)

@@ -63,17 +63,8 @@ class Fitter:
         self.backend: Backend = cfg.backend  # type: ignore[assignment]
 
     def camera(self, frame: Frame) -> PinholeCamera:
-        c = self.scene.camera
-        full = PinholeCamera(
-            width=c.width,
-            height=c.height,
-            fx=c.fx,
-            fy=c.fy,
-            cx=c.cx,
-            cy=c.cy,
-            T_world_cam=torch.as_tensor(np.asarray(frame.T_world_cam, np.float64)),
-        )
-        return full.scaled(*self.size)
+        pose = torch.as_tensor(np.asarray(frame.T_world_cam, np.float64))
+        return PinholeCamera.from_camera(self.scene.camera.scaled(*self.size), pose)
 
     def target(self, frame: Frame) -> torch.Tensor:  # (H, W, 3) float32 in [0, 1]
         """The frame's colour at the fit size (area-averaged), cached as uint8."""

@@ -32,6 +32,7 @@ import torch
 import torch.utils.checkpoint
 
 from panogs_core.errors import ShapeError
+from panogs_core.types import Camera
 
 DILATION = 0.3  # pixels^2 added to the 2D covariance's diagonal (the 3DGS / gsplat low-pass value)
 MIN_ALPHA = 1.0 / 255.0  # a Gaussian contributes nothing to a pixel below this alpha (3DGS)
@@ -63,18 +64,10 @@ class PinholeCamera:
         if tuple(self.T_world_cam.shape) != (4, 4):
             raise ShapeError(f"camera.T_world_cam: expected shape (4, 4), got {tuple(self.T_world_cam.shape)}")
 
-    def scaled(self, width: int, height: int) -> PinholeCamera:
-        """The same view at another resolution (same field of view; pixel centres stay at integers)."""
-        sx, sy = width / self.width, height / self.height
-        return PinholeCamera(
-            width=width,
-            height=height,
-            fx=self.fx * sx,
-            fy=self.fy * sy,
-            cx=(self.cx + 0.5) * sx - 0.5,
-            cy=(self.cy + 0.5) * sy - 0.5,
-            T_world_cam=self.T_world_cam,
-        )
+    @classmethod
+    def from_camera(cls, camera: Camera, T_world_cam: torch.Tensor) -> PinholeCamera:
+        """A bundle's camera model seen from the pose ``T_world_cam`` (4, 4), camera-to-world."""
+        return cls(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, T_world_cam)
 
 
 @dataclass(frozen=True)

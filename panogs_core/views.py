@@ -204,8 +204,7 @@ def render_view(run: RunScene, view: ViewPose, relevance: np.ndarray | None = No
     from panogs_core.spherical_harmonics import sh_to_color
 
     g = run.gaussians
-    c = view.camera
-    cam = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, torch.as_tensor(view.T_world_cam))
+    cam = PinholeCamera.from_camera(view.camera, torch.as_tensor(view.T_world_cam))
     means = torch.as_tensor(g.means)
     gauss = Gaussians3D(
         means=means,

@@ -31,7 +31,6 @@ from panogs_core.io.writer import (
     feature_dim_of,
     png_info,
     require_empty,
-    scale_camera,
     write_import,
 )
 from panogs_core.progress import ProgressFn
@@ -135,7 +134,7 @@ def _target_camera(source: Camera, first_depth: Path, resize: tuple[int, int] | 
             width,
             height,
         )
-    return scale_camera(source, width, height)
+    return source.scaled(width, height)
 
 
 def _depth_files(results: Path) -> dict[str, Path]:

@@ -527,7 +527,7 @@ def resample_nearest(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:  #
     """Nearest-neighbour resampling with pixel centres: output (v, u) reads input (floor((v+.5)·H/h), ...).
 
     This is the lookup rule docs/scene_format.md §2.3 uses for feature maps, so resampled depth and intrinsics scaled by
-    :func:`scale_camera` stay consistent. (cv2's INTER_NEAREST reads floor(v·H/h), a quarter pixel off.)
+    :meth:`Camera.scaled` stay consistent. (cv2's INTER_NEAREST reads floor(v·H/h), a quarter pixel off.)
 
     Args:
         image: ``(H, W)`` or ``(H, W, C)``.
@@ -540,19 +540,6 @@ def resample_nearest(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:  #
     rows = np.minimum(((np.arange(h) + 0.5) * h_in / h).astype(np.int64), h_in - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * w_in / w).astype(np.int64), w_in - 1)
     return image[rows[:, None], cols[None, :]]
-
-
-def scale_camera(camera: Camera, width: int, height: int) -> Camera:
-    """The same pinhole camera at another image size (same field of view, pixel centres at integers)."""
-    sx, sy = width / camera.width, height / camera.height
-    return Camera(
-        width=width,
-        height=height,
-        fx=camera.fx * sx,
-        fy=camera.fy * sy,
-        cx=(camera.cx + 0.5) * sx - 0.5,
-        cy=(camera.cy + 0.5) * sy - 0.5,
-    )
 
 
 def masks_to_ids(image: np.ndarray) -> np.ndarray:  # (Hm, Wm) int64

@@ -14,7 +14,7 @@ from panogs_core.errors import InputError
 from panogs_core.io.ply import write_ply
 from panogs_core.io.replica import import_replica
 from panogs_core.io.scannet import import_scannet
-from panogs_core.io.writer import masks_to_ids, resample_nearest, scale_camera
+from panogs_core.io.writer import masks_to_ids, resample_nearest
 from panogs_core.types import Camera, Vocabulary
 
 D = 6
@@ -210,7 +210,7 @@ class TestHelpers:
 
     def test_scale_camera_keeps_rays(self) -> None:
         cam = Camera(1200, 680, 600.0, 600.0, 599.5, 339.5)
-        small = scale_camera(cam, 600, 340)
+        small = cam.scaled(600, 340)
         # Output pixel (u, v) covers input pixels 2u, 2u+1: its ray is the mean of theirs.
         u = 10
         ray_small = (u - small.cx) / small.fx
