@@ -23,8 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from panogs_core.synthetic.catalog import confusion_targets
-from panogs_core.synthetic.degrade import blob_mask
-from panogs_core.synthetic.features import FeatureModel, feature_cells, frame_sources
+from panogs_core.synthetic.features import FeatureModel, feature_cells, frame_instance_sources
 
 CLUTTER_RANDOM = 0.8  # length of the random part of a clutter feature (class rows are 0.35-0.7 apart in CLIP)
 _MAX_REGIONS = 2000  # safety bound on the number of spheres
@@ -124,10 +123,7 @@ def synthesize_anchored_features(
     Returns:
         Unit feature vectors, float16.
     """
-    ids, compact = np.unique(instance, return_inverse=True)
-    compact = compact.reshape(instance.shape)
-    sources, source_scale = frame_sources(model, ids, rng)
-    blob = blob_mask(instance.shape, model.noise.confused_area, rng)
+    ids, compact, sources, source_scale, blob = frame_instance_sources(model, instance, rng)
     region = anchors.region(world.reshape(-1, 3)).reshape(instance.shape)
     slots = len(anchors.radii) + 1
     # one source per (instance, blob, region) that occurs in the frame; region slot 0 = in no region

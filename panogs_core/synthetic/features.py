@@ -96,10 +96,7 @@ def synthesize_features(
     Returns:
         Unit feature vectors, float16.
     """
-    ids, compact = np.unique(instance, return_inverse=True)
-    compact = compact.reshape(instance.shape)
-    sources, source_scale = frame_sources(model, ids, rng)
-    blob = blob_mask(instance.shape, model.noise.confused_area, rng)
+    _, compact, sources, source_scale, blob = frame_instance_sources(model, instance, rng)
     source = 2 * compact + blob  # source 2k: instance k as is, 2k + 1: instance k inside a confusion blob
     return feature_cells(source, sources, source_scale, shape, model.noise, rng)
 
@@ -148,6 +145,18 @@ def _blur_matrix(n: int, sigma: float) -> np.ndarray:  # (n, n) float32, rows su
     x = np.arange(n, dtype=np.float32)
     g = np.exp(-0.5 * ((x[:, None] - x[None, :]) / sigma) ** 2)
     return (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
+
+
+def frame_instance_sources(
+    model: FeatureModel, instance: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The instances a frame shows and their sources: ``(ids (K,), compact (H, W) index into ids, sources (2K, D),
+    source scales (2K,), confusion blob (H, W) 0/1)``, drawing from ``rng`` in this order (frames stay
+    reproducible)."""
+    ids, compact = np.unique(instance, return_inverse=True)
+    sources, source_scale = frame_sources(model, ids, rng)
+    blob = blob_mask(instance.shape, model.noise.confused_area, rng)
+    return ids, compact.reshape(instance.shape), sources, source_scale, blob
 
 
 def frame_sources(
