@@ -160,14 +160,12 @@ class GaussianScene:
                 opacity_logits=self.opacity_logits,
                 log_scales=self.log_scales,
                 quats=self.quats,
-                summary=np.array(_json_dumps(scalars)),
+                summary=np.array(json.dumps(scalars)),
             )
 
     @classmethod
     def load(cls, path: str | Path) -> GaussianScene:
         """Read what :meth:`save` wrote."""
-        import json
-
         with np.load(path, allow_pickle=False) as z:
             s = json.loads(str(z["summary"]))
             return cls(
@@ -242,7 +240,3 @@ def resolve_schedule(
 
 def _rounded(value: float | None) -> float | None:
     return None if value is None else round(float(value), 4)
-
-
-def _json_dumps(obj: Any) -> str:
-    return json.dumps(obj)
