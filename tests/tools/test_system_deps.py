@@ -59,6 +59,17 @@ def test_nothing_missing_nothing_done(tmp_path: Path, uid: int) -> None:
     assert system.apt_calls() == []
 
 
+def test_a_long_library_cache_is_read_whole(tmp_path: Path) -> None:
+    """A cache listing longer than a pipe buffer, with the libraries near its top: piped into ``grep -q`` under
+    ``pipefail``, ldconfig died of SIGPIPE and the libraries read as missing (the CI failure this guards)."""
+    filler = "".join(f"\tlibfiller{i}.so.1 (libc6,x86-64) => /lib/libfiller{i}.so.1\n" for i in range(8000))
+    system = FakeSystem(tmp_path, uid=1000, libraries=LIBRARIES + filler)
+    assert system.cache.stat().st_size > 4 * 65536
+    done = system.run()
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == []
+
+
 def test_not_root_stops_at_once_with_the_command(tmp_path: Path) -> None:
     system = FakeSystem(tmp_path, uid=1000, libraries="")
     done = system.run()
