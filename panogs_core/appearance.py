@@ -11,7 +11,9 @@ the L1 + D-SSIM loss, centres fixed. Here:
 * the SH degree grows by one every ``sh_increase_every`` iterations up to ``sh_degree`` (as 3DGS does);
 * centres fixed by default; ``move_centres`` lets each move within ``max_centre_offset`` metres of its vertex;
 * frames without colour are skipped (listed in the result, for report.json); a bundle without any colour frame
-  returns the initialisation unchanged, with a note saying why.
+  returns the initialisation unchanged, with a note saying why;
+* given a :class:`~panogs_core.snapshots.StageSnapshot`, the fit saves its state periodically and when cancelled,
+  and a fit that finds a snapshot continues from it to the same result.
 
 DEPARTURE (schedule): 3DGS trains 30k iterations at full resolution on a GPU. The default schedule is per device
 (``iterations`` / ``fit_width`` None): on the CPU a short one at a low resolution with larger learning rates, sized
@@ -35,6 +37,7 @@ from panogs_core.gaussian_scene import (
     resolve_schedule,
 )
 from panogs_core.progress import ProgressFn
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -77,6 +80,7 @@ def fit_appearance(
     cfg: AppearanceConfig,
     *,
     on_progress: ProgressFn | None = None,
+    snapshot: StageSnapshot | None = None,
 ) -> GaussianScene:
     """Optimise the Gaussians' appearance against the key frames' colour (module docstring).
 
@@ -86,6 +90,7 @@ def fit_appearance(
         colors: Initial colours (the geometry's, else fused, else grey).
         cfg: Stage settings.
         on_progress: ``(iteration, iterations)``; may raise ``Cancelled``.
+        snapshot: Where the fit keeps its partial state (module docstring); None keeps none.
 
     Returns:
         The fitted scene; the initialisation with a note when the stage is off or no frame has colour.
@@ -114,8 +119,13 @@ def fit_appearance(
     try:
         fitter = Fitter(scene, prims, colors, cfg, schedule)
         eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
-        before = fitter.evaluate(eval_frames)
-        fitter.train(fit_frames, on_progress)
+        saved = snapshot.load() if snapshot is not None else None
+        if saved is not None and fitter.restore(saved):
+            log.info("appearance: resuming the fit at iteration %d of %d", fitter.iteration, schedule.iterations)
+        if fitter.scores_before is None:
+            fitter.scores_before = fitter.evaluate(eval_frames)
+        before = fitter.scores_before
+        fitter.train(fit_frames, on_progress, snapshot)
         after = fitter.evaluate(eval_frames)
     finally:
         torch.set_num_threads(threads)

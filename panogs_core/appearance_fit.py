@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -10,9 +11,11 @@ import numpy as np
 import torch
 
 from panogs_core.bundle import Scene
+from panogs_core.errors import Cancelled
 from panogs_core.photometric import photometric_loss, psnr, ssim
 from panogs_core.progress import ProgressFn, report
 from panogs_core.rasterizer import Gaussians3D, PinholeCamera
+from panogs_core.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.spherical_harmonics import num_coefficients, rgb_to_dc, sh_to_color
 from panogs_core.splat_backends import Backend, render
 from panogs_core.types import Frame
@@ -61,6 +64,54 @@ class Fitter:
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
         self._targets: dict[str, torch.Tensor] = {}
         self.backend: Backend = cfg.backend  # type: ignore[assignment]
+        # Where the training stands: iterations done, and the shuffled pass over the frames (what is left of it and
+        # the generator that draws the next one), so that a snapshot resumes on the same frame sequence.
+        self.iteration = 0
+        self.rng = np.random.default_rng(cfg.seed)
+        self.order: list[int] = []
+        self.scores_before: tuple[float, float] | None = None  # (PSNR, SSIM) of the initialisation
+
+    def _parameters(self) -> dict[str, torch.Tensor]:
+        return {
+            "sh_dc": self.sh_dc,
+            "sh_rest": self.sh_rest,
+            "opacity": self.opacity,
+            "log_scales": self.log_scales,
+            "quats": self.quats,
+            "offsets": self.offsets,
+        }
+
+    def state(self) -> dict[str, Any]:
+        """Everything a resumed fit needs to continue exactly where this one stands (:meth:`restore`)."""
+        return {
+            "iteration": self.iteration,
+            "parameters": {name: t.detach().clone() for name, t in self._parameters().items()},
+            "optimizer": self.optimizer.state_dict(),
+            "rng": json.dumps(self.rng.bit_generator.state),
+            "order": list(self.order),
+            "scores_before": list(self.scores_before) if self.scores_before else None,
+            "seconds_per_iteration": list(self.seconds_per_iteration),
+        }
+
+    def restore(self, state: dict[str, Any]) -> bool:
+        """Continue from a :meth:`state`; False (and nothing changed) when it does not fit these parameters."""
+        saved = state["parameters"]
+        params = self._parameters()
+        if set(saved) != set(params) or any(saved[k].shape != p.shape for k, p in params.items()):
+            return False
+        if not 0 <= int(state["iteration"]) <= self.schedule.iterations:
+            return False
+        with torch.no_grad():
+            for name, param in params.items():
+                param.copy_(saved[name].to(param.device))
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.iteration = int(state["iteration"])
+        self.rng.bit_generator.state = json.loads(state["rng"])
+        self.order = [int(i) for i in state["order"]]
+        before = state["scores_before"]
+        self.scores_before = (float(before[0]), float(before[1])) if before else None
+        self.seconds_per_iteration = [float(x) for x in state["seconds_per_iteration"]]
+        return True
 
     def camera(self, frame: Frame) -> PinholeCamera:
         pose = torch.as_tensor(np.asarray(frame.T_world_cam, np.float64))
@@ -95,26 +146,40 @@ class Fitter:
         # PSNR and no slower (10 iterations, 21.7 s against 20.1 s, one thread).
         return render(g, rgb, cam, backend=self.backend, checkpoint=torch.is_grad_enabled()).features
 
-    def train(self, frames: list[Frame], on_progress: ProgressFn | None) -> None:
+    def train(self, frames: list[Frame], on_progress: ProgressFn | None, snapshot: StageSnapshot | None) -> None:
+        """Run the iterations left; ``snapshot`` gets the state every ``SNAPSHOT_EVERY_S`` s and on cancellation."""
         total = self.schedule.iterations
-        rng = np.random.default_rng(self.cfg.seed)
-        order: list[int] = []
-        for it in range(total):
-            if not order:
-                order = rng.permutation(len(frames)).tolist()
-            start = time.perf_counter()
-            frame = frames[order.pop()]
-            degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
-            loss = photometric_loss(self.render(frame, degree), self.target(frame), self.cfg.dssim_weight)
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            self.optimizer.step()
-            with torch.no_grad():
-                torch.minimum(self.log_scales, self.max_log_scales, out=self.log_scales)
-            self.seconds_per_iteration.append(time.perf_counter() - start)
-            if self.cfg.move_centres:
-                self._clamp_offsets()
-            report(on_progress, it + 1, total)
+        last_snapshot = time.monotonic()
+        while self.iteration < total:
+            self._step(frames)
+            try:
+                report(on_progress, self.iteration, total)
+            except Cancelled as stop:
+                if snapshot is not None and stop.save_partial_work:
+                    snapshot.save(self.state())
+                raise
+            if snapshot is not None and self.iteration < total and time.monotonic() - last_snapshot > SNAPSHOT_EVERY_S:
+                snapshot.save(self.state())
+                last_snapshot = time.monotonic()
+
+    def _step(self, frames: list[Frame]) -> None:
+        """One iteration: the next frame of the shuffled pass, rendered, scored and stepped."""
+        it = self.iteration
+        if not self.order:
+            self.order = self.rng.permutation(len(frames)).tolist()
+        start = time.perf_counter()
+        frame = frames[self.order.pop()]
+        degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
+        loss = photometric_loss(self.render(frame, degree), self.target(frame), self.cfg.dssim_weight)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        with torch.no_grad():
+            torch.minimum(self.log_scales, self.max_log_scales, out=self.log_scales)
+        self.seconds_per_iteration.append(time.perf_counter() - start)
+        if self.cfg.move_centres:
+            self._clamp_offsets()
+        self.iteration = it + 1
 
     def _clamp_offsets(self) -> None:
         """Project every centre back into the ball of ``max_centre_offset`` around its vertex."""

@@ -4,7 +4,8 @@
 passes on). Each stage's output is checkpointed under
 ``out_dir/stages/`` together with a key (a hash of the input bundle, the stage's config and its upstream keys),
 so a crashed job resumes from its last finished stage and a re-run with new clustering thresholds reuses the
-fusion and the distilled field.
+fusion and the distilled field. The appearance fit also keeps snapshots of its partial work
+(:mod:`panogs_core.snapshots`), so a run stopped in the middle of the fit resumes there.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from panogs_core.bundle import Scene, open_bundle
 from panogs_core.config import PipelineConfig
 from panogs_core.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
 from panogs_core.progress import ProgressFn
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.types import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -102,6 +104,10 @@ class _Checkpoints:
     def path(self, stage: str) -> Path:
         return self.root / f"{stage}.npz"
 
+    def snapshot(self, stage: str, key: str) -> StageSnapshot:
+        """Where ``stage`` keeps its partial work under ``key``; read only when resuming."""
+        return StageSnapshot(self.root / f"{stage}.partial.pt", key, readable=self.enabled)
+
     def has(self, stage: str, key: str) -> bool:
         return self.enabled and self.manifest.get(stage) == key and self.path(stage).is_file()
 
@@ -154,6 +160,7 @@ class _Runner:
             result.save(tmp)
             tmp.replace(self.checkpoints.path(spec.name))
             self.checkpoints.record(spec.name, key)
+            self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
             return result
 
         return self._timed(spec.name, load_or_compute)
@@ -242,7 +249,8 @@ def run_pipeline(
     keys = st.stage_keys(input_hash, cfg, vocab)
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
-    gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p))
+    fit_snapshot = runner.checkpoints.snapshot(st.APPEARANCE.name, keys[st.APPEARANCE.name])
+    gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p, fit_snapshot))
     vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
     fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
     field_ = None

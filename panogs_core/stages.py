@@ -33,6 +33,7 @@ from panogs_core.masks import MaskObservations, observe_masks
 from panogs_core.neighbors import KnnGraph, build_knn
 from panogs_core.primitives import Primitives, build_primitives
 from panogs_core.progress import ProgressFn
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.superprimitives import SuperPrimitives, graph_cut_superprimitives
 from panogs_core.types import Vocabulary
 from panogs_core.visibility import Visibility, compute_visibility
@@ -138,11 +139,13 @@ def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Primi
     return build_primitives(scene, cfg.primitives, on_progress=progress)
 
 
-def appearance(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> GaussianScene:
+def appearance(
+    scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn, snapshot: StageSnapshot | None = None
+) -> GaussianScene:
     """The Gaussian scene fitted to the colour frames, from the primitives' colours (grey where they have none:
     fused colours come later, and the fit learns the colour anyway)."""
     colors = prims.colors if prims.colors is not None else np.full((prims.points.shape[0], 3), 0.5, np.float32)
-    return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress)
+    return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress, snapshot=snapshot)
 
 
 def visibility(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:

@@ -81,6 +81,8 @@ class CancelRequested(Cancelled):
 class LeaseLost(Cancelled):
     """Another task now holds the job (this worker was presumed dead); stop without writing anything."""
 
+    save_partial_work = False
+
 
 class TimeLimitExceeded(Cancelled):
     """The job ran past ``job_time_limit_s``."""

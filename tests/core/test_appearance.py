@@ -25,6 +25,7 @@ from panogs_core.gaussian_scene import (
 from panogs_core.io.writer import BundleWriter
 from panogs_core.primitives import gaussian_log_scales
 from panogs_core.rasterizer import Gaussians3D, PinholeCamera, rasterize
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.types import Camera
 
 CAMERA = Camera(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)
@@ -230,3 +231,67 @@ def test_default_schedule_depends_on_the_device() -> None:
 def test_bad_settings_are_refused_naming_the_field(field: str, value: object, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         AppearanceConfig(**{field: value})  # type: ignore[arg-type]
+
+
+class _StopAt:
+    """A progress callback that raises ``error`` at iteration ``at`` and records every report."""
+
+    def __init__(self, at: int | None, error: type[Cancelled] = Cancelled) -> None:
+        self.at, self.error, self.seen = at, error, []  # type: ignore[var-annotated]
+
+    def __call__(self, done: int, total: int) -> None:
+        self.seen.append(done)
+        if done == self.at:
+            raise self.error("stop")
+
+
+def _fit_with(bundle: Path, snapshot: StageSnapshot | None, progress: _StopAt) -> GaussianScene:
+    points, _ = _wall()
+    cfg = AppearanceConfig(iterations=12, fit_width=24, device="cpu")
+    grey = np.full((len(points), 3), 0.5, np.float32)
+    return fit_appearance(open_bundle(bundle), _prims(points), grey, cfg, on_progress=progress, snapshot=snapshot)
+
+
+def test_a_cancelled_fit_resumes_from_its_snapshot_to_the_same_result(wall_bundle: Path, tmp_path: Path) -> None:
+    whole = _fit_with(wall_bundle, None, _StopAt(None))
+    snapshot = StageSnapshot(tmp_path / "appearance.partial.pt", key="k1")
+    with pytest.raises(Cancelled):
+        _fit_with(wall_bundle, snapshot, _StopAt(5))
+    assert snapshot.path.is_file()
+    resumed_progress = _StopAt(None)
+    resumed = _fit_with(wall_bundle, snapshot, resumed_progress)
+    assert resumed_progress.seen == list(range(6, 13)), "iterations 1-5 are not run again"
+    for name in ("sh", "opacity_logits", "log_scales", "quats", "means"):
+        assert np.array_equal(getattr(resumed, name), getattr(whole, name)), name
+    assert resumed.psnr_before == whole.psnr_before
+    assert resumed.psnr_after == whole.psnr_after
+
+
+def test_a_snapshot_is_used_only_under_its_own_key_and_when_reading_is_allowed(
+    wall_bundle: Path, tmp_path: Path
+) -> None:
+    path = tmp_path / "appearance.partial.pt"
+    with pytest.raises(Cancelled):
+        _fit_with(wall_bundle, StageSnapshot(path, key="old-settings"), _StopAt(5))
+    for snapshot in (StageSnapshot(path, key="new-settings"), StageSnapshot(path, key="old-settings", readable=False)):
+        progress = _StopAt(None)
+        _fit_with(wall_bundle, snapshot, progress)
+        assert progress.seen[0] == 1, "the fit started afresh"
+
+
+def test_a_stop_that_must_write_nothing_leaves_no_snapshot(wall_bundle: Path, tmp_path: Path) -> None:
+    class OwnerChanged(Cancelled):
+        save_partial_work = False
+
+    snapshot = StageSnapshot(tmp_path / "appearance.partial.pt", key="k1")
+    with pytest.raises(OwnerChanged):
+        _fit_with(wall_bundle, snapshot, _StopAt(5, OwnerChanged))
+    assert not snapshot.path.exists()
+
+
+def test_an_unreadable_snapshot_is_ignored(wall_bundle: Path, tmp_path: Path) -> None:
+    snapshot = StageSnapshot(tmp_path / "appearance.partial.pt", key="k1")
+    snapshot.path.write_bytes(b"cut short")
+    progress = _StopAt(None)
+    assert _fit_with(wall_bundle, snapshot, progress).fitted
+    assert progress.seen[0] == 1

@@ -10,7 +10,7 @@ import pytest
 
 from panogs_core.cli import main as cli_main
 from panogs_core.config import PipelineConfig
-from panogs_core.errors import BundleError
+from panogs_core.errors import BundleError, Cancelled
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.pipeline import STAGES, run_pipeline
 from panogs_core.query import query_instances
@@ -100,6 +100,29 @@ def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     assert [cached[s] for s in ("clustering", "labeling")] == [False, False]
     restored = run_pipeline(tiny_bundle, out)  # back to the defaults: same labels as the first run
     assert restored.instances == first.instances
+
+
+def test_a_run_stopped_in_the_appearance_fit_resumes_there(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
+) -> None:
+    _, first, _ = tiny_run
+    seen: list[tuple[str, int]] = []
+
+    def stop_in_the_fit(stage: str, done: int, total: int) -> None:
+        seen.append((stage, done))
+        if stage == "appearance" and done == 4:
+            raise Cancelled("worker shutting down")
+
+    with pytest.raises(Cancelled):
+        run_pipeline(tiny_bundle, tmp_path, on_progress=stop_in_the_fit)
+    assert (tmp_path / "stages" / "appearance.partial.pt").is_file()
+    seen.clear()
+    resumed = run_pipeline(tiny_bundle, tmp_path, on_progress=lambda s, d, t: seen.append((s, d)))
+    fit_steps = [d for s, d in seen if s == "appearance" and d > 0]
+    assert fit_steps[0] == 5, "the fit goes on from iteration 5"
+    assert not (tmp_path / "stages" / "appearance.partial.pt").exists(), "the snapshot goes once the stage is done"
+    assert resumed.instances == first.instances
+    assert resumed.appearance["psnr_after"] == first.appearance["psnr_after"]
 
 
 def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
