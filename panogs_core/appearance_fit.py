@@ -141,10 +141,10 @@ class Fitter:
         centre = cam.T_world_cam[:3, 3].to(dtype=g.means.dtype, device=self.device)
         sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)
         rgb = sh_to_color(sh, g.means, centre, degree)
-        # Training recomputes each tile batch in the backward pass instead of keeping its (pixel, Gaussian)
-        # intermediates: on the large preset (144k Gaussians, 160 x 120) peak RSS 2,280 -> 1,659 MB at the same
-        # PSNR and no slower (10 iterations, 21.7 s against 20.1 s, one thread).
-        return render(g, rgb, cam, backend=self.backend, checkpoint=torch.is_grad_enabled()).features
+        # Training differentiates the compositing by hand (rasterizer._CompositeAnalytic), keeping no (pixel,
+        # Gaussian) intermediates: autograd through the ops held them all (2,280 MB peak on the large preset's 144k
+        # Gaussians at 160 x 120, against 1,659 MB when recomputed) and ran slower.
+        return render(g, rgb, cam, backend=self.backend, training=torch.is_grad_enabled()).features
 
     def train(self, frames: list[Frame], on_progress: ProgressFn | None, snapshot: StageSnapshot | None) -> None:
         """Run the iterations left; ``snapshot`` gets the state every ``SNAPSHOT_EVERY_S`` s and on cancellation."""

@@ -18,9 +18,10 @@ Pixel centres are at integer coordinates (docs/conventions.md): pixel (u, v) is 
 (:mod:`panogs_core.gsplat_backend`) puts them at +0.5 and is given a shifted principal point to match.
 
 Speed on the CPU comes from vectorising over a batch of tiles at once and over chunks of each tile's depth-sorted
-list; a batch stops when every pixel of it has terminated. Gradients come from torch's autograd through these ops
-(no custom backward); ``checkpoint=True`` recomputes each tile batch in the backward pass instead of keeping its
-intermediates, which bounds the memory of a training step by one batch.
+list; a batch stops when every pixel of it has terminated. Gradients come from torch's autograd through these ops,
+the reference; ``analytic_backward=True`` (the training path) differentiates the compositing by hand instead, the
+way the CUDA rasterisers do: back to front over the chunks, recomputing each chunk's alphas, so a training step
+keeps no per-pixel intermediates (its memory is bounded by one batch) and runs no autograd graph over them.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.utils.checkpoint
 
 from panogs_core.errors import ShapeError
 from panogs_core.types import Camera
@@ -245,7 +245,7 @@ def rasterize(
     tiles_per_batch: int = 64,
     chunk: int = 128,
     with_top_index: bool = False,
-    checkpoint: bool = False,
+    analytic_backward: bool = False,
 ) -> Render:
     """Render ``features`` (any channels) of the Gaussians seen by ``camera``, with alpha and depth.
 
@@ -259,7 +259,9 @@ def rasterize(
         tiles_per_batch: Tiles composited together (memory: batch x tile_size^2 x chunk x a few floats).
         chunk: Depth-sorted Gaussians composited per step of a batch.
         with_top_index: Also return, per pixel, the Gaussian of largest blending weight (for label ids).
-        checkpoint: Recompute each batch in the backward pass (less memory when training).
+        analytic_backward: Differentiate the compositing with its hand-written backward (:class:`_CompositeAnalytic`,
+            the training path: faster, and it keeps no per-pixel intermediates) instead of autograd through the
+            ops (the reference it is tested against).
 
     Returns:
         The render; differentiable in ``gaussians`` and ``features`` (not in ``top_index``).
@@ -281,20 +283,22 @@ def rasterize(
     busy = torch.nonzero(bins.counts > 0).squeeze(1)
     # tiles of similar list length are batched together so that padding wastes little
     busy = busy[torch.argsort(bins.counts[busy], descending=True, stable=True)]
+    monomials = _pixel_monomials(tile_size, values.dtype, dev)  # (P, 6), the same for every tile
     pieces = []
     for start in range(0, busy.numel(), tiles_per_batch):
         tiles = busy[start : start + tiles_per_batch]
         slots, valid = _tile_slots(bins, tiles)
         gathered = packed[slots]  # (B, K, 6 + C + 1)
-        pix = _tile_pixels(tiles, bins.tiles_x, tile_size, values.dtype)  # (B, P, 2)
-        if checkpoint and packed.requires_grad:
-            out = torch.utils.checkpoint.checkpoint(_composite, gathered, valid, pix, chunk, use_reentrant=False)
+        origin = _tile_centres(tiles, bins.tiles_x, tile_size, values.dtype)  # (B, 2)
+        if analytic_backward and packed.requires_grad:
+            out = _CompositeAnalytic.apply(gathered, valid, origin, monomials, chunk)
         else:
-            out = _composite(gathered, valid, pix, chunk)
+            out = _composite(gathered, valid, origin, monomials, chunk)
         pieces.append((tiles, out))
         if with_top_index:
             with torch.no_grad():
-                top_out[tiles] = _top_gaussian(gathered.detach(), torch.where(valid, slots, -1), pix, chunk)
+                ids = torch.where(valid, slots, -1)
+                top_out[tiles] = _top_gaussian(gathered.detach(), ids, origin, monomials, chunk)
     if pieces:
         order = torch.cat([t for t, _ in pieces])
         tiles_out = tiles_out.index_put((order,), torch.cat([o for _, o in pieces]))
@@ -318,36 +322,78 @@ def _tile_slots(bins: _Bins, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return slots, valid
 
 
-def _tile_pixels(tiles: torch.Tensor, tiles_x: int, tile_size: int, dtype: torch.dtype) -> torch.Tensor:
-    """(B, P, 2) pixel coordinates (u, v) of each tile's pixels, row-major within the tile."""
-    local = torch.arange(tile_size, dtype=dtype, device=tiles.device)
-    lv, lu = torch.meshgrid(local, local, indexing="ij")
-    u = (tiles % tiles_x).to(dtype)[:, None] * tile_size + lu.reshape(1, -1)
-    v = (tiles // tiles_x).to(dtype)[:, None] * tile_size + lv.reshape(1, -1)
+def _tile_centres(tiles: torch.Tensor, tiles_x: int, tile_size: int, dtype: torch.dtype) -> torch.Tensor:
+    """(B, 2) pixel coordinates (u, v) of each tile's centre: the origin of its local pixel coordinates."""
+    half = (tile_size - 1) / 2
+    u = (tiles % tiles_x).to(dtype) * tile_size + half
+    v = (tiles // tiles_x).to(dtype) * tile_size + half
     return torch.stack([u, v], dim=-1)
 
 
-def _alphas(gathered: torch.Tensor, valid: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:  # (B, P, K)
-    """Per pixel and listed Gaussian: ``min(0.99, o exp(-d^T conic d / 2))``, 0 below 1/255 and on padding."""
-    dx = pix[:, :, None, 0] - gathered[:, None, :, 0]
-    dy = pix[:, :, None, 1] - gathered[:, None, :, 1]
-    a, b, c = gathered[:, None, :, 2], gathered[:, None, :, 3], gathered[:, None, :, 4]
-    power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
-    alpha = (gathered[:, None, :, 5] * torch.exp(power.clamp_max(0))).clamp_max(MAX_ALPHA)
+def _pixel_monomials(tile_size: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:  # (P, 6)
+    """``[1, u, v, u^2, u v, v^2]`` of a tile's pixels (row-major) in coordinates centred on the tile.
+
+    The exponent of a Gaussian at a pixel is a quadratic in the pixel's coordinates, so the exponents of a whole
+    batch are one matrix product of these monomials with six coefficients per Gaussian (:func:`_power_coefficients`)
+    instead of a dozen passes over (pixel, Gaussian) arrays. Centring keeps the terms small, so float32 loses little.
+    """
+    local = torch.arange(tile_size, dtype=dtype, device=device) - (tile_size - 1) / 2
+    v, u = torch.meshgrid(local, local, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v], dim=-1)
+
+
+def _power_coefficients(gathered: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:  # (B, 6, k)
+    """Coefficients of ``-d^T conic d / 2`` (d = pixel - mean, conic [[a, b], [b, c]]) on :func:`_pixel_monomials`."""
+    mu = gathered[..., 0] - origin[:, None, 0]  # (B, k) the mean relative to the tile's centre
+    mv = gathered[..., 1] - origin[:, None, 1]
+    a, b, c = gathered[..., 2], gathered[..., 3], gathered[..., 4]
+    constant = -0.5 * a * mu * mu - b * mu * mv - 0.5 * c * mv * mv
+    return torch.stack([constant, a * mu + b * mv, c * mv + b * mu, -0.5 * a, -b, -0.5 * c], dim=1)
+
+
+def _alpha_terms(
+    gathered: torch.Tensor, valid: torch.Tensor, origin: torch.Tensor, monomials: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(alpha, keep, exp(power), o exp(power)), each (B, P, k): ``alpha = min(0.99, o exp(power))`` where kept (inside
+    the footprint, at least 1/255, not padding), else 0."""
+    power = monomials @ _power_coefficients(gathered, origin)  # (P, 6) @ (B, 6, k) -> (B, P, k)
+    gauss = torch.exp(power.clamp_max(0))
+    raw = gathered[:, None, :, 5] * gauss
+    alpha = raw.clamp_max(MAX_ALPHA)
     keep = valid[:, None, :] & (power <= 0) & (alpha >= MIN_ALPHA)
-    return torch.where(keep, alpha, torch.zeros_like(alpha))
+    return torch.where(keep, alpha, torch.zeros_like(alpha)), keep, gauss, raw
 
 
-def _composite(gathered: torch.Tensor, valid: torch.Tensor, pix: torch.Tensor, chunk: int) -> torch.Tensor:
-    """Step 3 for a batch of tiles: (B, P, C + 1 + 1) blended values (features, depth) and alpha."""
-    b, p = pix.shape[0], pix.shape[1]
+def _alphas(
+    gathered: torch.Tensor, valid: torch.Tensor, origin: torch.Tensor, monomials: torch.Tensor
+) -> torch.Tensor:  # (B, P, k)
+    """Per pixel and listed Gaussian: ``min(0.99, o exp(-d^T conic d / 2))``, 0 below 1/255 and on padding."""
+    return _alpha_terms(gathered, valid, origin, monomials)[0]
+
+
+def _composite(
+    gathered: torch.Tensor,
+    valid: torch.Tensor,
+    origin: torch.Tensor,
+    monomials: torch.Tensor,
+    chunk: int,
+    chunk_starts: list[torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Step 3 for a batch of tiles: (B, P, C + 1 + 1) blended values (features, depth) and alpha.
+
+    ``chunk_starts``, when given, receives the (B, P) transmittance at the start of each chunk composited.
+    """
+    b, p = origin.shape[0], monomials.shape[0]
     values = gathered[..., 6:]
     acc = values.new_zeros(b, p, values.shape[-1])
     acc_alpha = values.new_zeros(b, p)
     carry = values.new_ones(b, p)  # transmittance before the chunk
     for k0 in range(0, gathered.shape[1], chunk):
         sl = slice(k0, k0 + chunk)
-        alpha = _alphas(gathered[:, sl], valid[:, sl], pix)  # (B, P, k)
+        if chunk_starts is not None:
+            chunk_starts.append(carry.clone())  # a view would keep the whole previous chunk alive
+        alpha = _alphas(gathered[:, sl], valid[:, sl], origin, monomials)  # (B, P, k)
         after = carry[..., None] * torch.cumprod(1 - alpha, dim=-1)  # transmittance after each Gaussian
         before = torch.cat([carry[..., None], after[..., :-1]], dim=-1)
         # early termination: a Gaussian that would take the transmittance to 1e-4 and all behind it are skipped
@@ -360,20 +406,91 @@ def _composite(gathered: torch.Tensor, valid: torch.Tensor, pix: torch.Tensor, c
     return torch.cat([acc, acc_alpha[..., None]], dim=-1)
 
 
+class _CompositeAnalytic(torch.autograd.Function):
+    """:func:`_composite` with its gradient written out (3DGS's backward pass, vectorised like the forward).
+
+    Per pixel, with transmittance ``T_i = prod_{j<i} (1 - alpha_j)``, the live mask ``m_i`` (early termination, a
+    prefix of the list, not differentiated) and weights ``w_i = m_i alpha_i T_i``, the outputs are ``sum_i w_i v_i``
+    (every value channel) and ``sum_i w_i``. With ``q_i = v_i . dL/dvalues + dL/dalpha_sum``:
+
+    * ``dL/dv_i = w_i dL/dvalues``;
+    * ``dL/dalpha_i = m_i T_i q_i - (sum_{k>i} w_k q_k) / (1 - alpha_i)`` (each later weight holds the factor
+      ``1 - alpha_i``; ``alpha_i <= 0.99`` keeps the division safe);
+    * through ``alpha = min(0.99, o exp(power))``: ``dL/do`` and ``dL/dpower``, then the 2D mean and the conic.
+
+    The forward keeps the transmittance at the start of each chunk it composited; the backward walks the chunks
+    back to front, recomputes their alphas and carries the running ``sum_{k>i} w_k q_k``.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx,
+        gathered: torch.Tensor,
+        valid: torch.Tensor,
+        origin: torch.Tensor,
+        monomials: torch.Tensor,
+        chunk: int,
+    ) -> torch.Tensor:
+        starts: list[torch.Tensor] = []
+        with torch.no_grad():
+            out = _composite(gathered, valid, origin, monomials, chunk, chunk_starts=starts)
+        none = origin.new_ones(0, origin.shape[0], monomials.shape[0])
+        ctx.save_for_backward(gathered, valid, origin, monomials, torch.stack(starts) if starts else none)
+        ctx.chunk = chunk  # type: ignore[attr-defined]
+        return out
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, grad_out: torch.Tensor
+    ) -> tuple[torch.Tensor, None, None, None, None]:
+        gathered, valid, origin, monomials, starts = ctx.saved_tensors  # type: ignore[attr-defined]
+        chunk: int = ctx.chunk  # type: ignore[attr-defined]
+        grad_values, grad_alpha_sum = grad_out[..., :-1], grad_out[..., -1]
+        grad = torch.zeros_like(gathered)
+        behind = torch.zeros_like(grad_alpha_sum)  # (B, P) sum of w_k q_k over the Gaussians behind this chunk
+        for index in range(starts.shape[0] - 1, -1, -1):
+            sl = slice(index * chunk, (index + 1) * chunk)
+            g = gathered[:, sl]
+            alpha, keep, gauss, raw = _alpha_terms(g, valid[:, sl], origin, monomials)
+            after = starts[index][..., None] * torch.cumprod(1 - alpha, dim=-1)
+            before = torch.cat([starts[index][..., None], after[..., :-1]], dim=-1)
+            live_before = before * (after > MIN_TRANSMITTANCE)  # m_i T_i
+            weights = alpha * live_before
+            q = grad_values @ g[..., 6:].transpose(1, 2) + grad_alpha_sum[..., None]  # (B, P, k)
+            wq = weights * q
+            later = torch.flip(torch.cumsum(torch.flip(wq, [-1]), -1), [-1]) - wq + behind[..., None]
+            grad_alpha = live_before * q - later / (1 - alpha)
+            behind = behind + wq.sum(-1)
+            grad[:, sl, 6:] = weights.transpose(1, 2) @ grad_values
+            grad_raw = torch.where(keep & (raw <= MAX_ALPHA), grad_alpha, torch.zeros_like(grad_alpha))
+            grad[:, sl, 5] = (grad_raw * gauss).sum(1)
+            # the exponent's gradient on its six coefficients, then on the mean and the conic
+            coef = monomials.T @ (grad_raw * raw)  # (6, P) @ (B, P, k) -> (B, 6, k)
+            mu = g[..., 0] - origin[:, None, 0]
+            mv = g[..., 1] - origin[:, None, 1]
+            a, b, c = g[..., 2], g[..., 3], g[..., 4]
+            grad[:, sl, 0] = -(a * mu + b * mv) * coef[:, 0] + a * coef[:, 1] + b * coef[:, 2]
+            grad[:, sl, 1] = -(b * mu + c * mv) * coef[:, 0] + b * coef[:, 1] + c * coef[:, 2]
+            grad[:, sl, 2] = -0.5 * mu * mu * coef[:, 0] + mu * coef[:, 1] - 0.5 * coef[:, 3]
+            grad[:, sl, 3] = -mu * mv * coef[:, 0] + mv * coef[:, 1] + mu * coef[:, 2] - coef[:, 4]
+            grad[:, sl, 4] = -0.5 * mv * mv * coef[:, 0] + mv * coef[:, 2] - 0.5 * coef[:, 5]
+        return grad, None, None, None, None
+
+
 def _top_gaussian(
-    gathered: torch.Tensor, ids: torch.Tensor, pix: torch.Tensor, chunk: int
+    gathered: torch.Tensor, ids: torch.Tensor, origin: torch.Tensor, monomials: torch.Tensor, chunk: int
 ) -> torch.Tensor:  # (B, P) int64 Gaussian of the largest weight, -1 none
     """Like :func:`_composite`, but keeps the argmax of the weights (labels are ids, not blendable values).
 
     ``ids`` is the (B, K) Gaussian id of each slot, -1 on padding.
     """
-    b, p = pix.shape[0], pix.shape[1]
+    b, p = origin.shape[0], monomials.shape[0]
     best_w = gathered.new_zeros(b, p)
     best = torch.full((b, p), -1, dtype=torch.int64, device=gathered.device)
     carry = gathered.new_ones(b, p)
     for k0 in range(0, gathered.shape[1], chunk):
         sl = slice(k0, k0 + chunk)
-        alpha = _alphas(gathered[:, sl], ids[:, sl] >= 0, pix)
+        alpha = _alphas(gathered[:, sl], ids[:, sl] >= 0, origin, monomials)
         after = carry[..., None] * torch.cumprod(1 - alpha, dim=-1)
         before = torch.cat([carry[..., None], after[..., :-1]], dim=-1)
         weights = alpha * before * (after > MIN_TRANSMITTANCE)

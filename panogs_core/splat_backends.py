@@ -61,12 +61,15 @@ def render(
     *,
     backend: Backend = "auto",
     background: torch.Tensor | None = None,
-    checkpoint: bool = False,
+    training: bool = False,
 ) -> Render:
-    """Blend ``features`` for ``camera`` with the chosen rasteriser (``top_index`` is not computed here)."""
+    """Blend ``features`` for ``camera`` with the chosen rasteriser (``top_index`` is not computed here).
+
+    ``training`` picks the pure-torch rasteriser's hand-written backward (gsplat always has its own).
+    """
     if resolve_backend(backend, gaussians.means.device) == "gsplat":
         return rasterize_gsplat(gaussians, features, camera, background=background)
-    return rasterize(gaussians, features, camera, background=background, checkpoint=checkpoint)
+    return rasterize(gaussians, features, camera, background=background, analytic_backward=training)
 
 
 def rasterize_gsplat(

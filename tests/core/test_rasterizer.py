@@ -137,17 +137,52 @@ def test_gradients_match_finite_differences() -> None:
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_checkpointed_gradients_equal_the_plain_ones() -> None:
-    g = _gaussians([[0.0, 0.0, 1.0], [0.01, 0.0, 1.5]], 0.05, [0.6, 0.7])
-    cam = _camera(16, 16)
+def _crowd(n: int, seed: int, opacity_shift: float = 0.0) -> tuple[Gaussians3D, torch.Tensor]:
+    """``n`` random, overlapping Gaussians in front of the camera with 3 feature channels (float64)."""
+    gen = torch.Generator().manual_seed(seed)
+    g = Gaussians3D(
+        means=torch.rand(n, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.6, 0.6, 1.0])
+        + torch.tensor([-0.3, -0.3, 1.2]),
+        quats=torch.randn(n, 4, generator=gen, dtype=torch.float64),
+        log_scales=torch.log(torch.rand(n, 3, generator=gen, dtype=torch.float64) * 0.1 + 0.02),
+        opacity_logits=torch.randn(n, generator=gen, dtype=torch.float64) + opacity_shift,
+    )
+    return g, torch.rand(n, 3, generator=gen, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    ("n", "seed", "opacity_shift", "chunk"),
+    [
+        (30, 0, 0.0, 4),  # many chunks per tile list, partial transmittance
+        (80, 1, 4.0, 8),  # nearly opaque: early termination inside and across chunks, alphas clamped at 0.99
+        (60, 2, -3.0, 128),  # faint: many alphas under 1/255, one chunk
+    ],
+)
+def test_the_analytic_backward_equals_autograd(n: int, seed: int, opacity_shift: float, chunk: int) -> None:
+    g, feats = _crowd(n, seed, opacity_shift)
+    cam = _camera(20, 14)
+    weights = torch.rand(14, 20, 5, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     grads = []
-    for checkpoint in (False, True):
-        s = g.log_scales.clone().requires_grad_(True)
-        out = rasterize(Gaussians3D(g.means, g.quats, s, g.opacity_logits), torch.ones(2, 1, dtype=torch.float64), cam,
-                        checkpoint=checkpoint)  # fmt: skip
-        out.features.sum().backward()
-        grads.append(s.grad)
-    assert grads[0] is not None
-    assert grads[1] is not None
-    assert torch.allclose(grads[0], grads[1])
-    assert float(grads[0].abs().sum()) > 0
+    for analytic in (False, True):
+        leaves = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.log_scales, g.opacity_logits, feats)]
+        out = rasterize(Gaussians3D(*leaves[:4]), leaves[4], cam, tile_size=4, chunk=chunk, analytic_backward=analytic)
+        image = torch.cat([out.features, out.depth[..., None], out.alpha[..., None]], dim=-1)
+        (image * weights).sum().backward()
+        grads.append([leaf.grad for leaf in leaves])
+    for name, plain, analytic in zip(("means", "quats", "log_scales", "opacity", "features"), *grads, strict=True):
+        assert plain is not None
+        assert analytic is not None
+        assert float(plain.abs().max()) > 0, name
+        assert torch.allclose(plain, analytic, rtol=1e-7, atol=1e-9), name
+
+
+def test_analytic_gradients_match_finite_differences() -> None:
+    g, feats = _crowd(6, 5, 1.0)
+    cam = _camera(8, 8, f=20.0)
+
+    def render(m: torch.Tensor, q: torch.Tensor, s: torch.Tensor, o: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        out = rasterize(Gaussians3D(m, q, s, o), f, cam, tile_size=4, chunk=2, analytic_backward=True)
+        return torch.cat([out.features.reshape(-1), out.depth.reshape(-1), out.alpha.reshape(-1)])
+
+    inputs = tuple(x.clone().requires_grad_(True) for x in (g.means, g.quats, g.log_scales, g.opacity_logits, feats))
+    assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
