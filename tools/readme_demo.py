@@ -2,8 +2,12 @@
 
 The README shows what a user sees in a log of ``make demo``: each command as make echoes it, one line per stage
 with its time, the run's summary, the instance table, the metrics and the answer to the query (long tables are
-cut, with ``...``). ``--check`` runs the demo and fails when the README shows other results (stage and total
-times aside, which change from run to run).
+cut, with ``...``). ``--check`` runs the demo and fails when the README shows other results: another command or
+message, metrics more than ``METRIC_TOLERANCE`` apart, or a PSNR more than ``PSNR_TOLERANCE_DB`` apart. Times,
+counts and the rows of the instance table and of the query's hits may differ: the labels move with the float
+rounding of the BLAS kernels, which differ between processors. On the demo room, the same commit gave PRQ(T) 0.921
+on one machine, 0.908 on another (an AMD EPYC with AVX-512) and 0.924 there with ``MKL_CBWR=COMPATIBLE``, with one
+chair more or less in the query's answer; the paper mode's PRQ(T) 0.871 against 0.827; mIoU moved by 0.003.
 
     .venv/bin/python tools/readme_demo.py            # make readme
     .venv/bin/python tools/readme_demo.py --check    # make readme-check
@@ -37,7 +41,12 @@ INSTANCE_ROWS_SHOWN = (3, 1)  # first and last rows of the instance table kept
 HITS_SHOWN = 2
 ELIDED_ROW = "   ..."
 ELIDED_HIT = "  ..."
-TIMES = re.compile(r"\d+\.\d s\b")
+NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
+# About twice the largest move seen between processors: standard PRQ(T) 0.908 against 0.924; the paper mode's
+# PRQ(T), counted at another matching rule, 0.871 against 0.827.
+METRIC_TOLERANCE = {"standard:": 0.03, "paper:": 0.08}
+PSNR_LINE = "gaussians: PSNR"
+PSNR_TOLERANCE_DB = 0.5
 
 
 def run_demo(workdir: Path) -> list[str]:
@@ -101,8 +110,49 @@ def readme_block(text: str) -> str:
     return text[start : end + len(END)]
 
 
-def without_times(text: str) -> str:
-    return TIMES.sub("N s", text)
+def differences(current: list[str], fresh: list[str]) -> list[str]:
+    """Where a fresh log disagrees with the README's beyond the noise between processors (module docstring)."""
+    old, new = _comparable(current), _comparable(fresh)
+    if [NUMBER.sub("#", line) for line in old] != [NUMBER.sub("#", line) for line in new]:
+        diff = difflib.unified_diff(current, fresh, "README.md", "fresh demo", lineterm="")
+        return ["the demo prints other lines:", *diff]
+    problems = []
+    for was, now in zip(old, new, strict=True):
+        tolerance = _tolerance(was)
+        if tolerance is None:
+            continue
+        for a, b in zip(NUMBER.findall(was), NUMBER.findall(now), strict=True):
+            if abs(float(a) - float(b)) > tolerance:
+                problems.append(f"README.md: {was.strip()!r}\nfresh demo: {now.strip()!r} (tolerance {tolerance})")
+                break
+    return problems
+
+
+def _tolerance(line: str) -> float | None:
+    stripped = line.strip()
+    for start, tolerance in METRIC_TOLERANCE.items():
+        if stripped.startswith(start):
+            return tolerance
+    if stripped.startswith(PSNR_LINE):
+        return PSNR_TOLERANCE_DB
+    return None
+
+
+def _comparable(lines: list[str]) -> list[str]:
+    """The lines of a log without the rows of the instance table and of the query's hits."""
+    kept: list[str] = []
+    in_rows = False
+    for line in lines:
+        if in_rows and (line.startswith(("  instance ", ELIDED_HIT, ELIDED_ROW)) or _is_table_row(line)):
+            continue
+        in_rows = line.startswith("  id  class") or (line.startswith("query ") and "instance(s)" in line)
+        kept.append(line)
+    return kept
+
+
+def _is_table_row(line: str) -> bool:
+    fields = line.split()
+    return len(fields) >= 4 and fields[0].isdigit()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -115,10 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     text = args.readme.read_text()
     current = readme_block(text)
     if args.check:
-        if without_times(current) == without_times(fresh):
+        problems = differences(current.splitlines(), fresh.splitlines())
+        if not problems:
             return 0
-        diff = difflib.unified_diff(current.splitlines(), fresh.splitlines(), "README.md", "fresh demo", lineterm="")
-        sys.stderr.write("\n".join(diff) + "\nthe README's demo output is stale; run `make readme`\n")
+        sys.stderr.write("\n".join(problems) + "\nthe README's demo output is stale; run `make readme`\n")
         return 1
     args.readme.write_text(text.replace(current, fresh))
     sys.stdout.write(fresh + "\n")

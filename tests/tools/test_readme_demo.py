@@ -143,3 +143,28 @@ def test_write_then_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     assert tool.main(["--check", "--readme", str(readme)]) == 0
     log[1] = "standard: mIoU 0.788"  # other results
     assert tool.main(["--check", "--readme", str(readme)]) == 1
+
+
+def _demo_log(miou: str, psnr: str, hits: list[str], rows: list[str], instances: int = 22) -> list[str]:
+    header = format_instances([]).splitlines()[0]
+    return [
+        f"scene: 30347 primitives, {instances} instances, 29.7 s -> demo/run",
+        f"gaussians: PSNR 12.64 -> {psnr} dB on training frames (118 iterations)",
+        header, *rows, "",
+        f"standard: mIoU {miou}  mAcc 0.972  PRQ(T) 0.921  PRQ(S) 0.973",
+        f"query 'chair': {len(hits)} instance(s)", *hits,
+    ]  # fmt: skip
+
+
+def test_the_check_allows_the_noise_between_processors_and_nothing_more() -> None:
+    """Another processor's BLAS moves the labels a little: other rows, hits and counts, metrics within 0.03."""
+    rows = ["   5  bookshelf        thing  1.00    1397  (  5.31,   1.52,   0.93)"]
+    hits = ["  instance    0  chair            score 0.996  box [0.73 3.42 0.00] - [1.27 3.85 0.92]"]
+    readme = _demo_log("0.952", "23.81", hits * 2, rows)
+    other_machine = _demo_log("0.955", "23.70", hits, rows * 3 + [tool.ELIDED_ROW], instances=21)
+    assert tool.differences(readme, other_machine) == []
+    assert tool.differences(readme, _demo_log("0.900", "23.81", hits, rows)), "mIoU 0.052 apart"
+    assert tool.differences(readme, _demo_log("0.952", "22.81", hits, rows)), "PSNR 1 dB apart"
+    renamed = [line.replace("standard:", "standard mode:") for line in readme]
+    assert tool.differences(readme, renamed), "another line"
+    assert tool.differences(readme, [*readme, "wrote color.png to demo/render"]), "a line more"
