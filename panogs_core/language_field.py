@@ -145,6 +145,7 @@ def fit_language_field(
     model = init_model(plane_resolutions(bounds, cfg), features.shape[1], cfg)
     coords, targets, w = training_set(points, features, weights, bounds, device)
     train_model(model, coords, targets, w, cfg, on_progress)
+    del coords, targets, w  # (M, D) targets: freed before the (N, D) decode, which is the stage's peak
     model.eval()
     decoded = decode_features(model, points, bounds)  # (N, D)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))

@@ -20,7 +20,7 @@ from panogs_core.progress import ProgressFn, report
 if TYPE_CHECKING:
     from panogs_core.language_field_config import LanguageFieldConfig
 
-_DECODE_BATCH = 32768  # points per decoding batch: (32768, 512) float32 is 64 MiB
+_DECODE_BATCH = 8192  # points per decoding batch: (8192, 512) float32 is 16 MiB (32768 held 128 MiB at peak)
 
 
 class _TriplaneDecoder(torch.nn.Module):
