@@ -47,15 +47,12 @@ FOV_MARGIN = 0.3
 
 
 @dataclass(frozen=True)
-class PinholeCamera:
-    """A pinhole view: OpenCV intrinsics at ``width`` x ``height`` and the camera-to-world pose."""
+class PinholeCamera(Camera):
+    """A pinhole view: a bundle's :class:`~panogs_core.types.Camera` intrinsics plus the camera-to-world pose.
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    (``scaled`` is the intrinsics' own and returns a plain ``Camera``: rescale first, then add the pose.)
+    """
+
     T_world_cam: torch.Tensor  # (4, 4), camera-to-world
 
     def __post_init__(self) -> None:

@@ -119,3 +119,9 @@ def _upload(upload_id: uuid.UUID, session: SessionDep, tenant: TenantDep) -> Upl
 JobDep = Annotated[Job, Depends(_job)]
 SceneDep = Annotated[Scene, Depends(_scene)]
 UploadDep = Annotated[Upload, Depends(_upload)]
+
+
+def forget_job(request: Request, tenant_id: uuid.UUID, job_id: uuid.UUID) -> None:
+    """Drop a job from the API's in-memory caches (its polled status, its loaded result) once it changed or went."""
+    request.app.state.status_cache.drop((tenant_id, job_id))
+    request.app.state.results.drop(job_id)

@@ -7,6 +7,7 @@ import base64
 import io
 import json
 import tarfile
+import uuid
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,6 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+
+from service.db.models import Job, JobState
+from service.db.session import get_session_factory, session_scope
+from service.storage import Storage
+from worker.runner import collect_artifacts
 
 # Run a test on PostgreSQL and on the embedded SQLite (the ``settings`` fixture reads the parameter).
 BOTH_BACKENDS = pytest.mark.parametrize("settings", ["postgres", "sqlite"], indirect=True)
@@ -115,3 +121,14 @@ def new_key(settings: Any, name: str = "tester") -> dict[str, str]:
     with session_scope(get_session_factory(settings.database)) as session:
         _row, key = create_api_key(session, name)
     return {"Authorization": f"Bearer {key}"}
+
+
+def mark_succeeded(settings: Any, job_id: uuid.UUID) -> None:
+    """Mark a job succeeded with the artifacts of the result folder the test wrote for it (as the worker does)."""
+    storage = Storage(settings.storage)
+    with session_scope(get_session_factory(settings.database)) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        job.state = JobState.SUCCEEDED
+        session.add_all(collect_artifacts(job_id, storage.job_dir(job_id), storage))
+        session.commit()

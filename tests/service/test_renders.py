@@ -12,18 +12,15 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from gaussian_runs import opaque_gaussians
-from svc_helpers import make_scene
+from svc_helpers import make_scene, mark_succeeded
 
 from panogs_core.export import write_vocabulary
 from panogs_core.gaussian_ply import write_gaussian_ply
 from panogs_core.types import Camera, Frame, Vocabulary
 from panogs_core.views import write_cameras
-from service.db.models import Job, JobState
-from service.db.session import get_session_factory, session_scope
 from service.renders import MAX_RENDER_PIXELS
 from service.settings import Settings
 from service.storage import Storage
-from worker.runner import collect_artifacts
 
 CAMERA = Camera(width=32, height=24, fx=24.0, fy=24.0, cx=15.5, cy=11.5)
 
@@ -49,15 +46,9 @@ def _job(client: TestClient, auth: dict[str, str], tiny_zip: bytes, settings: Se
     scene = make_scene(client, auth, tiny_zip)
     job = client.post("/v1/jobs", json={"scene_id": scene["id"]}, headers=auth).json()
     if finish:
-        storage = Storage(settings.storage)
         ident = uuid.UUID(job["id"])
-        write_scene_result(storage.job_dir(ident))
-        with session_scope(get_session_factory(settings.database)) as session:
-            row = session.get(Job, ident)
-            assert row is not None
-            row.state = JobState.SUCCEEDED
-            session.add_all(collect_artifacts(ident, storage.job_dir(ident), storage))
-            session.commit()
+        write_scene_result(Storage(settings.storage).job_dir(ident))
+        mark_succeeded(settings, ident)
     return str(job["id"])
 
 

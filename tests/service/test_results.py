@@ -12,15 +12,12 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from svc_helpers import RecordingSender, make_scene, new_key
+from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
 
-from service.db.models import Job, JobState
-from service.db.session import get_session_factory, session_scope
 from service.encoder import EncoderProcess
 from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
-from worker.runner import collect_artifacts
 
 CLASSES = [("wall", "stuff"), ("chair", "thing"), ("table", "thing")]
 
@@ -52,15 +49,9 @@ def write_result(out_dir: Path, embeddings: np.ndarray, space: str, *, per_class
 
 def finish_job(settings: Settings, job_id: str, embeddings: np.ndarray, space: str, **kw: Any) -> None:
     """Write a result folder for the job and mark it succeeded with its artifacts (as the worker does)."""
-    storage = Storage(settings.storage)
     ident = uuid.UUID(job_id)
-    write_result(storage.job_dir(ident), embeddings, space, **kw)
-    with session_scope(get_session_factory(settings.database)) as session:
-        job = session.get(Job, ident)
-        assert job is not None
-        job.state = JobState.SUCCEEDED
-        session.add_all(collect_artifacts(ident, storage.job_dir(ident), storage))
-        session.commit()
+    write_result(Storage(settings.storage).job_dir(ident), embeddings, space, **kw)
+    mark_succeeded(settings, ident)
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Header, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from service import jobs, lifecycle
-from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, StorageDep, TenantDep
+from service.api.deps import FactoryDep, JobDep, SessionDep, SettingsDep, StorageDep, TenantDep, forget_job
 from service.cache import TTLCache
 from service.db import crud
 from service.db.models import Job, JobState
@@ -85,7 +85,7 @@ def cancel_job(job: JobDep, session: SessionDep, request: Request) -> JobPublic:
     """Cancel a job: a queued one at once, a running one at its next progress step (``cancel_requested``)."""
     if job.state in (JobState.SUCCEEDED, JobState.FAILED):
         raise Conflict(f"job {job.id} already {job.state.value}")
-    request.app.state.status_cache.drop((job.api_key_id, job.id))
+    forget_job(request, job.api_key_id, job.id)
     return jobs.to_public(crud.request_cancel(session, job))
 
 
@@ -101,6 +101,5 @@ def delete_job(
     job = crud.get_owned(session, Job, job_id, tenant.id)
     if job is not None:
         lifecycle.delete_job(session, storage, job)
-        request.app.state.status_cache.drop((tenant.id, job_id))
-        request.app.state.results.drop(job_id)
+        forget_job(request, tenant.id, job_id)
     return Response(status_code=204)

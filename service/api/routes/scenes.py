@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, Response, status
 
 from service import lifecycle, scenes
-from service.api.deps import SceneDep, SessionDep, SettingsDep, StorageDep, TenantDep
+from service.api.deps import SceneDep, SessionDep, SettingsDep, StorageDep, TenantDep, forget_job
 from service.db import crud
 from service.db.models import Scene, Upload
 from service.errors import InvalidBundle, NotFound
@@ -75,5 +75,5 @@ def delete_scene(
     scene = crud.get_owned(session, Scene, scene_id, tenant.id)
     if scene is not None:
         for job_id in lifecycle.delete_scene(session, storage, scene):
-            request.app.state.status_cache.drop((tenant.id, job_id))
+            forget_job(request, tenant.id, job_id)
     return Response(status_code=204)
