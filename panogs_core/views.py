@@ -243,7 +243,7 @@ def view_pngs(images: ViewImages, is_thing: np.ndarray) -> dict[str, bytes]:
     panoptic (the labels' colours over the colour) and, with a query, relevance (a colour map)."""
     import cv2
 
-    from panogs_core.palette import palette, panoptic_colors
+    from panogs_core.palette import class_colors, instance_colors, panoptic_colors
 
     def png(rgb_or_gray: np.ndarray) -> bytes:
         img = rgb_or_gray[..., ::-1] if rgb_or_gray.ndim == 3 else rgb_or_gray  # OpenCV writes BGR
@@ -254,9 +254,9 @@ def view_pngs(images: ViewImages, is_thing: np.ndarray) -> dict[str, bytes]:
 
     h, w = images.depth.shape
     flat_sem, flat_inst = images.semantic.reshape(-1), images.instance.reshape(-1)
-    sem_rgb = palette(flat_sem, salt=3).reshape(h, w, 3)
+    sem_rgb = class_colors(flat_sem).reshape(h, w, 3)
     sem_rgb[images.semantic < 0] = 0
-    inst_rgb = palette(flat_inst, salt=17).reshape(h, w, 3)
+    inst_rgb = instance_colors(flat_inst).reshape(h, w, 3)
     inst_rgb[images.instance < 0] = 0
     pan = panoptic_colors(flat_sem, flat_inst, is_thing).reshape(h, w, 3)
     labelled = (images.semantic >= 0)[..., None]

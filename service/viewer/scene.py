@@ -30,21 +30,12 @@ import numpy as np
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.io.run_json import read_run_json
+from panogs_core.palette import VOID_COLOR, class_color, instance_color
 
 MAGIC = b"PGSV"
 FORMAT_VERSION = 1
 SH_C0 = 0.28209479177387814  # 3DGS: colour = 0.5 + SH_C0 * f_dc
 DECIMATION_SEED = 0  # the same run decimated twice keeps the same primitives
-
-# The semantic palette: fixed, so a class has the same colour in every scene, the legend and the tests. Tableau-20
-# style hues, chosen apart from each other and from grey (void).
-CLASS_PALETTE: tuple[tuple[int, int, int], ...] = (
-    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
-    (227, 119, 194), (188, 189, 34), (23, 190, 207), (174, 199, 232), (255, 187, 120), (152, 223, 138),
-    (255, 152, 150), (197, 176, 213), (196, 156, 148), (247, 182, 210), (219, 219, 141), (158, 218, 229),
-    (57, 59, 121), (99, 121, 57), (140, 109, 49), (132, 60, 57), (123, 65, 115), (82, 84, 163),
-)  # fmt: skip
-VOID_COLOR = (128, 128, 128)
 
 
 @dataclass(frozen=True)
@@ -54,25 +45,6 @@ class ViewerScene:
     data: bytes
     count: int  # primitives in the file
     total: int  # primitives in the run
-
-
-def class_color(index: int) -> tuple[int, int, int]:
-    """The palette colour of class ``index`` (-1: void grey)."""
-    return VOID_COLOR if index < 0 else CLASS_PALETTE[index % len(CLASS_PALETTE)]
-
-
-def instance_color(instance_id: int) -> tuple[int, int, int]:
-    """A distinct colour per instance: golden-ratio hue steps, full saturation, bright."""
-    hue = (instance_id * 0.618033988749895) % 1.0
-    r, g, b = _hsv_to_rgb(hue, 0.75, 0.95)
-    return round(r * 255), round(g * 255), round(b * 255)
-
-
-def _hsv_to_rgb(h: float, s: float, v: float) -> tuple[float, float, float]:
-    i = int(h * 6.0) % 6
-    f = h * 6.0 - int(h * 6.0)
-    p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
-    return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
 
 
 def _read_primitives(run_dir: Path) -> dict[str, np.ndarray]:

@@ -17,11 +17,12 @@ import pytest
 from run_folder import write_run
 
 from panogs_core.errors import InputError
+from panogs_core.palette import CLASS_PALETTE, instance_color
 from panogs_core.results import load_result
 from service.results import run_query
 from service.schemas import QueryCreate
 from service.viewer.export_html import export_html
-from service.viewer.scene import CLASS_PALETTE, build_scene, decode, instance_color
+from service.viewer.scene import build_scene, decode
 
 
 @pytest.fixture
