@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import gc
 import io
 import json
@@ -285,7 +286,7 @@ _GRAY = np.zeros((24, 32), np.uint8)
 _SMALL_DEPTH = np.ones((24, 32), np.uint16)
 _NAN_POSE = [[float("nan"), 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 
-BROKEN: list[tuple[str, Callable[[Path], None], str]] = [
+BROKEN: list[tuple[str, Callable[[Path], object], str]] = [
     ("no manifest", lambda r: (r / "scene.json").unlink(), "scene.json: missing"),
     ("bad json", lambda r: (r / "scene.json").write_text("{nope"), "scene.json: not valid JSON"),
     ("manifest not object", lambda r: (r / "scene.json").write_text("[1]"), "expected an object"),
@@ -427,7 +428,7 @@ BROKEN: list[tuple[str, Callable[[Path], None], str]] = [
 
 
 @pytest.mark.parametrize(("breaker", "expected"), [b[1:] for b in BROKEN], ids=[b[0] for b in BROKEN])
-def test_broken_rule_is_reported(bundle_dir: Path, breaker: Callable[[Path], None], expected: str) -> None:
+def test_broken_rule_is_reported(bundle_dir: Path, breaker: Callable[[Path], object], expected: str) -> None:
     open_bundle(bundle_dir)  # valid before the change
     breaker(bundle_dir)
     problems = _problems(bundle_dir)
@@ -666,6 +667,41 @@ class TestArchives:
         (tmp_path / "junk.zip").write_bytes(data[100:])
         with pytest.raises(BundleError):
             open_bundle(tmp_path / "junk.zip")
+
+    def test_corrupt_deflate_data_is_a_bundle_problem(self, tmp_path: Path) -> None:
+        archive = tmp_path / "c.zip"
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("a.bin", bytes(range(256)) * 400)
+        data = bytearray(archive.read_bytes())
+        for i in range(60, 200):  # inside the member's compressed bytes: zlib.error, which escaped before
+            data[i] ^= 0x5A
+        archive.write_bytes(bytes(data))
+        with pytest.raises(BundleError, match=r"c\.zip: corrupt or unreadable archive \(Error -3"):
+            extract_archive(archive, tmp_path / "out")
+
+    def test_a_host_write_error_is_not_the_bundles(
+        self, bundle_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        # A full disk is the host's problem: it passes on as OSError (the service keeps the upload for a retry)
+        # instead of a 422 "corrupt archive"; a name the file system refuses is the bundle's, named relatively.
+        archive = _zip_folder(bundle_dir, tmp_path / "scene.zip")
+        real_open = Path.open
+
+        def failing_open(self: Path, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
+            if mode == "xb" and self.name == "scene.json":
+                raise OSError(fail_with, os.strerror(fail_with), str(self))
+            return real_open(self, mode, *args, **kwargs)
+
+        monkeypatch.setattr(Path, "open", failing_open)
+        fail_with = errno.ENOSPC
+        with pytest.raises(OSError) as info:
+            extract_archive(archive, tmp_path / "out1")
+        assert not isinstance(info.value, BundleError)
+        assert info.value.errno == errno.ENOSPC
+        fail_with = errno.ENAMETOOLONG
+        with pytest.raises(BundleError) as bundle_info:
+            extract_archive(archive, tmp_path / "out2")
+        assert bundle_info.value.problems == ["scene.json: cannot be extracted under this name (File name too long)"]
 
     def test_format_id_exported(self) -> None:
         assert FORMAT_ID == "panogs-scene/1"

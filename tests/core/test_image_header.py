@@ -30,6 +30,7 @@ def test_header_agrees_with_the_decoder(tmp_path: Path, suffix: str, image: np.n
     assert cv2.imwrite(str(path), image)
     header = read_image_header(path)
     decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert decoded is not None
     assert (header.height, header.width) == decoded.shape[:2]
     assert header.channels == (1 if decoded.ndim == 2 else decoded.shape[2])
     assert header.bit_depth == decoded.dtype.itemsize * 8

@@ -35,8 +35,10 @@ def _refused(client: TestClient, auth: dict[str, str], data: bytes, settings: Se
     return body
 
 
-def _bundle(tmp_path: Path, mutate: Callable[[Path], None]) -> bytes:
-    return pack(write_tiny_bundle(tmp_path / "bundle", mutate=mutate))
+def _bundle(tmp_path: Path, mutate: Callable[[Path], object]) -> bytes:
+    root = write_tiny_bundle(tmp_path / "bundle")
+    mutate(root)
+    return pack(root)
 
 
 def _nested(levels: int) -> Any:
