@@ -4,34 +4,39 @@
 temporary folder first), validates every rule of the format at once and raises :class:`BundleError` with one
 line per problem. The returned :class:`Scene` reads frames one at a time: nothing large is held in memory.
 
-Validation decodes every image once (a truncated file is only found by decoding it), one file at a time, and
-reads only the headers of feature maps. Each check appends problem lines of the form
-``<file>: <what was found>, expected <what>`` to one list, so that a broken bundle is reported in one go.
+Validation reads each image's header first (size, channels, bit depth: ``panogs_core.io.image_header``) and
+compares it with the camera and the pixel limit; only an image that passes is decoded, once (a truncated file is
+only found by decoding it), one file at a time. Feature maps are read by their headers only, and the JSON files
+through the bounded reader (``panogs_core.bounded_json``). The limits are a :class:`BundleLimits`; its defaults
+are the ceilings the service's settings may lower. Each check appends problem lines of the form
+``<file>: <what was found>, expected <what>`` to one list, so that a broken bundle is reported in one go; every
+path in them is relative to the bundle root.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import shutil
 import tempfile
 import weakref
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import cv2
 import numpy as np
 
+from panogs_core.bounded_json import JsonLimits, read_json_file
 from panogs_core.errors import BundleError, InputError
 from panogs_core.io.archive import DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES, extract_archive, is_archive
+from panogs_core.io.image_header import ImageHeader, read_image_header
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.io.writer import FORMAT_ID
 from panogs_core.types import Camera, ClassKind, Frame, Geometry, GroundTruth, Vocabulary
 
-__all__ = ["FORMAT_ID", "Scene", "open_bundle"]
+__all__ = ["FORMAT_ID", "BundleLimits", "Scene", "open_bundle"]
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +52,20 @@ _FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
 }
 _FRAME_KEYS = frozenset({"id", "pose", *_FRAME_FILES})
 _TOP_KEYS = frozenset({"format", "name", "camera", "depth_scale", "features", "frames"})
+DEFAULT_MAX_IMAGE_PIXELS = 100_000_000  # 10000 x 10000; the 8K UHD frame (7680 x 4320) is 33 million
+
+
+@dataclass(frozen=True)
+class BundleLimits:
+    """Limits on what one bundle's files may declare, checked before anything large is read or decoded.
+
+    Attributes:
+        json: Depth, size and integer limits of ``scene.json`` and ``vocabulary.json``.
+        max_image_pixels: Most pixels (width x height) of one image, and cells (Hf x Wf) of one feature map.
+    """
+
+    json: JsonLimits = field(default_factory=JsonLimits)
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
 
 
 @dataclass(frozen=True)
@@ -170,6 +189,7 @@ def open_bundle(
     workdir: str | Path | None = None,
     max_bytes: int = DEFAULT_MAX_BYTES,
     max_files: int = DEFAULT_MAX_FILES,
+    limits: BundleLimits | None = None,
 ) -> Scene:
     """Open and validate a bundle folder or archive.
 
@@ -180,18 +200,20 @@ def open_bundle(
             ``Scene`` is garbage collected (or at once when validation fails).
         max_bytes: Most uncompressed bytes an archive may expand to.
         max_files: Most members an archive may hold.
+        limits: What the files may declare (default: :class:`BundleLimits()`).
 
     Returns:
         The validated scene.
 
     Raises:
-        BundleError: listing every problem found.
+        BundleError: listing every problem found, each naming its file relative to the bundle.
     """
     path = Path(path)
+    limits = limits or BundleLimits()
     if path.is_dir():
-        return _validate(path)
+        return _validate(path, limits=limits)
     if not path.exists():
-        raise BundleError([f"{path}: does not exist"], source=path.name)
+        raise BundleError([f"{path.name}: does not exist"], source=path.name)
     if not is_archive(path):
         raise BundleError([f"{path.name}: not a folder or a .zip/.tar/.tar.gz archive"], source=path.name)
     if workdir is not None:
@@ -199,7 +221,10 @@ def open_bundle(
     dest = Path(tempfile.mkdtemp(prefix="bundle-", dir=workdir))
     try:
         root = extract_archive(path, dest, max_bytes=max_bytes, max_files=max_files)
-        scene = _validate(root, source=path.name)
+        scene = _validate(root, source=path.name, limits=limits)
+    except BundleError as exc:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise BundleError(_relative_to(exc.problems, dest), source=exc.source) from exc
     except BaseException:
         shutil.rmtree(dest, ignore_errors=True)
         raise
@@ -222,17 +247,19 @@ class _Header:
     feature_space: str | None
 
 
-def _validate(root: Path, source: str | None = None) -> Scene:
+def _validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> Scene:
     """Check every rule of docs/scene_format.md; return the Scene or raise one BundleError listing all problems."""
     problems: list[str] = []
-    manifest = _load_manifest(root, problems)
-    header = _check_header(manifest, problems) if manifest is not None else _Header(None, None, None, None, None)
-    frames = _check_frames(root, manifest, header, problems) if manifest is not None else []
+    manifest = _load_manifest(root, limits.json, problems)
+    header = (
+        _check_header(manifest, limits, problems) if manifest is not None else _Header(None, None, None, None, None)
+    )
+    frames = _check_frames(root, manifest, header, limits, problems) if manifest is not None else []
     num_vertices = _check_geometry(root, problems)
-    vocabulary = _check_vocabulary(root, header.feature_dim, problems)
+    vocabulary = _check_vocabulary(root, header.feature_dim, limits.json, problems)
     has_gt = _check_ground_truth(root, vocabulary, num_vertices, problems)
     if problems:
-        raise BundleError(problems, source=source or root.name)
+        raise BundleError(_relative_to(problems, root), source=source or root.name)
     # No problem implies every header field parsed; the asserts only narrow the types.
     assert manifest is not None
     assert header.camera is not None
@@ -254,7 +281,22 @@ def _validate(root: Path, source: str | None = None) -> Scene:
     )
 
 
-def _load_manifest(root: Path, problems: list[str]) -> dict[str, Any] | None:
+def _relative_to(problems: list[str], root: Path) -> list[str]:
+    """The problems with any absolute path of ``root`` (as given or resolved) cut to the bundle-relative rest.
+
+    Every check words its problems with relative paths already; this is the one net under all of them, so that
+    a message from a library (an OSError's file name) never shows where the service stores bundles.
+    """
+    prefixes = sorted({str(root.absolute()), str(root.resolve())} - {"/"}, key=len, reverse=True)
+    out = []
+    for problem in problems:
+        for prefix in prefixes:
+            problem = problem.replace(prefix + "/", "").replace(prefix, ".")
+        out.append(problem)
+    return out
+
+
+def _load_manifest(root: Path, limits: JsonLimits, problems: list[str]) -> dict[str, Any] | None:
     path = root / "scene.json"
     if path.is_symlink():
         problems.append("scene.json: is a symbolic link, expected a regular file")
@@ -263,9 +305,9 @@ def _load_manifest(root: Path, problems: list[str]) -> dict[str, Any] | None:
         problems.append("scene.json: missing, expected the manifest at the bundle root")
         return None
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        problems.append(f"scene.json: not valid JSON ({exc})")
+        doc = read_json_file(path, limits, name="scene.json")
+    except InputError as exc:  # not JSON, over a limit, or unreadable: the message names the file and the limit
+        problems.append(str(exc))
         return None
     if not isinstance(doc, dict):
         problems.append(f"scene.json: top level is {type(doc).__name__}, expected an object")
@@ -276,12 +318,18 @@ def _load_manifest(root: Path, problems: list[str]) -> dict[str, Any] | None:
     return doc
 
 
-def _check_header(doc: dict[str, Any], problems: list[str]) -> _Header:
+def _check_header(doc: dict[str, Any], limits: BundleLimits, problems: list[str]) -> _Header:
     if doc.get("format") != FORMAT_ID:
         problems.append(f"scene.json: format {doc.get('format')!r}, expected {FORMAT_ID!r}")
     if "name" in doc and not isinstance(doc["name"], str):
         problems.append(f"scene.json: name {doc['name']!r}, expected a string")
     camera, size = _check_camera(doc.get("camera"), problems)
+    if size is not None and size[0] * size[1] > limits.max_image_pixels:
+        problems.append(
+            f"scene.json: camera {size[1]}x{size[0]} ({size[0] * size[1]:,} pixels), over the pixel limit of "
+            f"{limits.max_image_pixels:,}"
+        )
+        camera, size = None, None
     depth_scale = _number(doc.get("depth_scale"))
     if depth_scale is None or depth_scale <= 0:
         problems.append(f"scene.json: depth_scale {doc.get('depth_scale')!r}, expected a finite number > 0")
@@ -327,7 +375,9 @@ def _check_camera(cam: Any, problems: list[str]) -> tuple[Camera | None, tuple[i
     return Camera(width=size[1], height=size[0], fx=fx, fy=fy, cx=cx, cy=cy), size
 
 
-def _check_frames(root: Path, doc: dict[str, Any], header: _Header, problems: list[str]) -> list[Frame]:
+def _check_frames(
+    root: Path, doc: dict[str, Any], header: _Header, limits: BundleLimits, problems: list[str]
+) -> list[Frame]:
     entries = doc.get("frames")
     if not isinstance(entries, list) or not entries:
         problems.append(f"scene.json: frames {_short(entries)}, expected a non-empty list")
@@ -339,7 +389,7 @@ def _check_frames(root: Path, doc: dict[str, Any], header: _Header, problems: li
         if frame is None:
             continue
         frames.append(frame)
-        _check_frame_files(root, frame, header, problems)
+        _check_frame_files(root, frame, header, limits, problems)
     if not any(f.features is not None for f in frames):
         problems.append("scene.json: no frame has features, expected at least one")
     if not any(f.masks is not None for f in frames):
@@ -433,9 +483,9 @@ def _check_rel_path(root: Path, value: Any, where: str, exts: tuple[str, ...], p
     return value
 
 
-def _check_frame_files(root: Path, frame: Frame, header: _Header, problems: list[str]) -> None:
-    """Decode each file of one frame, one at a time, and check its format."""
-    depth = _decode(root, frame.depth, problems)
+def _check_frame_files(root: Path, frame: Frame, header: _Header, limits: BundleLimits, problems: list[str]) -> None:
+    """Check each file of one frame, one at a time: the image's header first, then decode it only if that passes."""
+    depth = _checked_decode(root, frame.depth, "depth", header.size, limits, problems)
     if depth is not None:
         if depth.dtype != np.uint16 or depth.ndim != 2:
             problems.append(f"{frame.depth}: {_describe(depth)}, expected 16-bit single channel")
@@ -443,20 +493,68 @@ def _check_frame_files(root: Path, frame: Frame, header: _Header, problems: list
         if size is not None and depth.shape[:2] != size:
             problems.append(f"{frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {size[1]}x{size[0]} (camera)")
     if frame.color is not None:
-        color = _decode(root, frame.color, problems)
+        color = _checked_decode(root, frame.color, "color", header.size, limits, problems)
         if color is not None and (color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] != 3):
             problems.append(f"{frame.color}: {_describe(color)}, expected 8-bit 3 channels")
     if frame.masks is not None:
-        masks = _decode(root, frame.masks, problems)
+        masks = _checked_decode(root, frame.masks, "masks", header.size, limits, problems)
         if masks is not None and (masks.dtype not in (np.uint8, np.uint16) or masks.ndim != 2):
             problems.append(f"{frame.masks}: {_describe(masks)}, expected 8- or 16-bit single channel")
     if frame.features is not None:
-        _check_features(root, frame.features, header.feature_dim, problems)
+        _check_features(root, frame.features, header.feature_dim, limits, problems)
+
+
+def _checked_decode(
+    root: Path, rel: str, kind: str, camera_size: tuple[int, int] | None, limits: BundleLimits, problems: list[str]
+) -> np.ndarray | None:
+    """Decode ``rel`` only when its header passes :func:`_header_problem`; None (and a problem) otherwise."""
+    try:
+        info = read_image_header(root / rel, name=rel)
+    except InputError as exc:
+        problems.append(str(exc))
+        return None
+    problem = _header_problem(rel, kind, info, camera_size, limits.max_image_pixels)
+    if problem is not None:
+        problems.append(problem)
+        return None
+    return _decode(root, rel, problems)
+
+
+def _header_problem(
+    rel: str, kind: str, info: ImageHeader, camera_size: tuple[int, int] | None, max_pixels: int
+) -> str | None:
+    """What is wrong with an image by its header (format, pixel limit, camera size, channels, bits), or None.
+
+    The same rules as the checks after decoding (docs/scene_format.md §1), so that an image that would be
+    refused anyway is refused without allocating its pixels.
+    """
+    want_format = "JPEG" if rel.lower().endswith((".jpg", ".jpeg")) else "PNG"
+    if info.format != want_format:
+        return f"{rel}: holds {info.format} data, expected {want_format} (by its first bytes)"
+    if info.pixels > max_pixels:
+        return f"{rel}: {info.width}x{info.height} ({info.pixels:,} pixels), over the pixel limit of {max_pixels:,}"
+    if kind == "depth":
+        if camera_size is not None and (info.height, info.width) != camera_size:
+            return f"{rel}: {info.width}x{info.height}, expected {camera_size[1]}x{camera_size[0]} (camera)"
+        if info.channels != 1 or info.bit_depth != 16:
+            return f"{rel}: {info.describe()}, expected 16-bit single channel"
+    elif kind == "masks" and info.channels != 1:
+        return f"{rel}: {info.describe()}, expected 8- or 16-bit single channel"
+    elif kind == "color" and (
+        info.bit_depth != 8 or info.channels not in (3, 4) or (info.channels == 4 and info.format == "PNG")
+    ):
+        # A JPEG of 4 components is CMYK, which the decoder turns into 3 channels; a PNG of 4 is RGBA.
+        return f"{rel}: {info.describe()}, expected 8-bit 3 channels"
+    return None
 
 
 def _decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
     """Fully decode an image (only decoding finds truncated data); None and a problem when it fails."""
-    data = (root / rel).read_bytes()
+    try:
+        data = (root / rel).read_bytes()
+    except OSError as exc:
+        problems.append(f"{rel}: cannot be read ({_reason(exc)})")
+        return None
     if rel.lower().endswith((".jpg", ".jpeg")) and not _jpeg_complete(data):
         # libjpeg decodes a truncated JPEG with only a warning and grey fill: look for the end marker instead.
         problems.append(f"{rel}: truncated JPEG (no end-of-image marker after the image data)")
@@ -490,7 +588,7 @@ def _jpeg_complete(data: bytes) -> bool:
     return False
 
 
-def _check_features(root: Path, rel: str, dim: int | None, problems: list[str]) -> None:
+def _check_features(root: Path, rel: str, dim: int | None, limits: BundleLimits, problems: list[str]) -> None:
     header = _npy_header(root / rel, rel, problems)
     if header is None:
         return
@@ -502,8 +600,14 @@ def _check_features(root: Path, rel: str, dim: int | None, problems: list[str]) 
         problems.append(f"{rel}: dtype {dtype}, expected float16 or float32")
     if len(shape) != 3 or min(shape, default=0) < 1:
         problems.append(f"{rel}: shape {shape}, expected (Hf, Wf, D) with every size >= 1")
-    elif dim is not None and shape[2] != dim:
-        problems.append(f"{rel}: last dimension {shape[2]}, expected {dim} (features.dim)")
+    else:
+        if dim is not None and shape[2] != dim:
+            problems.append(f"{rel}: last dimension {shape[2]}, expected {dim} (features.dim)")
+        if shape[0] * shape[1] > limits.max_image_pixels:
+            problems.append(
+                f"{rel}: {shape[1]}x{shape[0]} cells ({shape[0] * shape[1]:,}), over the pixel limit of "
+                f"{limits.max_image_pixels:,}"
+            )
     if fortran:
         problems.append(f"{rel}: Fortran order, expected C order")
     if not complete:
@@ -519,7 +623,7 @@ def _npy_header(path: Path, rel: str, problems: list[str]) -> tuple[tuple[int, .
             fh.seek(0, 2)
             data_size = fh.tell() - offset
     except (ValueError, OSError, SyntaxError) as exc:
-        problems.append(f"{rel}: not a valid .npy file ({exc})")
+        problems.append(f"{rel}: not a valid .npy file ({_reason(exc)})")
         return None
     expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize if not dtype.hasobject else data_size
     return tuple(int(s) for s in shape), bool(fortran), dtype, data_size == expected
@@ -546,7 +650,7 @@ def _check_geometry(root: Path, problems: list[str]) -> int | None:
     return len(geometry.points)
 
 
-def _check_vocabulary(root: Path, dim: int | None, problems: list[str]) -> Vocabulary | None:
+def _check_vocabulary(root: Path, dim: int | None, limits: JsonLimits, problems: list[str]) -> Vocabulary | None:
     path = root / "vocabulary.json"
     if path.is_symlink():
         problems.append("vocabulary.json: is a symbolic link, not allowed")
@@ -554,9 +658,9 @@ def _check_vocabulary(root: Path, dim: int | None, problems: list[str]) -> Vocab
     if not path.exists():
         return None
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        problems.append(f"vocabulary.json: not valid JSON ({exc})")
+        doc = read_json_file(path, limits, name="vocabulary.json")
+    except InputError as exc:  # not JSON, over a limit, or unreadable: the message names the file and the limit
+        problems.append(str(exc))
         return None
     classes = doc.get("classes") if isinstance(doc, dict) else None
     if not isinstance(classes, list) or not classes:
@@ -667,7 +771,7 @@ def _load_npz(path: Path, rel: str, problems: list[str]) -> dict[str, np.ndarray
         with np.load(path, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, SyntaxError) as exc:
-        problems.append(f"{rel}: not a valid .npz file ({exc})")
+        problems.append(f"{rel}: not a valid .npz file ({_reason(exc)})")
         return None
 
 
@@ -712,6 +816,13 @@ def _integer(value: Any) -> int | None:
     if number is None or number != int(number):
         return None
     return int(number)
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception's reason without the file name an OSError carries (an absolute path on the host)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return str(exc)
 
 
 def _describe(image: np.ndarray) -> str:

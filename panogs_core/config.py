@@ -70,6 +70,8 @@ class PipelineConfig:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise ConfigError(f"config: not valid YAML: {exc}") from exc
+        except RecursionError:  # the YAML parser recurses per level of nesting; no config is nested that deep
+            raise ConfigError("config: nested too deeply to be a pipeline config") from None
         if data is not None and not isinstance(data, dict):
             raise ConfigError(f"config: expected a mapping at the top level, found {type(data).__name__}")
         return cls.from_dict(data)

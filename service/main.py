@@ -22,6 +22,7 @@ from service.cache import TTLCache
 from service.db.session import get_session_factory
 from service.encoder import EncoderProcess
 from service.errors import install_error_handlers
+from service.json_body import BoundedJsonBody, body_limits
 from service.queue import Sender, celery_sender
 from service.reaper import Reaper
 from service.results import ResultCache
@@ -92,5 +93,6 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
         app.include_router(router, prefix=API_PREFIX)
     app.include_router(render_routes.router, prefix=API_PREFIX)  # issue 10: renders of a finished job
     app.include_router(app_routes.router)
+    app.add_middleware(BoundedJsonBody, limits=body_limits(settings))  # inside BodyLimit: it sees capped bodies only
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
     return app

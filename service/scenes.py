@@ -1,21 +1,59 @@
 """Making a scene from a complete upload: validate with the core validator, keep it only if it is valid.
 
 ``panogs_core.bundle.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
-bombs) and checks every rule of docs/scene_format.md, reporting every problem at once. A refused bundle leaves
-nothing behind: the extraction folder, the archive and the upload are deleted.
+bombs) and checks every rule of docs/scene_format.md, reporting every problem at once, within the limits of the
+settings (JSON depth, size and integers; pixels per image: each image's header is read before it is decoded). A
+refused bundle leaves nothing behind: the extraction folder, the archive and the upload are deleted. Problems
+name files relative to the bundle, never where the service stores it; one that passes a limit is followed by a
+line naming the limit's setting.
 """
 
 from __future__ import annotations
 
 import uuid
+from typing import TYPE_CHECKING
 
 from sqlalchemy.orm import Session
 
 from service.db import crud
 from service.db.models import Scene, Upload, UploadState
 from service.errors import Conflict, InvalidBundle
+from service.settings import Settings
 from service.storage import Storage, detect_archive, dir_size
 from service.uploads import discard_upload
+
+if TYPE_CHECKING:
+    from panogs_core.bundle import BundleLimits
+
+# The words each limit's problem line uses (panogs_core.bounded_json, panogs_core.bundle), and its setting.
+LIMIT_SETTINGS = {
+    "JSON depth limit": "PANOGS_MAX_JSON_DEPTH",
+    "JSON size limit": "PANOGS_BUNDLE_MAX_JSON_BYTES",
+    "JSON integer limit": "PANOGS_MAX_JSON_INT_DIGITS",
+    "pixel limit": "PANOGS_MAX_IMAGE_PIXELS",
+}
+
+
+def bundle_limits(settings: Settings) -> BundleLimits:
+    """What a bundle's files may declare, from the settings."""
+    from panogs_core.bounded_json import JsonLimits
+    from panogs_core.bundle import BundleLimits
+
+    json_limits = JsonLimits(
+        max_depth=settings.max_json_depth,
+        max_bytes=settings.bundle_max_json_bytes,
+        max_int_digits=settings.max_json_int_digits,
+    )
+    return BundleLimits(json=json_limits, max_image_pixels=settings.max_image_pixels)
+
+
+def limit_hints(problems: list[str]) -> list[str]:
+    """One line per limit that ``problems`` pass, naming its setting."""
+    return [
+        f"the {words} is set by {setting}"
+        for words, setting in LIMIT_SETTINGS.items()
+        if any(words in problem for problem in problems)
+    ]
 
 
 def create_scene(
@@ -26,8 +64,11 @@ def create_scene(
     *,
     max_bytes: int | None = None,
     max_files: int | None = None,
+    settings: Settings | None = None,
 ) -> Scene:
     """Validate and extract ``upload`` into a new scene of the upload's tenant.
+
+    ``settings`` gives the limits of the bundle's JSON files and images (default: the core's).
 
     Raises:
         Conflict: the upload is not complete, or was already made into a scene.
@@ -57,7 +98,9 @@ def create_scene(
     scene_dir = storage.scene_dir(scene_id)
     limits = {k: v for k, v in (("max_bytes", max_bytes), ("max_files", max_files)) if v is not None}
     try:
-        bundle = open_bundle(archive, workdir=scene_dir, **limits)
+        bundle = open_bundle(
+            archive, workdir=scene_dir, limits=bundle_limits(settings) if settings is not None else None, **limits
+        )
         scene = Scene(
             id=scene_id,
             api_key_id=upload.api_key_id,
@@ -77,8 +120,9 @@ def create_scene(
         session.rollback()
         storage.remove_tree(scene_dir)
         discard_upload(session, storage, upload)
+        problems = list(exc.problems)
         raise InvalidBundle(
-            f"the bundle has {len(exc.problems)} problem(s); nothing was kept", problems=list(exc.problems)
+            f"the bundle has {len(problems)} problem(s); nothing was kept", problems=problems + limit_hints(problems)
         ) from exc
     except BaseException:
         # Not the bundle's fault (disk, database): undo, so that the same upload can be tried again.

@@ -2,18 +2,25 @@
 
 Nothing in an archive is trusted. Before anything is written every member is checked: its name must be
 relative, stay inside the destination (no ``..``, no absolute or drive paths, no backslashes), be unique, and
-name a regular file or folder (links and devices are refused); the member count and the total declared size
-must stay under the limits. While extracting, bytes are counted again, because a zip's declared sizes can lie
-(archive bombs). Every problem found by the checks is reported at once in one :class:`BundleError`.
+name a regular file or folder (links and devices are refused), and fit the file system (no part over 255 bytes,
+no name over 1,024); the member count and the total declared size must stay under the limits. While extracting,
+bytes are counted again, because a zip's declared sizes can lie (archive bombs). Every problem found by the checks
+is reported at once in one :class:`BundleError`, naming members by their names in the archive, never by where
+they would be written. An error writing the destination that is not the archive's fault (a full disk) is
+raised as the ``OSError`` it is, not as a problem of the bundle.
 """
 
 from __future__ import annotations
 
+import errno
+import lzma
 import re
 import stat
 import tarfile
 import zipfile
+import zlib
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
@@ -24,6 +31,11 @@ DEFAULT_MAX_BYTES = 32 * 1024**3  # uncompressed; a 2000-frame scene with dense 
 DEFAULT_MAX_FILES = 100_000  # five files per frame for 20k frames
 _CHUNK = 1 << 20
 _DRIVE = re.compile(r"^[A-Za-z]:")
+MAX_NAME_PART_BYTES = 255  # NAME_MAX of Linux, macOS and Windows file systems
+MAX_NAME_BYTES = 1024  # a whole member name; leaves room under PATH_MAX (4,096) for where it is extracted
+_SHOWN_NAME_CHARS = 80  # a refused name of 10,000 characters is shown by its start
+# Errors of writing a member that the member's name causes (the rest, such as a full disk, are the host's).
+_NAME_ERRNOS = frozenset({errno.ENAMETOOLONG, errno.EEXIST, errno.EILSEQ, errno.EINVAL, errno.EISDIR, errno.ENOTDIR})
 # Entries that archivers add beside the content folder; ignored when looking for a single top-level folder.
 _ARCHIVER_LITTER = frozenset({"__MACOSX", ".DS_Store"})
 
@@ -84,10 +96,35 @@ def extract_archive(
                 _extract(members, _tar_opener(tf), dest, max_bytes, source)
         else:
             raise BundleError([f"{source}: not a zip or tar archive"], source=source)
-    except (zipfile.BadZipFile, tarfile.TarError, EOFError, OSError, RuntimeError) as exc:
-        # RuntimeError: encrypted zip members; EOFError/OSError: truncated or corrupt compressed streams.
-        raise BundleError([f"{source}: corrupt or unreadable archive ({exc})"], source=source) from exc
+    except (zipfile.BadZipFile, tarfile.TarError, EOFError, OSError, RuntimeError, zlib.error, lzma.LZMAError) as exc:
+        # Reading the archive only (writes raise _WriteError): RuntimeError is an encrypted zip member;
+        # EOFError, OSError, zlib and lzma errors are truncated or corrupt compressed streams.
+        raise BundleError([f"{source}: corrupt or unreadable archive ({_reason(exc)})"], source=source) from exc
+    except _WriteError as exc:
+        raise exc.error from None
     return find_bundle_root(dest)
+
+
+class _WriteError(Exception):
+    """Carries an OSError of writing the destination past the handler of the archive's read errors."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception's reason without the file name an OSError carries (a path on the host)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return str(exc) or type(exc).__name__
+
+
+def shown_name(raw: str) -> str:
+    """A member name for a message: as stored, cut to its first characters when it is very long."""
+    if len(raw) <= _SHOWN_NAME_CHARS:
+        return raw
+    return f"{raw[: _SHOWN_NAME_CHARS - 3]}... ({len(raw):,} characters)"
 
 
 def find_bundle_root(folder: Path) -> Path:
@@ -164,12 +201,12 @@ def _check_all(listing: _Listing, max_bytes: int, max_files: int, source: str) -
             break
         name, name_problem = _normalise(raw)
         if problem or name_problem:
-            problems.append(f"{raw}: {problem or name_problem}")
+            problems.append(f"{shown_name(raw)}: {problem or name_problem}")
             continue
         if not name:
             continue  # the archive's own root folder ("./"), written by `tar -C dir .`
         if name in seen:
-            problems.append(f"{raw}: duplicate name in the archive")
+            problems.append(f"{shown_name(raw)}: duplicate name in the archive")
             continue
         seen.add(name)
         total += size
@@ -194,7 +231,13 @@ def _normalise(raw: str) -> tuple[str, str | None]:
     parts = [p for p in PurePosixPath(raw).parts if p != "."]
     if ".." in parts:
         return "", "path leaves the bundle ('..')"
-    return "/".join(parts), None  # "" for the root folder itself
+    name = "/".join(parts)  # "" for the root folder itself
+    longest = max((len(p.encode("utf-8", "surrogateescape")) for p in parts), default=0)
+    if longest > MAX_NAME_PART_BYTES:
+        return "", f"a part of the name is {longest:,} bytes long, over the limit of {MAX_NAME_PART_BYTES}"
+    if len(name.encode("utf-8", "surrogateescape")) > MAX_NAME_BYTES:
+        return "", f"name over the limit of {MAX_NAME_BYTES:,} bytes"
+    return name, None
 
 
 def _file_folder_clashes(members: list[_Member]) -> list[str]:
@@ -206,7 +249,7 @@ def _file_folder_clashes(members: list[_Member]) -> list[str]:
         for i in range(1, len(parts)):
             prefix = "/".join(parts[:i])
             if prefix in files:
-                clashes.append(f"{m.name}: {prefix!r} is both a file and a folder")
+                clashes.append(f"{shown_name(m.name)}: {shown_name(prefix)!r} is both a file and a folder")
                 break
     return clashes
 
@@ -220,12 +263,31 @@ def _extract(members: list[_Member], open_member: _Opener, dest: Path, max_bytes
     for m in members:
         target = dest.joinpath(*m.name.split("/"))
         if m.is_dir:
-            target.mkdir(parents=True, exist_ok=True)
+            with _writing(m, source):
+                target.mkdir(parents=True, exist_ok=True)
             continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with open_member(m.raw) as src, target.open("xb") as out:
-            while chunk := src.read(_CHUNK):
+        with _writing(m, source):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            out = target.open("xb")
+        with out, open_member(m.raw) as src:
+            while chunk := src.read(_CHUNK):  # reading: its errors are the archive's
                 total += len(chunk)
                 if total > max_bytes:
-                    raise BundleError([f"{m.name}: archive expands past the limit of {max_bytes} bytes"], source=source)
-                out.write(chunk)
+                    raise BundleError(
+                        [f"{shown_name(m.name)}: archive expands past the limit of {max_bytes} bytes"], source=source
+                    )
+                with _writing(m, source):
+                    out.write(chunk)
+
+
+@contextmanager
+def _writing(member: _Member, source: str) -> Iterator[None]:
+    """Around one write to the destination: an error the member's name causes is a problem of the bundle, named
+    by the member; any other (disk full, permissions) is the host's and passes on as :class:`_WriteError`."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno in _NAME_ERRNOS:
+            problem = f"{shown_name(member.name)}: cannot be extracted under this name ({_reason(exc)})"
+            raise BundleError([problem], source=source) from None
+        raise _WriteError(exc) from exc

@@ -17,6 +17,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from panogs_core.bounded_json import JsonLimitError, JsonSyntaxError, loads
 from service.viewer.assets import static_dir
 from service.viewer.scene import build_scene
 
@@ -99,8 +100,10 @@ def make_handler(run: RunViewer) -> type[BaseHTTPRequestHandler]:
             if length > MAX_QUERY_BODY:
                 return self._json(413, {"type": "payload_too_large", "message": f"body over {MAX_QUERY_BODY} bytes"})
             try:
-                body = json.loads(self.rfile.read(length) or b"{}")
-            except json.JSONDecodeError as exc:
+                body = loads(self.rfile.read(length) or b"{}", source="request body")
+            except JsonLimitError as exc:  # nested too deep or a huge integer: the one bounded reader's answer
+                return self._json(422, {"type": "invalid_input", "message": str(exc)})
+            except JsonSyntaxError as exc:
                 return self._json(400, {"type": "bad_request", "message": f"body is not JSON ({exc})"})
             if not isinstance(body, dict):
                 return self._json(422, {"type": "invalid_input", "message": "body must be a JSON object"})

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import errno
 import gc
 import io
 import json
 import os
 import shutil
+import struct
 import tarfile
 import warnings
 import zipfile
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,7 +21,9 @@ import cv2
 import numpy as np
 import pytest
 
-from panogs_core.bundle import FORMAT_ID, Scene, open_bundle
+import panogs_core.bundle
+from panogs_core.bounded_json import JsonLimits
+from panogs_core.bundle import FORMAT_ID, BundleLimits, Scene, open_bundle
 from panogs_core.errors import BundleError, InputError
 from panogs_core.io.archive import extract_archive
 from panogs_core.io.writer import BundleWriter
@@ -240,11 +245,48 @@ def _drop_key(key: str) -> Callable[[dict[str, Any]], None]:
     return change
 
 
+def _nested(levels: int) -> Any:
+    value: Any = 1
+    for _ in range(levels):
+        value = [value]
+    return value
+
+
+def _raw_manifest_edit(old: str, new: str) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:  # on the text: json.dumps cannot write an integer of 5,000 digits
+        text = (root / "scene.json").read_text()
+        assert old in text
+        (root / "scene.json").write_text(text.replace(old, new, 1))
+
+    return apply
+
+
+def _jpeg_as(rel: str) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        ok, data = cv2.imencode(".jpg", np.zeros((48, 64), np.uint8))
+        assert ok
+        (root / rel).write_bytes(data.tobytes())
+
+    return apply
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _declared_png(width: int, height: int, bit_depth: int = 16) -> bytes:
+    """A PNG whose header declares ``width`` x ``height`` grey pixels, with one row of data (a decoder would
+    allocate the whole image before finding the rest missing)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, 0, 0, 0, 0)
+    row = zlib.compress(b"\x00" + b"\x00" * (width * bit_depth // 8))
+    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", row) + _png_chunk(b"IEND", b"")
+
+
 _GRAY = np.zeros((24, 32), np.uint8)
 _SMALL_DEPTH = np.ones((24, 32), np.uint16)
 _NAN_POSE = [[float("nan"), 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 
-BROKEN: list[tuple[str, Callable[[Path], None], str]] = [
+BROKEN: list[tuple[str, Callable[[Path], object], str]] = [
     ("no manifest", lambda r: (r / "scene.json").unlink(), "scene.json: missing"),
     ("bad json", lambda r: (r / "scene.json").write_text("{nope"), "scene.json: not valid JSON"),
     ("manifest not object", lambda r: (r / "scene.json").write_text("[1]"), "expected an object"),
@@ -346,11 +388,47 @@ BROKEN: list[tuple[str, Callable[[Path], None], str]] = [
     ("gt key", _set_gt(semantic=np.zeros(NUM_VERTICES, int)), "key 'instance' missing"),
     ("gt pickled", _set_gt(semantic=np.array([None] * 3), instance=np.zeros(3, int)), "pickled"),
     ("gt no vocab", lambda r: (r / "vocabulary.json").unlink(), "need vocabulary.json"),
+    (
+        "deep manifest",
+        _edit(_set(["frames", 0, "pose"], _nested(100))),
+        "scene.json: nested deeper than the JSON depth limit of 64 levels at frames[0].pose[0][0][0]",
+    ),
+    (
+        "huge integer",
+        _raw_manifest_edit('"width": 64', '"width": ' + "6" * 5000),
+        "scene.json: an integer of 5,000 digits at camera.width (line",
+    ),
+    (
+        "deep vocabulary",
+        lambda r: (r / "vocabulary.json").write_text('{"classes": ' + "[" * 5000 + "]" * 5000 + "}"),
+        "vocabulary.json: nested deeper than the JSON depth limit of 64 levels at classes[0][0]",
+    ),
+    (
+        "vocabulary integer",
+        lambda r: (r / "vocabulary.json").write_text('{"classes": [{"name": "a", "kind": ' + "1" * 4400 + "}]}"),
+        "vocabulary.json: an integer of 4,400 digits at classes[0].kind",
+    ),
+    ("jpeg named png", _jpeg_as("masks/000000.png"), "masks/000000.png: holds JPEG data, expected PNG"),
+    (
+        "camera too big",
+        _edit(lambda d: d["camera"].update(width=20_000, height=20_000)),
+        "scene.json: camera 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000",
+    ),
+    (
+        "huge mask",
+        lambda r: (r / "masks/000002.png").write_bytes(_declared_png(20_000, 20_000)),
+        "masks/000002.png: 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000",
+    ),
+    (
+        "depth size by header",
+        lambda r: (r / "depth/000000.png").write_bytes(_declared_png(30_000, 3)),
+        "depth/000000.png: 30000x3, expected 64x48 (camera)",
+    ),
 ]
 
 
 @pytest.mark.parametrize(("breaker", "expected"), [b[1:] for b in BROKEN], ids=[b[0] for b in BROKEN])
-def test_broken_rule_is_reported(bundle_dir: Path, breaker: Callable[[Path], None], expected: str) -> None:
+def test_broken_rule_is_reported(bundle_dir: Path, breaker: Callable[[Path], object], expected: str) -> None:
     open_bundle(bundle_dir)  # valid before the change
     breaker(bundle_dir)
     problems = _problems(bundle_dir)
@@ -590,5 +668,119 @@ class TestArchives:
         with pytest.raises(BundleError):
             open_bundle(tmp_path / "junk.zip")
 
+    def test_corrupt_deflate_data_is_a_bundle_problem(self, tmp_path: Path) -> None:
+        archive = tmp_path / "c.zip"
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("a.bin", bytes(range(256)) * 400)
+        data = bytearray(archive.read_bytes())
+        for i in range(60, 200):  # inside the member's compressed bytes: zlib.error, which escaped before
+            data[i] ^= 0x5A
+        archive.write_bytes(bytes(data))
+        with pytest.raises(BundleError, match=r"c\.zip: corrupt or unreadable archive \(Error -3"):
+            extract_archive(archive, tmp_path / "out")
+
+    def test_a_host_write_error_is_not_the_bundles(
+        self, bundle_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        # A full disk is the host's problem: it passes on as OSError (the service keeps the upload for a retry)
+        # instead of a 422 "corrupt archive"; a name the file system refuses is the bundle's, named relatively.
+        archive = _zip_folder(bundle_dir, tmp_path / "scene.zip")
+        real_open = Path.open
+
+        def failing_open(self: Path, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
+            if mode == "xb" and self.name == "scene.json":
+                raise OSError(fail_with, os.strerror(fail_with), str(self))
+            return real_open(self, mode, *args, **kwargs)
+
+        monkeypatch.setattr(Path, "open", failing_open)
+        fail_with = errno.ENOSPC
+        with pytest.raises(OSError) as info:
+            extract_archive(archive, tmp_path / "out1")
+        assert not isinstance(info.value, BundleError)
+        assert info.value.errno == errno.ENOSPC
+        fail_with = errno.ENAMETOOLONG
+        with pytest.raises(BundleError) as bundle_info:
+            extract_archive(archive, tmp_path / "out2")
+        assert bundle_info.value.problems == ["scene.json: cannot be extracted under this name (File name too long)"]
+
     def test_format_id_exported(self) -> None:
         assert FORMAT_ID == "panogs-scene/1"
+
+
+# -- limits (issue 14) ---------------------------------------------------------------------------------------
+
+
+def test_images_over_a_limit_are_refused_without_being_decoded(
+    bundle_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (bundle_dir / "masks/000000.png").write_bytes(_declared_png(20_000, 20_000))
+    (bundle_dir / "depth/000001.png").write_bytes(_declared_png(640, 480))
+    decoded: list[str] = []
+    real_decode = panogs_core.bundle._decode
+
+    def recording_decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
+        decoded.append(rel)
+        return real_decode(root, rel, problems)
+
+    monkeypatch.setattr(panogs_core.bundle, "_decode", recording_decode)
+    problems = _problems(bundle_dir)
+    assert "masks/000000.png: 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000" in problems
+    assert "depth/000001.png: 640x480, expected 64x48 (camera)" in problems
+    assert "masks/000000.png" not in decoded
+    assert "depth/000001.png" not in decoded
+    assert "depth/000000.png" in decoded  # the others are still decoded (a truncated file shows only then)
+
+
+def test_limits_are_parameters(bundle_dir: Path) -> None:
+    with pytest.raises(BundleError) as info:
+        open_bundle(bundle_dir, limits=BundleLimits(max_image_pixels=1_000))
+    assert "scene.json: camera 64x48 (3,072 pixels), over the pixel limit of 1,000" in info.value.problems
+    assert "depth/000000.png: 64x48 (3,072 pixels), over the pixel limit of 1,000" in info.value.problems
+    assert "features/000000.npy: 8x6 cells (48), over the pixel limit of 1,000" not in info.value.problems
+    with pytest.raises(BundleError) as info:
+        open_bundle(bundle_dir, limits=BundleLimits(json=JsonLimits(max_depth=4)))
+    assert any(
+        p.startswith("scene.json: nested deeper than the JSON depth limit of 4 levels at frames[0].pose[0]")
+        for p in info.value.problems
+    ), info.value.problems
+    size = (bundle_dir / "scene.json").stat().st_size
+    with pytest.raises(BundleError) as info:
+        open_bundle(bundle_dir, limits=BundleLimits(json=JsonLimits(max_bytes=1_000)))
+    assert f"scene.json: {size:,} bytes, over the JSON size limit of 1,000 bytes" in info.value.problems
+    assert open_bundle(bundle_dir, limits=BundleLimits(json=JsonLimits(max_depth=5))).name == "tiny"
+
+
+def test_long_member_name_is_refused_without_the_storage_path(bundle_dir: Path, tmp_path: Path) -> None:
+    archive = _zip_folder(bundle_dir, tmp_path / "scene.zip")
+    with zipfile.ZipFile(archive, "a") as zf:
+        zf.writestr("masks/" + "m" * 300 + ".png", b"x")
+        zf.writestr("deep/" * 300 + "x.txt", b"x")
+    work = tmp_path / "work"
+    with pytest.raises(BundleError) as info:
+        open_bundle(archive, workdir=work)
+    message = str(info.value)
+    assert str(tmp_path) not in message
+    assert "masks/mmmm" in message
+    assert "(310 characters): a part of the name is 304 bytes long, over the limit of 255" in message
+    assert "name over the limit of 1,024 bytes" in message
+    assert list(work.iterdir()) == []
+
+
+def test_no_problem_names_where_the_bundle_lies(bundle_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A library's message that carries the absolute file name (an OSError's does) is cut to the relative path.
+    def failing_header(path: Path, *, name: str | None = None) -> None:
+        raise InputError(f"{name}: cannot be read ({path}: input/output error)")
+
+    monkeypatch.setattr(panogs_core.bundle, "read_image_header", failing_header)
+    problems = _problems(bundle_dir)
+    assert "depth/000000.png: cannot be read (depth/000000.png: input/output error)" in problems
+    assert not any(str(bundle_dir) in p or str(bundle_dir.resolve()) in p for p in problems)
+
+
+def test_synthetic_bundle_fits_the_default_limits(bundle_dir: Path) -> None:
+    # The service's defaults (docs/service.md, Limits) are far above what a real manifest needs.
+    assert (bundle_dir / "scene.json").stat().st_size < 16 * 1024**2
+    scene = open_bundle(
+        bundle_dir, limits=BundleLimits(json=JsonLimits(max_bytes=16 * 1024**2), max_image_pixels=40_000_000)
+    )
+    assert len(scene.frames) == 3

@@ -34,7 +34,7 @@ def create_scene(
     # An archive may expand only as far as the tenant's quota and the free disk allow, not to the bundle limit.
     limit, reason = lifecycle.extraction_limit(session, settings, storage, tenant.id)
     try:
-        scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=limit)
+        scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=limit, settings=settings)
     except InvalidBundle as exc:
         if any("exceeds the limit" in p for p in exc.problems or []):
             exc.problems = [*(exc.problems or []), f"the extraction limit of {limit:,} bytes is set by {reason}"]

@@ -1,0 +1,196 @@
+"""Hostile JSON and images at the API (issue 14, items 2, 4 and 5): each is a 422 naming the file or field, the
+limit and its setting, never a 500, and a refused bundle leaves nothing on disk."""
+
+from __future__ import annotations
+
+import io
+import struct
+import zipfile
+import zlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from svc_helpers import RecordingSender, edit_manifest, make_scene, new_key, pack, upload_bytes, write_tiny_bundle
+
+from service.main import create_app
+from service.settings import Settings
+
+
+def _refused(client: TestClient, auth: dict[str, str], data: bytes, settings: Settings) -> dict[str, Any]:
+    """Upload ``data``, try to make a scene; assert 422 and that nothing stayed behind."""
+    upload = upload_bytes(client, auth, data, filename="bad.zip")
+    response = client.post("/v1/scenes", json={"upload_id": upload["id"]}, headers=auth)
+    assert response.status_code == 422, response.text
+    body = dict(response.json())
+    assert body["type"] == "invalid_bundle"
+    assert "nothing was kept" in body["message"]
+    for sub in ("scenes", "uploads"):
+        folder = settings.storage / sub
+        assert not folder.exists() or not any(folder.iterdir()), f"{sub} not empty"
+    for host_path in (str(settings.storage), str(settings.data_dir.resolve()), str(settings.data_dir)):
+        assert host_path not in response.text
+    return body
+
+
+def _bundle(tmp_path: Path, mutate: Callable[[Path], object]) -> bytes:
+    root = write_tiny_bundle(tmp_path / "bundle")
+    mutate(root)
+    return pack(root)
+
+
+def _nested(levels: int) -> Any:
+    value: Any = 1
+    for _ in range(levels):
+        value = {"a": value}
+    return value
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _zeros_png(width: int, height: int) -> bytes:
+    """A complete, valid 16-bit grey PNG of zeros, compressed row by row (never held whole in memory)."""
+    compressor = zlib.compressobj(9)
+    row = b"\x00" * (1 + 2 * width)  # filter byte, then the row
+    data = b"".join(compressor.compress(row) for _ in range(height)) + compressor.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", data) + _png_chunk(b"IEND", b"")
+
+
+class TestBundleJson:
+    def test_deep_scene_json(
+        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
+    ) -> None:
+        def deep_pose(root: Path) -> None:
+            edit_manifest(root, lambda m: m["frames"][0].update(pose=_nested(500)))
+
+        body = _refused(client, auth, _bundle(tmp_path, deep_pose), settings)
+        assert any(
+            p.startswith("scene.json: nested deeper than the JSON depth limit of 64 levels at frames[0].pose.a.a")
+            for p in body["problems"]
+        ), body
+        assert "the JSON depth limit is set by PANOGS_MAX_JSON_DEPTH" in body["problems"]
+
+    def test_huge_integer_in_scene_json(
+        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
+    ) -> None:
+        def huge_width(root: Path) -> None:
+            text = (root / "scene.json").read_text()
+            (root / "scene.json").write_text(text.replace('"width": 64', '"width": ' + "7" * 6000, 1))
+
+        body = _refused(client, auth, _bundle(tmp_path, huge_width), settings)
+        assert any("scene.json: an integer of 6,000 digits at camera.width" in p for p in body["problems"]), body
+        assert "the JSON integer limit is set by PANOGS_MAX_JSON_INT_DIGITS" in body["problems"]
+
+    def test_deep_vocabulary_json(
+        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
+    ) -> None:
+        def deep_vocabulary(root: Path) -> None:
+            (root / "vocabulary.json").write_text('{"classes": ' + "[" * 100_000 + "]" * 100_000 + "}")
+
+        body = _refused(client, auth, _bundle(tmp_path, deep_vocabulary), settings)
+        assert any(p.startswith("vocabulary.json: nested deeper than the JSON depth limit") for p in body["problems"])
+
+    def test_json_size_is_a_setting(self, make_settings: Callable[..., Settings], tmp_path: Path) -> None:
+        settings = make_settings("sqlite", bundle_max_json_bytes=500)
+        auth = new_key(settings)
+        with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+            body = _refused(client, auth, pack(write_tiny_bundle(tmp_path / "b")), settings)
+        assert any("scene.json: " in p and "over the JSON size limit of 500 bytes" in p for p in body["problems"])
+        assert "the JSON size limit is set by PANOGS_BUNDLE_MAX_JSON_BYTES" in body["problems"]
+
+
+class TestImages:
+    def test_huge_mask_is_refused_from_its_header(
+        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
+    ) -> None:
+        # 8000 x 8000 x 16 bits = 128 MB of pixels in a PNG of about 130 KB: over the 40 M pixel default.
+        mask = _zeros_png(8000, 8000)
+        assert len(mask) < 1_000_000
+        data = _bundle(tmp_path, lambda root: (root / "masks/000001.png").write_bytes(mask))
+        body = _refused(client, auth, data, settings)
+        expected = "masks/000001.png: 8000x8000 (64,000,000 pixels), over the pixel limit of 40,000,000"
+        assert expected in body["problems"], body
+        assert "the pixel limit is set by PANOGS_MAX_IMAGE_PIXELS" in body["problems"]
+
+    def test_pixel_limit_is_a_setting(self, make_settings: Callable[..., Settings], tmp_path: Path) -> None:
+        settings = make_settings("sqlite", max_image_pixels=3_000)  # the tiny bundle's images are 64 x 48 = 3,072
+        auth = new_key(settings)
+        with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+            body = _refused(client, auth, pack(write_tiny_bundle(tmp_path / "b")), settings)
+        assert "depth/000000.png: 64x48 (3,072 pixels), over the pixel limit of 3,000" in body["problems"]
+
+
+class TestArchiveNames:
+    def test_long_member_name_names_no_host_path(
+        self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
+    ) -> None:
+        buffer = io.BytesIO(pack(write_tiny_bundle(tmp_path / "b")))
+        with zipfile.ZipFile(buffer, "a") as zf:
+            zf.writestr("color/" + "c" * 400 + ".png", b"x")
+        body = _refused(client, auth, buffer.getvalue(), settings)
+        assert any(p.startswith("color/ccc") and "over the limit of 255" in p for p in body["problems"]), body
+
+
+class TestRequestBodies:
+    def test_deep_job_config_is_422_naming_the_limit(
+        self, client: TestClient, auth: dict[str, str], tiny_zip: bytes
+    ) -> None:
+        scene = make_scene(client, auth, tiny_zip)
+        for levels in (300, 100_000):  # a few KB (it broke pydantic's serializer), and past the parser's recursion
+            response = client.post("/v1/jobs", json={"scene_id": scene["id"], "config": _nested(1)}, headers=auth)
+            assert response.status_code == 422  # 'a' is no config key: the ordinary refusal
+            deep = '{"a": ' * levels + "1" + "}" * levels
+            body = f'{{"scene_id": "{scene["id"]}", "config": {deep}}}'
+            response = client.post("/v1/jobs", content=body, headers={**auth, "Content-Type": "application/json"})
+            assert response.status_code == 422, response.text
+            answer = response.json()
+            assert answer["type"] == "invalid_input"
+            assert "PANOGS_MAX_JSON_DEPTH" in answer["message"]
+            assert answer["problems"][0].startswith(
+                "request body: nested deeper than the JSON depth limit of 64 levels at config.a.a.a.a.a..."
+            )
+        assert client.get("/v1/jobs", headers=auth).json()["count"] == 0
+
+    def test_huge_integer_in_a_body(self, client: TestClient, auth: dict[str, str], tiny_zip: bytes) -> None:
+        scene = make_scene(client, auth, tiny_zip)
+        stride = "9" * 10_000
+        body = f'{{"scene_id": "{scene["id"]}", "config": {{"primitives": {{"frame_stride": {stride}}}}}}}'
+        response = client.post("/v1/jobs", content=body, headers={**auth, "Content-Type": "application/json"})
+        assert response.status_code == 422, response.text
+        assert "PANOGS_MAX_JSON_INT_DIGITS" in response.json()["message"]
+        assert "at config.primitives.frame_stride" in response.json()["problems"][0]
+
+    @pytest.mark.parametrize("content_type", [None, "application/json; charset=utf-8", "application/merge-patch+json"])
+    def test_every_body_fastapi_reads_as_json_is_checked(
+        self, client: TestClient, auth: dict[str, str], content_type: str | None
+    ) -> None:
+        headers = dict(auth) if content_type is None else {**auth, "Content-Type": content_type}
+        response = client.post("/v1/scenes", content=b"[" * 50_000, headers=headers)
+        assert response.status_code == 422
+        assert "JSON depth limit" in response.json()["problems"][0]
+
+    def test_bodies_within_the_limits_are_unchanged(
+        self, make_settings: Callable[..., Settings], tiny_zip: bytes
+    ) -> None:
+        settings = make_settings("sqlite", max_json_depth=5)  # scene.json needs 5 (frames[i].pose rows)
+        auth = new_key(settings)
+        with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+            scene = make_scene(client, auth, tiny_zip)
+            ok = {"scene_id": scene["id"], "config": {"language_field": {"device": "cpu"}}}  # 3 levels
+            assert client.post("/v1/jobs", json=ok, headers=auth).status_code == 202
+            five = {"scene_id": scene["id"], "config": {"language_field": {"device": [["cpu"]]}}}
+            assert "JSON depth limit" not in client.post("/v1/jobs", json=five, headers=auth).text
+            six = {"scene_id": scene["id"], "config": {"language_field": {"device": [[["cpu"]]]}}}
+            response = client.post("/v1/jobs", json=six, headers=auth)
+            assert response.status_code == 422
+            assert "depth limit of 5 levels at config.language_field.device[0][0]" in response.json()["problems"][0]
+            bad = client.post(
+                "/v1/jobs", content=b'{"scene_id": ', headers={**auth, "Content-Type": "application/json"}
+            )
+            assert bad.status_code == 422  # not JSON: FastAPI's own answer, which names the position
+            assert bad.json()["type"] == "invalid_input"
