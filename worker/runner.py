@@ -290,11 +290,12 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         )
     out_dir = env.storage.job_dir(job.id)
     out_dir.mkdir(parents=True, exist_ok=True)
+    bundle_dir = env.storage.path(scene.bundle_path)
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
             result = env.pipeline(
-                env.storage.path(scene.bundle_path),
+                bundle_dir,
                 out_dir,
                 config,
                 vocabulary=vocabulary,
@@ -326,7 +327,7 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             JobState.FAILED,
             stage_timings=tracker.timings,
             error_type=type(exc).__name__,
-            error_message=str(exc)[:10_000],
+            error_message=without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000],
         )
     tracker.close_stage(time.monotonic())
     timings = merge_timings(tracker.timings, getattr(result, "timings", None))
@@ -341,6 +342,17 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         stage=None,
         stage_timings=timings,
     )
+
+
+def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
+    """``message`` as the job's owner may read it: a path inside one of ``folders`` (the job's bundle, its output
+    folder) is named relative to that folder, anything else under the storage or data folder relative to it,
+    so that no error of a job tells where the host keeps its files (docs/service.md)."""
+    roots = [*folders, env.storage.root, env.settings.data_dir.resolve()]
+    for root in roots:
+        for form in dict.fromkeys((str(root), str(root.resolve()))):  # as given and resolved (symlinked mounts)
+            message = message.replace(form + "/", "").replace(form, ".")
+    return message
 
 
 def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
@@ -403,7 +415,7 @@ def _finish(job_id: uuid.UUID, lease: str, env: JobEnv, state: JobState, **value
 def record_crash(job_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:
     """Fail a job after an unexpected error at the task boundary (best effort; the error is re-raised
     there)."""
-    message = f"{type(exc).__name__}: {exc}"[:10_000]
+    message = without_host_paths(f"{type(exc).__name__}: {exc}", env)[:10_000]
     try:
         _finish(job_id, lease, env, JobState.FAILED, error_type="InternalError", error_message=message)
     except Exception:  # the original error matters more than this one

@@ -18,6 +18,7 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 from wk_helpers import read_job, update_job
 
+from panogs_core.errors import InputError
 from service.db.base import utcnow
 from service.db.models import JobState
 from service.settings import Settings
@@ -299,3 +300,18 @@ class TestVocabulary:
         assert state == JobState.FAILED
         assert seen == []
         assert "duplicate class names" in (read_job(settings, job_id).error_message or "")
+
+
+class TestErrorMessages:
+    def test_a_failed_job_names_no_host_path(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
+        """The pipeline's messages name files by absolute path (the CLI user wants that); the job's owner reads
+        them relative to the bundle or the output folder, with no trace of where the host keeps its files."""
+        job_id = make_job()
+
+        def fails(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            raise InputError(f"{bundle / 'scene.json'}: broken; see {out_dir / 'stages'} and {settings.storage}")
+
+        assert _run(make_env(fails), job_id) == JobState.FAILED
+        message = read_job(settings, job_id).error_message or ""
+        assert message == "scene.json: broken; see stages and ."
+        assert str(settings.data_dir) not in message
