@@ -142,7 +142,7 @@ def describe_name(spec: str) -> str:
     """``spec`` quoted when it looks like a label-set name, else a description that does not repeat it."""
     if _PLAIN_NAME.fullmatch(spec.strip()):
         return repr(spec.strip())
-    return f"(a {len(spec)}-character value that is not a label-set name)"
+    return f"(a value of {len(spec)} characters that is not a label-set name)"
 
 
 def inline_vocabulary(
