@@ -36,9 +36,11 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from panogs_core.labelsets import resolve_vocabulary
+    from panogs_core.labelsets import vocabulary_from_name_or_file
 
-    vocabulary = resolve_vocabulary(args.vocabulary, feature_space=args.feature_space) if args.vocabulary else None
+    vocabulary = (
+        vocabulary_from_name_or_file(args.vocabulary, feature_space=args.feature_space) if args.vocabulary else None
+    )
     common: dict[str, Any] = {
         "stride": args.stride,
         "vocabulary": vocabulary,
@@ -219,15 +221,22 @@ def format_metrics(metrics: dict[str, Any]) -> str:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from panogs_core.config import PipelineConfig
+    from panogs_core.labelsets import is_builtin_name, vocabulary_from_name_or_file
     from panogs_core.pipeline import run_pipeline
+    from panogs_core.types import Vocabulary
 
     cfg = PipelineConfig.from_yaml(Path(args.config)) if args.config else PipelineConfig()
+    # The CLI's user owns the disk: a --vocabulary that is no built-in name is read here, as a file; the pipeline
+    # itself takes only names and parsed vocabularies (docs/service.md, "Which request fields reach the host").
+    vocabulary: str | Vocabulary | None = args.vocabulary
+    if args.vocabulary is not None and not is_builtin_name(args.vocabulary):
+        vocabulary = vocabulary_from_name_or_file(args.vocabulary)
     if args.set:
         cfg = cfg.with_overrides(_parse_overrides(args.set))
     progress = stage_reporter(args.quiet, sys.stderr)
     try:
         result = run_pipeline(
-            args.bundle, args.out, cfg, vocabulary=args.vocabulary, on_progress=progress, resume=not args.no_resume
+            args.bundle, args.out, cfg, vocabulary=vocabulary, on_progress=progress, resume=not args.no_resume
         )
     finally:
         progress.close()

@@ -1,4 +1,4 @@
-"""Label sets (vocabularies): the two built-in indoor sets, ``vocabulary.json`` files, and their embeddings.
+"""Label sets (vocabularies): the two built-in indoor sets, ``vocabulary.json`` files, inline lists, embeddings.
 
 A :class:`~panogs_core.types.Vocabulary` carries class names, a thing/stuff kind per class and, once resolved,
 unit text embeddings ``(L, D)`` in the feature space of the scene (docs/method.md §1.6). The built-in sets ship the
@@ -12,6 +12,8 @@ probabilities (instance scores in ``labeling``, query scores in ``query``), see 
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -85,9 +87,11 @@ def builtin_vocabulary(name: str, *, feature_space: str | None = None) -> Vocabu
     """
     key = name.strip().lower()
     if key not in BUILTIN_VOCABULARIES:
-        raise InputError(f"vocabulary {name!r}: unknown built-in label set (known: {', '.join(BUILTIN_VOCABULARIES)})")
+        raise InputError(
+            f"vocabulary {describe_name(name)}: unknown built-in label set (known: {', '.join(BUILTIN_VOCABULARIES)})"
+        )
     names, filename = BUILTIN_VOCABULARIES[key]
-    kinds = tuple(_default_kind(n) for n in names)
+    kinds = tuple(default_kind(n) for n in names)
     if feature_space is not None and feature_space != BUILTIN_SPACE:
         return Vocabulary(names=names, kinds=kinds)
     emb = np.load(_LABEL_DIR / filename, allow_pickle=False)
@@ -124,8 +128,57 @@ def load_vocabulary_file(path: str | Path) -> Vocabulary:
     return Vocabulary(names=names, kinds=kinds, embeddings=embeddings)
 
 
-def resolve_vocabulary(spec: str, *, feature_space: str | None = None) -> Vocabulary:
-    """A vocabulary from a built-in name (``scannet20`` | ``matterport21``) or a ``vocabulary.json`` path.
+def is_builtin_name(spec: str) -> bool:
+    """True when ``spec`` names a shipped label set (case-insensitive, surrounding blanks ignored)."""
+    return spec.strip().lower() in BUILTIN_VOCABULARIES
+
+
+# A value that looks like a label-set name is echoed in messages; anything else (a path, a long or odd string) is
+# not, so that a message never repeats a host path (docs/service.md, "Which request fields reach the host").
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def describe_name(spec: str) -> str:
+    """``spec`` quoted when it looks like a label-set name, else a description that does not repeat it."""
+    if _PLAIN_NAME.fullmatch(spec.strip()):
+        return repr(spec.strip())
+    return f"(a value of {len(spec)} characters that is not a label-set name)"
+
+
+def inline_vocabulary(
+    classes: Sequence[Mapping[str, Any]], embeddings: Sequence[Sequence[float]] | None = None, *, source: str
+) -> Vocabulary:
+    """A vocabulary from classes and vectors already in memory (a job's inline vocabulary); opens no file.
+
+    Args:
+        classes: ``[{"name": ..., "kind": "thing" | "stuff"}, ...]``; ``kind`` may be left out (stuff for
+            wall/floor/ceiling, thing otherwise).
+        embeddings: ``(L, D)`` rows, one per class, or None to embed the names later (:func:`ensure_embeddings`).
+        source: Names the origin in messages (e.g. ``job <id> vocabulary``).
+
+    Raises:
+        InputError: no classes, blank or duplicate names, unknown kinds, or embeddings that are not a finite
+            ``(L, D)`` array with non-zero rows.
+    """
+    if not classes:
+        raise InputError(f"{source}: expected at least one class")
+    names, kinds = _parse_classes(list(classes), source=source)
+    if embeddings is None:
+        return Vocabulary(names=names, kinds=kinds)
+    try:
+        emb = np.asarray(embeddings, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{source}: embeddings must be an (L, D) array of numbers: {exc}") from exc
+    if emb.ndim != 2 or emb.shape[0] != len(names) or emb.shape[1] == 0:
+        raise InputError(f"{source}: embeddings must be ({len(names)}, D), one row per class, found {emb.shape}")
+    return Vocabulary(names=names, kinds=kinds, embeddings=_unit_rows(emb, source=f"{source}: embeddings"))
+
+
+def vocabulary_from_name_or_file(spec: str, *, feature_space: str | None = None) -> Vocabulary:
+    """For the CLI only (its user owns the disk): a built-in name or the path of a ``vocabulary.json``.
+
+    The service never calls this: a job's vocabulary is a built-in name (:func:`builtin_vocabulary`) or an
+    inline list of classes (:func:`inline_vocabulary`), so no request can make the worker open a file.
 
     Args:
         spec: Built-in name (case-insensitive) or path.
@@ -134,7 +187,7 @@ def resolve_vocabulary(spec: str, *, feature_space: str | None = None) -> Vocabu
     Raises:
         InputError: neither a built-in name nor an existing file.
     """
-    if spec.strip().lower() in BUILTIN_VOCABULARIES:
+    if is_builtin_name(spec):
         return builtin_vocabulary(spec, feature_space=feature_space)
     path = Path(spec)
     if not path.is_file():
@@ -209,7 +262,8 @@ def default_temperature(feature_space: str | None, embeddings: np.ndarray | None
     return float(np.clip(_SPREAD_TO_TEMPERATURE * (1.0 - mean_off), *_TEMPERATURE_RANGE))
 
 
-def _default_kind(name: str) -> ClassKind:
+def default_kind(name: str) -> ClassKind:
+    """The kind of a class whose entry names none: stuff for wall, floor and ceiling, thing otherwise."""
     return "stuff" if name.strip().lower() in STUFF_NAMES else "thing"
 
 
@@ -220,7 +274,7 @@ def _parse_classes(entries: list[Any], *, source: str) -> tuple[tuple[str, ...],
         name = entry.get("name") if isinstance(entry, dict) else None
         if not isinstance(name, str) or not name.strip():
             raise InputError(f"{source}: classes[{i}] needs a non-empty string 'name', found {entry!r}")
-        kind = entry.get("kind", _default_kind(name))
+        kind = entry.get("kind", default_kind(name))
         if kind not in ("thing", "stuff"):
             raise InputError(f"{source}: classes[{i}] ({name!r}) kind must be 'thing' or 'stuff', found {kind!r}")
         names.append(name.strip())

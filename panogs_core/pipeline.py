@@ -186,20 +186,24 @@ class _Runner:
         return result
 
 
-def resolve_scene_vocabulary(scene: Scene, spec: str | None) -> Vocabulary:
-    """The label set of a run: ``spec`` (name or file) > the bundle's > ScanNet-20 for the CLIP space.
+def resolve_scene_vocabulary(scene: Scene, spec: str | Vocabulary | None) -> Vocabulary:
+    """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for the CLIP space.
 
-    Embeddings are added with the space's text encoder when the chosen vocabulary has none.
+    ``spec`` is a built-in label-set name or an already parsed :class:`Vocabulary`; never a path, so that a
+    service job cannot name a file of the worker's host (the CLI reads a ``--vocabulary FILE`` itself). Embeddings
+    are added with the space's text encoder when the chosen vocabulary has none.
     """
     from panogs_core.errors import InputError
-    from panogs_core.labelsets import ensure_embeddings, resolve_vocabulary
+    from panogs_core.labelsets import builtin_vocabulary, ensure_embeddings
 
-    if spec is not None:
-        vocabulary = resolve_vocabulary(spec, feature_space=scene.feature_space)
+    if isinstance(spec, Vocabulary):
+        vocabulary = spec
+    elif spec is not None:
+        vocabulary = builtin_vocabulary(spec, feature_space=scene.feature_space)
     elif scene.vocabulary is not None:
         vocabulary = scene.vocabulary
     elif scene.feature_space == "clip-vit-b32":
-        vocabulary = resolve_vocabulary("scannet20", feature_space=scene.feature_space)
+        vocabulary = builtin_vocabulary("scannet20", feature_space=scene.feature_space)
     else:
         raise InputError(
             f"{scene.root / 'scene.json'}: the bundle has no vocabulary.json and features.space "
@@ -214,7 +218,7 @@ def run_pipeline(
     out_dir: str | Path,
     config: PipelineConfig | None = None,
     *,
-    vocabulary: str | None = None,
+    vocabulary: str | Vocabulary | None = None,
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
 ) -> PipelineResult:
@@ -224,7 +228,8 @@ def run_pipeline(
         bundle: Bundle folder or archive, or an already opened :class:`Scene`.
         out_dir: Output folder (created). Checkpoints go to ``out_dir/stages``.
         config: Pipeline settings; defaults to :class:`PipelineConfig()`.
-        vocabulary: ``scannet20`` | ``matterport21`` | a vocabulary.json path; overrides the bundle's.
+        vocabulary: ``scannet20`` | ``matterport21`` | a :class:`Vocabulary` (e.g. a job's inline one, or the
+            CLI's ``--vocabulary FILE`` read by the CLI); overrides the bundle's. Never a path.
         on_progress: ``on_progress(stage, done, total)``; may raise :class:`Cancelled` to stop.
         resume: Reuse checkpoints whose keys match.
 
@@ -286,11 +291,18 @@ def run_pipeline(
     return result
 
 
+def _vocabulary_label(spec: str | Vocabulary | None, scene: Scene) -> str:
+    """What report.json says of the run's label set: its built-in name, ``inline``, ``bundle`` or ``default``."""
+    if isinstance(spec, Vocabulary):
+        return "inline"
+    return spec or ("bundle" if scene.vocabulary is not None else "default")
+
+
 def _write_report(
     out: Path,
     scene: Scene,
     cfg: PipelineConfig,
-    vocabulary_spec: str | None,
+    vocabulary_spec: str | Vocabulary | None,
     input_hash: str,
     timings: list[StageStats],
     total_s: float,
@@ -316,7 +328,7 @@ def _write_report(
         "num_frames": len(scene.frames),
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,
-        "vocabulary": vocabulary_spec or ("bundle" if scene.vocabulary is not None else "default"),
+        "vocabulary": _vocabulary_label(vocabulary_spec, scene),
         "stages": stages,
         "total_wall_s": round(total_s, 3),
         "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),

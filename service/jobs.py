@@ -1,4 +1,4 @@
-"""Creating jobs (validated config, idempotency keys) and presenting them."""
+"""Creating jobs (validated config and vocabulary, idempotency keys) and presenting them."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
 from service.lifecycle import check_job_quota
-from service.schemas import JobCreate, JobError, JobPublic
+from service.schemas import InlineVocabulary, InlineVocabularyPublic, JobCreate, JobError, JobPublic
 from service.settings import Settings
 
 
@@ -73,16 +73,18 @@ def create_job(
         earlier = _same_request(session, tenant_id, idempotency_key, fingerprint)
         if earlier is not None:
             return earlier, False
-    if crud.get_owned(session, Scene, body.scene_id, tenant_id) is None:
+    scene = crud.get_owned(session, Scene, body.scene_id, tenant_id)
+    if scene is None:
         raise NotFound("scene", body.scene_id)
     validate_config(body.config, settings.pipeline_function)
+    check_vocabulary(body, scene)
     check_job_quota(session, settings, tenant_id)
     job = Job(
         api_key_id=tenant_id,
         scene_id=body.scene_id,
         state=JobState.QUEUED,
         config=body.config,
-        vocabulary=body.vocabulary,
+        **vocabulary_columns(body),
         queue=settings.job_queue,
         idempotency_key=idempotency_key,
         request_hash=fingerprint,
@@ -98,6 +100,40 @@ def create_job(
             raise
         return earlier, False
     return job, True
+
+
+def check_vocabulary(body: JobCreate, scene: Scene) -> None:
+    """Refuse inline embeddings whose width is not the scene's feature dimension (422), before any row is made."""
+    inline = body.vocabulary
+    if not isinstance(inline, InlineVocabulary) or inline.embedding_dim in (None, scene.feature_dim):
+        return
+    raise InvalidInput(
+        f"vocabulary.classes[*].embedding: {inline.embedding_dim} values per class, but scene {scene.id}'s "
+        f"{scene.feature_space!r} features are {scene.feature_dim}-d; give {scene.feature_dim}-d embeddings or "
+        "leave them out to have the names embedded"
+    )
+
+
+def vocabulary_columns(body: JobCreate) -> dict[str, Any]:
+    """The job row's vocabulary columns for a request: a built-in name, or the inline classes (each with its
+    kind, defaulted as the pipeline would) and their embeddings, or nothing (the bundle's own)."""
+    from panogs_core.labelsets import default_kind
+
+    vocabulary = body.vocabulary
+    if not isinstance(vocabulary, InlineVocabulary):
+        return {"vocabulary": vocabulary, "vocabulary_classes": None, "vocabulary_embeddings": None}
+    classes = [{"name": c.name, "kind": c.kind or default_kind(c.name)} for c in vocabulary.classes]
+    embeddings = None
+    if vocabulary.embedding_dim is not None:
+        embeddings = [list(c.embedding or ()) for c in vocabulary.classes]
+    return {"vocabulary": None, "vocabulary_classes": classes, "vocabulary_embeddings": embeddings}
+
+
+def public_vocabulary(name: str | None, classes: list[dict[str, str]] | None) -> str | InlineVocabularyPublic | None:
+    """The API view of a job's label set: its built-in name, its inline classes, or None (the bundle's)."""
+    if classes is not None:
+        return InlineVocabularyPublic.model_validate({"classes": classes})
+    return name
 
 
 def _same_request(session: Session, tenant_id: uuid.UUID, key: str, fingerprint: str) -> Job | None:
@@ -128,7 +164,7 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         stage_timings=job.stage_timings or {},
         error=error,
         config=job.config or {},
-        vocabulary=job.vocabulary,
+        vocabulary=public_vocabulary(job.vocabulary, job.vocabulary_classes),
         cancel_requested=job.cancel_requested,
         attempts=job.attempts,
         created_at=job.created_at,

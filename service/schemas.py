@@ -5,15 +5,30 @@ from __future__ import annotations
 import math
 import uuid
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    StringConstraints,
+    Tag,
+    field_validator,
+    model_validator,
+)
 
+from panogs_core.labelsets import BUILTIN_VOCABULARIES, describe_name, is_builtin_name
 from service.db.models import JobState, UploadState
 
-MAX_VOCABULARY_CHARS = 20_000
 MAX_QUERY_CHARS = 1_000
 MAX_VECTOR_DIM = 8_192
+# An inline vocabulary (POST /v1/jobs): classes, characters per name, and numbers over all embeddings. The JSON body
+# cap (PANOGS_MAX_JSON_BODY_BYTES, 1 MiB by default) is usually the tighter bound on the embeddings.
+MAX_VOCABULARY_CLASSES = 1_000
+MAX_CLASS_NAME_CHARS = 200
+MAX_VOCABULARY_VALUES = 1 << 20
 
 
 MAX_OFFSET = 1_000_000_000  # list offsets beyond this are refused (they could never find a row)
@@ -98,6 +113,107 @@ class ScenesPublic(BaseModel):
 # Jobs ------------------------------------------------------------------------------------------------------
 
 
+def _builtin_name(value: str) -> str:
+    if not is_builtin_name(value):
+        raise ValueError(
+            f"{describe_name(value)} is not a built-in label set (known: {', '.join(BUILTIN_VOCABULARIES)}); "
+            'a job\'s vocabulary is one of those names or an inline {"classes": [...]}, never a file'
+        )
+    return value.strip().lower()
+
+
+BuiltinVocabularyName = Annotated[
+    str,
+    StringConstraints(min_length=1, max_length=64),
+    AfterValidator(_builtin_name),
+    Field(description=f"a shipped label set: {' | '.join(BUILTIN_VOCABULARIES)} (case-insensitive)"),
+]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class VocabularyClassIn(BaseModel):
+    """One class of an inline vocabulary."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=MAX_CLASS_NAME_CHARS)]
+    kind: Literal["thing", "stuff"] | None = Field(
+        default=None, description="default: stuff for wall, floor and ceiling, thing otherwise"
+    )
+    embedding: list[FiniteFloat] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=MAX_VECTOR_DIM,
+        description="(D,) text embedding in the scene's feature space (D = the scene's feature_dim); "
+        "give one for every class or for none (the worker then embeds the names)",
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, v: str) -> str:
+        if not v.isprintable():
+            raise ValueError("the class name holds control or separator characters")
+        return v
+
+    @field_validator("embedding")
+    @classmethod
+    def _not_zero(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and not any(v):
+            raise ValueError("the embedding is all zeros (it has no direction)")
+        return v
+
+
+class InlineVocabulary(BaseModel):
+    """A label set given in the request: class names, optional kinds, optional embeddings."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    classes: list[VocabularyClassIn] = Field(min_length=1, max_length=MAX_VOCABULARY_CLASSES)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> InlineVocabulary:
+        first: dict[str, int] = {}
+        for i, entry in enumerate(self.classes):
+            j = first.setdefault(entry.name.lower(), i)
+            if j != i:
+                raise ValueError(f"classes[{i}].name {entry.name!r} repeats classes[{j}] (compared case-insensitively)")
+        given = [entry.embedding is not None for entry in self.classes]
+        if any(given) and not all(given):
+            missing = given.index(False) if given[0] else given.index(True)
+            raise ValueError(f"classes[{missing}]: give an embedding for every class or for none")
+        dims = [len(entry.embedding) for entry in self.classes if entry.embedding is not None]
+        if dims and any(d != dims[0] for d in dims):
+            other = next(i for i, d in enumerate(dims) if d != dims[0])
+            raise ValueError(f"classes[{other}].embedding has {dims[other]} values, classes[0].embedding {dims[0]}")
+        if sum(dims) > MAX_VOCABULARY_VALUES:
+            raise ValueError(f"the embeddings hold {sum(dims)} numbers, over the limit of {MAX_VOCABULARY_VALUES}")
+        return self
+
+    @property
+    def embedding_dim(self) -> int | None:
+        """D of the embeddings, or None when the classes carry none."""
+        first = self.classes[0].embedding
+        return None if first is None else len(first)
+
+
+def _vocabulary_form(value: Any) -> str | None:
+    if isinstance(value, str):
+        return "builtin"
+    if isinstance(value, dict | InlineVocabulary):
+        return "inline"
+    return None
+
+
+JobVocabulary = Annotated[
+    Annotated[BuiltinVocabularyName, Tag("builtin")] | Annotated[InlineVocabulary, Tag("inline")],
+    Discriminator(
+        _vocabulary_form,
+        custom_error_type="vocabulary_form",
+        custom_error_message='expected a built-in label-set name or an inline {"classes": [...]}',
+    ),
+]
+
+
 class JobCreate(BaseModel):
     """Run the pipeline on a scene."""
 
@@ -108,11 +224,24 @@ class JobCreate(BaseModel):
         default_factory=dict,
         description="PipelineConfig overrides, nested by stage; unknown keys are refused",
     )
-    vocabulary: str | None = Field(
+    vocabulary: JobVocabulary | None = Field(
         default=None,
-        max_length=MAX_VOCABULARY_CHARS,
-        description="label set for this run (as `panogs run --vocabulary`); default: the bundle's",
+        description="label set for this run: a built-in name, or inline classes; default: the bundle's own "
+        "(docs/service.md, Which request fields reach the host: never a file)",
     )
+
+
+class VocabularyClassPublic(BaseModel):
+    """One class of a job's inline vocabulary, with its kind as the run uses it."""
+
+    name: str
+    kind: Literal["thing", "stuff"]
+
+
+class InlineVocabularyPublic(BaseModel):
+    """A job's inline vocabulary as the API shows it: the classes (embeddings are not echoed)."""
+
+    classes: list[VocabularyClassPublic]
 
 
 class JobError(BaseModel):
@@ -133,7 +262,9 @@ class JobPublic(BaseModel):
     stage_timings: dict[str, float] = Field(description="seconds per finished stage")
     error: JobError | None
     config: dict[str, Any]
-    vocabulary: str | None
+    vocabulary: str | InlineVocabularyPublic | None = Field(
+        description="the built-in label set asked for, the inline classes, or null: the bundle's own"
+    )
     cancel_requested: bool
     attempts: int
     created_at: datetime

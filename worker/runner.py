@@ -12,6 +12,8 @@
   through, between and inside stages.
 - **Resume**: the pipeline runs with ``resume=True`` in the job's own folder, so a job claimed again after its
   worker died reuses the checkpoints of the stages that finished.
+- **Vocabulary**: the pipeline gets a built-in label-set name or the job's inline classes, parsed here; never a
+  string that could name a file (:func:`job_vocabulary`, docs/service.md "Which request fields reach the host").
 """
 
 from __future__ import annotations
@@ -27,10 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from sqlalchemy import select
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from panogs_core.errors import Cancelled, PanoGSError
+from panogs_core.types import Vocabulary
 from service.db import crud
 from service.db.faults import DatabaseFault, classify
 from service.db.models import Artifact, Job, JobState
@@ -64,7 +68,7 @@ class PipelineFn(Protocol):
         out_dir: Path,
         config: Any,
         *,
-        vocabulary: str | None,
+        vocabulary: str | Vocabulary | None,
         on_progress: Callable[[str, int, int], None],
         resume: bool,
     ) -> Any: ...
@@ -248,9 +252,33 @@ def _claim(job_id: uuid.UUID, lease: str, worker: str, env: JobEnv) -> Job | Non
         return job
 
 
+def job_vocabulary(session: Session, job: Job) -> str | Vocabulary | None:
+    """What the pipeline gets as the job's label set: a built-in name (the pipeline resolves names only), the
+    job's inline classes and embeddings as a :class:`Vocabulary`, or None for the bundle's own.
+
+    Raises:
+        InputError: the stored value is not a built-in name (a row from before inline vocabularies that named a
+            file: refused without repeating it), or the inline classes do not parse.
+    """
+    from panogs_core.labelsets import builtin_vocabulary, inline_vocabulary, is_builtin_name
+
+    if job.vocabulary_classes is not None:
+        embeddings = session.scalar(select(Job.vocabulary_embeddings).where(Job.id == job.id))
+        return inline_vocabulary(job.vocabulary_classes, embeddings, source=f"job {job.id} vocabulary")
+    if job.vocabulary is not None and not is_builtin_name(job.vocabulary):
+        builtin_vocabulary(job.vocabulary)  # raises, with a message that names no path
+    return job.vocabulary
+
+
 def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
-    with session_scope(env.session_factory) as session:
-        scene = crud.get_scene(session, job.scene_id)
+    try:
+        with session_scope(env.session_factory) as session:
+            scene = crud.get_scene(session, job.scene_id)
+            vocabulary = job_vocabulary(session, job)
+    except PanoGSError as exc:
+        return _finish(
+            job.id, tracker.lease, env, JobState.FAILED, error_type=type(exc).__name__, error_message=str(exc)
+        )
     if scene is None:
         return _finish(
             job.id,
@@ -262,14 +290,15 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         )
     out_dir = env.storage.job_dir(job.id)
     out_dir.mkdir(parents=True, exist_ok=True)
+    bundle_dir = env.storage.path(scene.bundle_path)
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
             result = env.pipeline(
-                env.storage.path(scene.bundle_path),
+                bundle_dir,
                 out_dir,
                 config,
-                vocabulary=job.vocabulary,
+                vocabulary=vocabulary,
                 on_progress=tracker.on_progress,
                 resume=True,
             )
@@ -298,7 +327,7 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             JobState.FAILED,
             stage_timings=tracker.timings,
             error_type=type(exc).__name__,
-            error_message=str(exc)[:10_000],
+            error_message=without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000],
         )
     tracker.close_stage(time.monotonic())
     timings = merge_timings(tracker.timings, getattr(result, "timings", None))
@@ -313,6 +342,17 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         stage=None,
         stage_timings=timings,
     )
+
+
+def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
+    """``message`` as the job's owner may read it: a path inside one of ``folders`` (the job's bundle, its output
+    folder) is named relative to that folder, anything else under the storage or data folder relative to it,
+    so that no error of a job tells where the host keeps its files (docs/service.md)."""
+    roots = [*folders, env.storage.root, env.settings.data_dir.resolve()]
+    for root in roots:
+        for form in dict.fromkeys((str(root), str(root.resolve()))):  # as given and resolved (symlinked mounts)
+            message = message.replace(form + "/", "").replace(form, ".")
+    return message
 
 
 def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
@@ -375,7 +415,7 @@ def _finish(job_id: uuid.UUID, lease: str, env: JobEnv, state: JobState, **value
 def record_crash(job_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:
     """Fail a job after an unexpected error at the task boundary (best effort; the error is re-raised
     there)."""
-    message = f"{type(exc).__name__}: {exc}"[:10_000]
+    message = without_host_paths(f"{type(exc).__name__}: {exc}", env)[:10_000]
     try:
         _finish(job_id, lease, env, JobState.FAILED, error_type="InternalError", error_message=message)
     except Exception:  # the original error matters more than this one

@@ -54,7 +54,8 @@ def list_owned(
 def read_job_row(conn: Connection, job_id: uuid.UUID, tenant_id: uuid.UUID) -> Row[Any] | None:
     """A tenant's job as a plain row (attribute access like the model), in one statement."""
     table = Job.__table__
-    stmt = select(table).where(table.c.id == job_id, table.c.api_key_id == tenant_id)
+    shown = [column for column in table.c if column.name != "vocabulary_embeddings"]  # the poll never needs them
+    stmt = select(*shown).where(table.c.id == job_id, table.c.api_key_id == tenant_id)
     return conn.execute(stmt).first()
 
 

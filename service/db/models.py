@@ -115,7 +115,12 @@ class Job(IdMixin, TimestampedMixin, Base):
     progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0..1 over all stages
     stage_timings: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)  # stage -> seconds
     config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # overrides as given
+    # The label set: a built-in name in ``vocabulary``, or an inline list in ``vocabulary_classes`` (name and kind per
+    # class) with its (L, D) ``vocabulary_embeddings`` (or NULL: the worker embeds the names); both NULL: the
+    # bundle's own. Never a path (docs/service.md). The embeddings are deferred: the status poll never reads them.
     vocabulary: Mapped[str | None] = mapped_column(Text)
+    vocabulary_classes: Mapped[list[dict[str, str]] | None] = mapped_column(JSON(none_as_null=True))
+    vocabulary_embeddings: Mapped[list[list[float]] | None] = mapped_column(JSON(none_as_null=True), deferred=True)
     queue: Mapped[str] = mapped_column(String(64))
     idempotency_key: Mapped[str | None] = mapped_column(String(255))
     request_hash: Mapped[str] = mapped_column(String(64))  # tells a retry from a reuse of the key

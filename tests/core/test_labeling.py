@@ -24,8 +24,9 @@ from panogs_core.labelsets import (
     builtin_vocabulary,
     default_temperature,
     ensure_embeddings,
+    inline_vocabulary,
     load_vocabulary_file,
-    resolve_vocabulary,
+    vocabulary_from_name_or_file,
 )
 from panogs_core.types import Vocabulary
 
@@ -335,8 +336,8 @@ class TestLabelSets:
         assert v.kinds == ("stuff", "thing")
         assert v.embeddings is not None
         np.testing.assert_allclose(v.embeddings, np.eye(2))
-        assert resolve_vocabulary(str(tmp_path / "vocabulary.json")).names == v.names
-        assert resolve_vocabulary("SCANNET20").names[0] == "wall"
+        assert vocabulary_from_name_or_file(str(tmp_path / "vocabulary.json")).names == v.names
+        assert vocabulary_from_name_or_file("SCANNET20").names[0] == "wall"
 
     @pytest.mark.parametrize(
         ("doc", "match"),
@@ -358,10 +359,47 @@ class TestLabelSets:
 
     def test_resolve_exception(self, tmp_path: Path) -> None:
         with pytest.raises(InputError, match="no such file"):
-            resolve_vocabulary(str(tmp_path / "nope.json"))
+            vocabulary_from_name_or_file(str(tmp_path / "nope.json"))
         (tmp_path / "bad.json").write_text("{not json")
         with pytest.raises(InputError, match="cannot read a vocabulary"):
-            resolve_vocabulary(str(tmp_path / "bad.json"))
+            vocabulary_from_name_or_file(str(tmp_path / "bad.json"))
+
+    def test_builtin_name_never_opens_a_path(self, tmp_path: Path) -> None:
+        # A vocabulary.json that exists: the name-only resolver (the service's) refuses it without repeating it.
+        doc = {"classes": [{"name": "secret-class"}]}
+        (tmp_path / "vocabulary.json").write_text(json.dumps(doc))
+        for spec in (str(tmp_path / "vocabulary.json"), "/etc/passwd", "../../vocabulary.json"):
+            with pytest.raises(InputError, match="unknown built-in label set") as caught:
+                builtin_vocabulary(spec)
+            assert spec not in str(caught.value)
+            assert "passwd" not in str(caught.value)
+            assert str(tmp_path) not in str(caught.value)
+        with pytest.raises(InputError, match="'coco'"):  # a plain name is echoed, to say what was asked
+            builtin_vocabulary("coco")
+
+    def test_inline_vocabulary(self) -> None:
+        v = inline_vocabulary([{"name": " lamp "}, {"name": "rug", "kind": "stuff"}], [[3, 4], [0, 2]], source="job")
+        assert v.names == ("lamp", "rug")
+        assert v.kinds == ("thing", "stuff")
+        assert v.embeddings is not None
+        assert v.embeddings.dtype == np.float32
+        np.testing.assert_allclose(v.embeddings, [[0.6, 0.8], [0.0, 1.0]], atol=1e-6)
+        assert inline_vocabulary([{"name": "wall"}], None, source="job").kinds == ("stuff",)
+
+    @pytest.mark.parametrize(
+        ("classes", "embeddings", "match"),
+        [
+            ([], None, "at least one class"),
+            ([{"name": "a"}, {"name": "A"}], None, "duplicate"),
+            ([{"name": "a", "kind": "blob"}], None, "kind must be"),
+            ([{"name": "a"}, {"name": "b"}], [[1.0, 0.0]], r"one row per class"),
+            ([{"name": "a"}], [[0.0, 0.0]], "non-zero rows"),
+            ([{"name": "a"}], [[float("nan"), 1.0]], "finite"),
+        ],
+    )
+    def test_inline_exception(self, classes: list[dict[str, str]], embeddings: object, match: str) -> None:
+        with pytest.raises(InputError, match=match):
+            inline_vocabulary(classes, embeddings, source="job x vocabulary")  # type: ignore[arg-type]
 
     def test_ensure_embeddings(self) -> None:
         enc = _FakeEncoder("clip-vit-b32", 8)

@@ -11,7 +11,7 @@ import pytest
 
 from panogs_core.cli import main as cli_main
 from panogs_core.config import PipelineConfig
-from panogs_core.errors import BundleError, Cancelled
+from panogs_core.errors import BundleError, Cancelled, InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.pipeline import STAGES, run_pipeline
 from panogs_core.query import query_instances
@@ -219,3 +219,44 @@ def test_the_gaussian_scene_is_fitted_reported_and_renders(tiny_run: tuple[Path,
     frame = json.loads((out / "cameras.json").read_text())["frames"][0]["id"]
     assert cli_main(["render", str(out), "--frame", frame, "--out", str(tmp_path)]) == 0
     assert (tmp_path / "panoptic.png").is_file()
+
+
+def _renamed_vocabulary(bundle: Path, folder: Path) -> Path:
+    """The bundle's vocabulary.json with every class renamed (same order, kinds and embeddings), in ``folder``."""
+    doc = json.loads((bundle / "vocabulary.json").read_text())
+    for entry in doc["classes"]:
+        entry["name"] = f"my {entry['name']}"
+    folder.mkdir(parents=True)
+    shutil.copy(bundle / doc["embeddings"], folder / "emb.npy")
+    doc["embeddings"] = "emb.npy"
+    (folder / "vocabulary.json").write_text(json.dumps(doc))
+    return folder / "vocabulary.json"
+
+
+def test_cli_run_takes_a_vocabulary_file(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The CLI's user owns the disk: ``--vocabulary FILE`` is read by the CLI, and the run labels with it."""
+    vocabulary = _renamed_vocabulary(tiny_bundle, tmp_path / "mine")
+    out = tmp_path / "cli-vocabulary"
+    shutil.copytree(tiny_run[0] / "stages", out / "stages")  # the label set changes only the labeling stage
+    assert cli_main(["run", str(tiny_bundle), "--out", str(out), "-q", "--vocabulary", str(vocabulary)]) == 0
+    capsys.readouterr()
+    names = [c["name"] for c in json.loads((out / "vocabulary.json").read_text())["classes"]]
+    assert names == [c["name"] for c in json.loads(vocabulary.read_text())["classes"]]
+    instances = json.loads((out / "instances.json").read_text())
+    assert instances
+    assert {i["class_name"] for i in instances} <= set(names)
+    assert json.loads((out / "report.json").read_text())["vocabulary"] == "inline"
+    assert cli_main(["run", str(tiny_bundle), "--out", str(out), "-q", "--vocabulary", str(tmp_path / "no.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_run_pipeline_takes_names_not_paths(tiny_bundle: Path, tmp_path: Path) -> None:
+    """The library (the service's worker path) resolves built-in names only: a path, even of a real
+    vocabulary.json, is refused before the first stage after validate, and the message does not repeat it."""
+    vocabulary = _renamed_vocabulary(tiny_bundle, tmp_path / "mine")
+    with pytest.raises(InputError, match="unknown built-in label set") as caught:
+        run_pipeline(tiny_bundle, tmp_path / "out", vocabulary=str(vocabulary))
+    assert str(vocabulary) not in str(caught.value)
+    assert not (tmp_path / "out" / "labels.npz").exists()

@@ -6,7 +6,9 @@ resumed run skips it. The config overrides it accepts are ``{"fail_at": "<stage>
 ``NumericalError`` there), ``{"stage_s": <seconds>}`` and, as the real config has it,
 ``{"language_field": {"device": ...}}`` (the worker sets it; report.json records it). Select it with
 ``PANOGS_PIPELINE_FUNCTION=scripted_pipeline:run_pipeline`` and ``tests/support`` on the Python path. A test
-double, not shipped: its outputs are placeholders (two instances, "chair" and "table").
+double, not shipped: its outputs are placeholders (two instances, "chair" and "table"; given a parsed
+``Vocabulary``, as the worker passes a job's inline one, they take its first class names and ``vocabulary.json``
+lists its classes). Like the real pipeline it takes a built-in name or a ``Vocabulary``, never a path.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import ConfigError, NumericalError
+from panogs_core.types import Vocabulary
 
 STAGES = ("validate", "primitives", "fusion", "clustering", "labeling", "export")
 STEPS = 5
@@ -66,7 +69,7 @@ def run_pipeline(
     out_dir: str | Path,
     config: dict[str, Any] | None = None,
     *,
-    vocabulary: str | None = None,
+    vocabulary: str | Vocabulary | None = None,
     on_progress: Callable[[str, int, int], None] | None = None,
     resume: bool = True,
 ) -> ScriptedResult:
@@ -93,12 +96,21 @@ def run_pipeline(
             on_progress(stage, STEPS, STEPS)
         marker.write_text("done")
         timings[stage] = time.perf_counter() - start
-    _write_outputs(out, Path(bundle), vocabulary, device_of(config))
-    return ScriptedResult(out_dir=out, instances=INSTANCES, timings=timings)
+    instances = _write_outputs(out, Path(bundle), vocabulary, device_of(config))
+    return ScriptedResult(out_dir=out, instances=instances, timings=timings)
 
 
-def _write_outputs(out: Path, bundle: Path, vocabulary: str | None, device: str) -> None:
-    (out / "instances.json").write_text(json.dumps(INSTANCES))
+def _write_outputs(out: Path, bundle: Path, vocabulary: str | Vocabulary | None, device: str) -> list[dict[str, Any]]:
+    instances = INSTANCES
+    label: str | None = vocabulary if not isinstance(vocabulary, Vocabulary) else "inline"
+    if isinstance(vocabulary, Vocabulary):
+        names = [*vocabulary.names, *vocabulary.names][:2]
+        instances = [
+            {**inst, "class_name": name, "class_index": i} for i, (inst, name) in enumerate(zip(INSTANCES, names))
+        ]
+        classes = [{"name": n, "kind": k} for n, k in zip(vocabulary.names, vocabulary.kinds)]
+        (out / "vocabulary.json").write_text(json.dumps({"classes": classes}))
+    (out / "instances.json").write_text(json.dumps(instances))
     points = np.array([[0.9, 0, 0.5], [1.1, 0, 0.5], [-1.2, 0, 0.4], [-0.8, 0, 0.4]], np.float32)
     semantic = np.array([1, 1, 2, 2], np.int64)
     instance = np.array([0, 0, 1, 1], np.int64)
@@ -111,5 +123,6 @@ def _write_outputs(out: Path, bundle: Path, vocabulary: str | None, device: str)
     rows = [f"{x} {y} {z} 128 128 128 {s} {i}" for (x, y, z), s, i in zip(points, semantic, instance)]
     (out / "panoptic.ply").write_text(header + "\n".join(rows) + "\n")
     (out / "gaussians.ply").write_text(header + "\n".join(rows) + "\n")
-    report = {"scene": bundle.name, "vocabulary": vocabulary, "stages": list(STAGES), "device": device}
+    report = {"scene": bundle.name, "vocabulary": label, "stages": list(STAGES), "device": device}
     (out / "report.json").write_text(json.dumps(report))
+    return instances

@@ -222,12 +222,16 @@ def test_rerun_with_other_settings_then_cancel(
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     row.locator("[data-action=re-run]").click()
     row.locator("textarea").fill('{"clustering": {"thresholds": [0.9, 0.7]}}')
+    row.locator("input[aria-label=vocabulary]").fill("lamp, rug, wall")  # an inline vocabulary, by names
     before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
     row.locator("form button[type=submit]").click()
     new = page.wait_for_selector("#jobs tbody tr[data-job-id]:not([data-state=succeeded])")
     new_id = new.get_attribute("data-job-id")
     assert new_id not in before
-    assert api.get(f"/v1/jobs/{new_id}").json()["config"] == {"clustering": {"thresholds": [0.9, 0.7]}}
+    created = api.get(f"/v1/jobs/{new_id}").json()
+    assert created["config"] == {"clustering": {"thresholds": [0.9, 0.7]}}
+    kinds = {"lamp": "thing", "rug": "thing", "wall": "stuff"}
+    assert created["vocabulary"] == {"classes": [{"name": n, "kind": k} for n, k in kinds.items()]}
     page.locator(f'tr[data-job-id="{new_id}"] [data-action=cancel]').click()
     page.wait_for_selector(f'tr[data-job-id="{new_id}"][data-state=canceled]', timeout=60_000)
 

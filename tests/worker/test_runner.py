@@ -11,12 +11,14 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import scripted_pipeline as scripted
 from sqlalchemy import create_engine, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 from wk_helpers import read_job, update_job
 
+from panogs_core.errors import InputError
 from service.db.base import utcnow
 from service.db.models import JobState
 from service.settings import Settings
@@ -240,3 +242,76 @@ class TestTransient:
         merged = runner.merge_timings({"a": 5.0}, [Stat("a", 0.01, True), Stat("b", 2.0, False)])
         assert merged == {"a": 5.0, "b": 2.0}
         assert runner.merge_timings({}, {"a": 1}) == {"a": 1.0}
+
+
+class TestVocabulary:
+    """What the pipeline is handed as the job's label set: names as names, inline classes parsed, no paths."""
+
+    def _seen(self, make_env: Env, job_id: uuid.UUID) -> tuple[JobState | None, list[Any]]:
+        seen: list[Any] = []
+
+        def spy(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            seen.append(kw["vocabulary"])
+            return scripted.run_pipeline(bundle, out_dir, config, **kw)
+
+        return _run(make_env(spy), job_id), seen
+
+    def test_inline_names_without_embeddings(self, make_env: Env, make_job: MakeJob) -> None:
+        classes = [{"name": "lamp", "kind": "thing"}, {"name": "rug", "kind": "stuff"}]
+        state, seen = self._seen(make_env, make_job(vocabulary_classes=classes))
+        assert state == JobState.SUCCEEDED
+        (vocabulary,) = seen
+        assert (vocabulary.names, vocabulary.kinds, vocabulary.embeddings) == (
+            ("lamp", "rug"),
+            ("thing", "stuff"),
+            None,
+        )
+
+    def test_inline_with_embeddings(self, make_env: Env, make_job: MakeJob) -> None:
+        job_id = make_job(vocabulary_classes=[{"name": "lamp", "kind": "thing"}], vocabulary_embeddings=[[0, 3, 4]])
+        state, seen = self._seen(make_env, job_id)
+        assert state == JobState.SUCCEEDED
+        np.testing.assert_allclose(seen[0].embeddings, [[0.0, 0.6, 0.8]], atol=1e-6)  # unit rows, float32
+
+    def test_builtin_name_is_passed_as_a_name(self, make_env: Env, make_job: MakeJob) -> None:
+        state, seen = self._seen(make_env, make_job(vocabulary="matterport21"))
+        assert state == JobState.SUCCEEDED
+        assert seen == ["matterport21"]
+
+    @pytest.mark.parametrize("stored", ["/etc/passwd", "vocabulary.json", "../scenes/x/bundle/vocabulary.json"])
+    def test_a_stored_path_fails_the_job_unread(
+        self, make_env: Env, make_job: MakeJob, settings: Settings, stored: str
+    ) -> None:
+        job_id = make_job(vocabulary=stored)
+        state, seen = self._seen(make_env, job_id)
+        assert state == JobState.FAILED
+        assert seen == []
+        job = read_job(settings, job_id)
+        assert job.error_type == "InputError"
+        assert job.error_message is not None
+        assert "unknown built-in label set" in job.error_message
+        assert stored not in job.error_message
+        assert "passwd" not in job.error_message
+        assert "vocabulary.json" not in job.error_message
+
+    def test_broken_inline_classes_fail_the_job(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
+        job_id = make_job(vocabulary_classes=[{"name": "a"}, {"name": "A"}])  # only a hand-written row can do this
+        state, seen = self._seen(make_env, job_id)
+        assert state == JobState.FAILED
+        assert seen == []
+        assert "duplicate class names" in (read_job(settings, job_id).error_message or "")
+
+
+class TestErrorMessages:
+    def test_a_failed_job_names_no_host_path(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
+        """The pipeline's messages name files by absolute path (the CLI user wants that); the job's owner reads
+        them relative to the bundle or the output folder, with no trace of where the host keeps its files."""
+        job_id = make_job()
+
+        def fails(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            raise InputError(f"{bundle / 'scene.json'}: broken; see {out_dir / 'stages'} and {settings.storage}")
+
+        assert _run(make_env(fails), job_id) == JobState.FAILED
+        message = read_job(settings, job_id).error_message or ""
+        assert message == "scene.json: broken; see stages and ."
+        assert str(settings.data_dir) not in message

@@ -218,11 +218,31 @@ function jobRow(job, scenes, refresh) {
   );
 }
 
+// A job's vocabulary is a built-in label set's name or an inline list of classes, never a file of the server
+// (docs/service.md). In the form: one name (scannet20, matterport21) or class names separated by commas.
+function vocabularyText(vocabulary) {
+  if (!vocabulary) return "";
+  return typeof vocabulary === "string" ? vocabulary : vocabulary.classes.map((c) => c.name).join(", ");
+}
+
+function vocabularyBody(text, previous) {
+  const value = text.trim();
+  if (!value) return undefined;
+  if (!value.includes(",")) return value;
+  // Classes the job had keep their kind; new ones get the server's default (stuff for wall, floor, ceiling).
+  const kinds = new Map((previous && typeof previous === "object" ? previous.classes : []).map((c) => [c.name, c.kind]));
+  const names = value.split(",").map((n) => n.trim()).filter(Boolean);
+  return { classes: names.map((name) => (kinds.has(name) ? { name, kind: kinds.get(name) } : { name })) };
+}
+
 function rerunForm(job, message, refresh) {
   const config = h("textarea", { rows: 4, cols: 60, "aria-label": "settings (JSON)" });
   config.value = JSON.stringify(job.config || {}, null, 1);
-  const vocabulary = h("input", { type: "text", placeholder: "vocabulary (optional)", "aria-label": "vocabulary" });
-  vocabulary.value = job.vocabulary || "";
+  const vocabulary = h("input", {
+    type: "text", size: 40, "aria-label": "vocabulary",
+    placeholder: "vocabulary (optional): scannet20 | matterport21 | lamp, rug, ...",
+  });
+  vocabulary.value = vocabularyText(job.vocabulary);
   const form = h(
     "form",
     {
@@ -235,7 +255,7 @@ function rerunForm(job, message, refresh) {
           return showError(message, new Error(`settings: not valid JSON (${err.message})`));
         }
         try {
-          await api("POST", "/v1/jobs", { scene_id: job.scene_id, config: parsed, vocabulary: vocabulary.value.trim() || undefined });
+          await api("POST", "/v1/jobs", { scene_id: job.scene_id, config: parsed, vocabulary: vocabularyBody(vocabulary.value, job.vocabulary) });
           refresh();
         } catch (err) {
           showError(message, err);
