@@ -11,7 +11,6 @@ probabilities (instance scores in ``labeling``, query scores in ``query``), see 
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -19,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from panogs_core.bounded_json import read_json_file
 from panogs_core.errors import EncoderUnavailableError, InputError
 from panogs_core.text_encoders import TextEncoder, encode_labels, get_text_encoder
 from panogs_core.types import ClassKind, Vocabulary
@@ -115,10 +115,8 @@ def load_vocabulary_file(path: str | Path) -> Vocabulary:
             not a finite ``(L, D)`` array with non-zero rows.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read a vocabulary: {exc}") from exc
+    # The same bounded reader as a bundle's JSON files: a deep or huge file is a clear InputError, not a crash.
+    doc = read_json_file(path, name=str(path))
     if not isinstance(doc, dict) or not isinstance(doc.get("classes"), list) or not doc["classes"]:
         raise InputError(f"{path}: expected {{'classes': [{{'name': ..., 'kind': ...}}, ...]}} with >= 1 class")
     names, kinds = _parse_classes(doc["classes"], source=str(path))
