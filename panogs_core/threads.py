@@ -1,6 +1,6 @@
 """How many threads the numeric libraries of one process use, and how their idle threads wait.
 
-torch (OpenMP: the libgomp it ships), MKL and OpenBLAS size their pools from the machine's cores and let idle
+torch (OpenMP: the libgomp it ships), MKL, OpenBLAS and OpenCV size their pools from the machine's cores and let idle
 threads spin before they sleep. On a host whose cores other processes use, those pools fight the other processes
 and each other for the cores: the language-field stage took 25x longer on a busy host, where its share of the
 cores called for 2-3x (issue 14). So each process gets as many threads as the cores it is given, and idle threads
@@ -23,14 +23,17 @@ from pathlib import Path
 CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")  # cgroup v2: "<quota> <period>" in microseconds, or "max <period>"
 
 # The thread counts of the pools a pipeline process loads: OpenMP (torch's intra-op pool, libgomp or Intel's
-# libiomp), MKL, OpenBLAS (numpy's). They are set to the process's count, whatever the environment held.
-THREAD_COUNT_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# libiomp), MKL, OpenBLAS (numpy's), OpenCV's own pool. They are set to the process's count, whatever the
+# environment held. (open3d's TBB pool has no such variable: it follows the CPU affinity only.)
+THREAD_COUNT_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
 # The passive wait policy, per runtime. Defaults only: an operator who sets one keeps it.
 WAIT_POLICY = {
     "OMP_WAIT_POLICY": "PASSIVE",  # libgomp and libiomp: an idle thread sleeps instead of spinning
     "KMP_BLOCKTIME": "0",  # libiomp (Intel OpenMP, MKL's Intel threading): spin 0 ms after a parallel region
     "OPENBLAS_THREAD_TIMEOUT": "4",  # OpenBLAS: spin 2^4 cycles (its least) before sleeping, not 2^28
+    "OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": "0",  # OpenCV's pool spins 2000 rounds per idle worker by default
+    "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": "0",  # and 10000 in the calling thread
 }
 
 # Libraries that start their pools when imported: once loaded, the variables above no longer change them.

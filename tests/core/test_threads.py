@@ -58,6 +58,7 @@ def test_environment_sets_counts_and_keeps_an_operators_wait_policy() -> None:
     environ = {"OMP_NUM_THREADS": "16", "KMP_BLOCKTIME": "200", "OPENBLAS_CORETYPE": "Haswell"}
     threads.apply_thread_environment(environ, 3)
     assert environ["OMP_NUM_THREADS"] == environ["MKL_NUM_THREADS"] == environ["OPENBLAS_NUM_THREADS"] == "3"
+    assert environ["OPENCV_FOR_THREADS_NUM"] == "3"
     assert environ["OMP_WAIT_POLICY"] == "PASSIVE"
     assert environ["OPENBLAS_THREAD_TIMEOUT"] == "4"
     assert environ["KMP_BLOCKTIME"] == "200", "an operator's own wait policy is kept"
@@ -77,9 +78,9 @@ def test_run_threads_option_is_validated(capsys: pytest.CaptureFixture[str]) -> 
 
 def _fresh_process_state(code: str) -> dict[str, object]:
     probe = (
-        "import json, os, sys, threadpoolctl, torch\n"
+        "import json, os, sys, cv2, threadpoolctl, torch\n"
         "pools = {p['internal_api']: p['num_threads'] for p in threadpoolctl.threadpool_info()}\n"
-        "print(json.dumps({'torch': torch.get_num_threads(), 'pools': pools,\n"
+        "print(json.dumps({'torch': torch.get_num_threads(), 'pools': pools, 'opencv': cv2.getNumThreads(),\n"
         "                  'wait': os.environ.get('OMP_WAIT_POLICY')}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k not in (*threads.THREAD_COUNT_VARIABLES, *threads.WAIT_POLICY)}
@@ -95,7 +96,7 @@ def test_panogs_run_limits_every_pool_before_the_pipeline_loads() -> None:
     all run one thread, and idle threads wait passively."""
     code = "from panogs_core.cli import _limit_threads\n_limit_threads(1)\nimport numpy\n"
     state = _fresh_process_state(code)
-    assert state["torch"] == 1
+    assert state["torch"] == state["opencv"] == 1
     assert state["pools"] == {"openmp": 1, "openblas": 1}
     assert state["wait"] == "PASSIVE"
 

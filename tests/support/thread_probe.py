@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import cv2
 import scripted_pipeline as scripted
 import threadpoolctl
 import torch
@@ -32,6 +33,7 @@ def thread_state() -> dict[str, Any]:
         "pid": os.getpid(),
         "ppid": os.getppid(),
         "torch_threads": torch.get_num_threads(),
+        "opencv_threads": cv2.getNumThreads(),
         "pools": pools,
         "environ": {name: os.environ.get(name) for name in names},
     }

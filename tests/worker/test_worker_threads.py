@@ -72,13 +72,14 @@ def test_a_solo_worker_runs_its_jobs_with_the_configured_threads(
 ) -> None:
     state = _run_in_worker(settings, make_job(), tmp_path, PANOGS_WORKER_THREADS="1", PANOGS_WORKER_POOL="solo")
     assert state["pid"] == state["worker_pid"], "the solo pool runs the job in the worker process itself"
-    assert state["torch_threads"] == 1
+    assert state["torch_threads"] == state["opencv_threads"] == 1
     assert state["pools"] == {"openmp": 1, "openblas": 1}, "numpy's and torch's pools were sized before loading"
     environ = state["environ"]
     assert isinstance(environ, dict)
     assert environ["OMP_NUM_THREADS"] == environ["MKL_NUM_THREADS"] == environ["OPENBLAS_NUM_THREADS"] == "1"
     assert environ["OMP_WAIT_POLICY"] == "PASSIVE"
     assert environ["KMP_BLOCKTIME"] == "0"
+    assert environ["OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER"] == "0"
 
 
 def test_a_prefork_child_gets_its_share_of_the_cores(settings: Settings, make_job: MakeJob, tmp_path: Path) -> None:
@@ -86,7 +87,7 @@ def test_a_prefork_child_gets_its_share_of_the_cores(settings: Settings, make_jo
     state = _run_in_worker(settings, make_job(), tmp_path, PANOGS_WORKER_POOL="prefork", PANOGS_WORKER_CONCURRENCY="2")
     assert state["ppid"] == state["worker_pid"], "the job ran in a child forked by the worker"
     expected = threads_per_process(available_cores(), 2)
-    assert state["torch_threads"] == expected
+    assert state["torch_threads"] == state["opencv_threads"] == expected
     assert state["pools"] == {"openmp": expected, "openblas": expected}
     environ = state["environ"]
     assert isinstance(environ, dict)
