@@ -219,7 +219,34 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _limit_threads(requested: int | None) -> None:
+    """Size torch's, OpenMP's and BLAS's pools for this run (``--threads``, default the cores this process may
+    use) with idle threads sleeping instead of spinning: a busy host then slows a run by the share of the cores
+    it lost, not many times more (panogs_core/threads.py). Before the pipeline's imports: the pools read the
+    environment when their library loads."""
+    from panogs_core.threads import apply_thread_environment, available_cores, loaded_too_early, set_torch_threads
+
+    if loaded_too_early():  # called in a process that already runs numpy/torch (a test, a notebook): its pools
+        if requested is not None:  # are its own; only an explicit --threads changes torch's count
+            set_torch_threads(requested)
+        return
+    threads = requested if requested is not None else available_cores()
+    apply_thread_environment(os.environ, threads)
+    set_torch_threads(threads)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of at least 1, got {text!r}")
+    return value
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    _limit_threads(args.threads)
     from panogs_core.config import PipelineConfig
     from panogs_core.labelsets import is_builtin_name, vocabulary_from_name_or_file
     from panogs_core.pipeline import run_pipeline
@@ -379,6 +406,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocabulary", help="scannet20 | matterport21 | path to vocabulary.json")
     p.add_argument("--no-resume", action="store_true", help="recompute every stage")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress (bars on a terminal, else a line per stage)")
+    p.add_argument(
+        "--threads",
+        type=_positive_int,
+        metavar="N",
+        help="threads of torch, OpenMP and BLAS (default: the cores this process may use)",
+    )
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("eval", help="print the metrics of a run, or score it against a ground-truth file")

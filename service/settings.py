@@ -18,6 +18,8 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from panogs_core.threads import available_cores, threads_per_process
+
 PLACEHOLDER_SECRET = "changethis"
 GIB = 1024**3
 
@@ -44,6 +46,7 @@ class Settings(BaseSettings):
     worker_queues: str = "cpu"  # comma-separated queues a worker consumes
     worker_pool: Literal["solo", "prefork", "threads"] = "solo"  # one job per worker process by default
     worker_concurrency: int = Field(default=1, gt=0)
+    worker_threads: int | None = Field(default=None, gt=0)  # per worker process; None: its share of the cores
     job_time_limit_s: float = Field(default=6 * 3600, gt=0)  # a running job past this fails (checked in progress)
     broker_visibility_timeout_s: int = Field(default=12 * 3600, gt=0)  # must exceed job_time_limit_s
     heartbeat_interval_s: float = Field(default=10.0, gt=0)  # how often a running job proves its worker alive
@@ -113,6 +116,15 @@ class Settings(BaseSettings):
     def is_embedded_broker(self) -> bool:
         """True when the broker is the serverless filesystem transport."""
         return self.broker.startswith("filesystem://")
+
+    @property
+    def worker_thread_count(self) -> int:
+        """Threads of torch, OpenMP and BLAS in each worker process: ``worker_threads``, else the cores this
+        process may use divided by the jobs a worker runs at once (panogs_core/threads.py)."""
+        if self.worker_threads is not None:
+            return self.worker_threads
+        jobs_at_once = 1 if self.worker_pool == "solo" else self.worker_concurrency  # solo ignores concurrency
+        return threads_per_process(available_cores(), jobs_at_once)
 
     @property
     def storage(self) -> Path:

@@ -55,11 +55,26 @@ def _stop_when_orphaned(parent_pid: int) -> None:
     os.kill(os.getpid(), signal.SIGTERM)
 
 
+def limit_threads(settings: Settings) -> int:
+    """Size the OpenMP and BLAS pools of this process and of the job processes it forks, with a passive wait
+    policy (panogs_core/threads.py); returns the thread count. Runs before anything imports numpy or torch: the
+    pools read these variables once, when their library loads."""
+    from panogs_core.threads import apply_thread_environment, loaded_too_early
+
+    threads = settings.worker_thread_count
+    apply_thread_environment(os.environ, threads)
+    early = loaded_too_early()
+    if early:  # a bug of this command's imports, not the operator's: say so rather than run with full pools
+        logger.warning("%s loaded before the thread limits were set; their pools ignore them", ", ".join(early))
+    return threads
+
+
 def cmd_worker(args: argparse.Namespace) -> int:
     """Run a Celery worker in this process until stopped."""
+    settings = settings_from_args(args)
+    limit_threads(settings)  # before the worker app's imports (numpy among them)
     from worker.app import create_worker_app
 
-    settings = settings_from_args(args)
     settings.ensure_dirs()
     parent = os.environ.get(PARENT_PID_ENV)
     if parent:

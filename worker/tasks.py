@@ -2,7 +2,8 @@
 
 Importing torch in a prefork parent before it forks deadlocks the children, so nothing here or in the modules it
 imports at the top touches torch: the pipeline (and torch, and the CUDA check) are loaded by the first task, in
-the process that runs it.
+the process that runs it, which also sets torch's thread count there (the OpenMP and BLAS pools took theirs from
+the environment ``panogs worker`` set before anything imported them: worker/cli.py).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 from celery import Celery, Task
 from celery.signals import worker_shutting_down
 
+from panogs_core.threads import set_torch_threads
 from service.broker import TaskName
 from service.db.session import get_session_factory
 from service.settings import Settings
@@ -45,6 +47,9 @@ class LazyJobEnv:
 
 def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEnv:
     """Settings, database, storage and the pipeline, with configs placed on this process's device."""
+    threads = settings.worker_thread_count
+    set_torch_threads(threads)  # here, not in the worker's parent: a torch call there deadlocks forked children
+    logger.info("jobs use %d thread(s) in this process (PANOGS_WORKER_THREADS)", threads)
     pipeline, stages, make_config = runner.load_pipeline(settings.pipeline_function)
     has_cuda = cuda_available()
     logger.info("jobs train on %s unless they name a device", "cuda" if has_cuda else "cpu")

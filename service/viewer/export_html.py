@@ -14,7 +14,6 @@ from typing import Any
 
 from panogs_core.errors import InputError
 from service.viewer.assets import static_dir
-from service.viewer.scene import build_scene
 
 DEFAULT_MAX_PRIMITIVES = 1_000_000  # decimate above this
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024  # refuse a file larger than this (mail and browsers choke on more)
@@ -46,6 +45,8 @@ def export_html(
     Raises:
         InputError: the run folder is incomplete, or the file would exceed ``max_bytes``.
     """
+    from service.viewer.scene import build_scene  # numpy: not at import (the panogs CLI's parser imports this)
+
     run = Path(run_dir)
     extra = {"title": run.resolve().name, "class_queries": class_queries(run)}
     scene = build_scene(run, max_primitives=max_primitives, extra=extra)

@@ -1,0 +1,108 @@
+"""How many threads the numeric libraries of one process use, and how their idle threads wait.
+
+torch (OpenMP: the libgomp it ships), MKL, OpenBLAS and OpenCV size their pools from the machine's cores and let idle
+threads spin before they sleep. On a host whose cores other processes use, those pools fight the other processes
+and each other for the cores: the language-field stage took 25x longer on a busy host, where its share of the
+cores called for 2-3x (issue 14). So each process gets as many threads as the cores it is given, and idle threads
+sleep at once (a passive wait policy).
+
+The pools read their environment variables once, when the library loads: :func:`apply_thread_environment` must
+run before numpy or torch is imported (:func:`loaded_too_early` says when it did not), and torch's own count is
+set by :func:`set_torch_threads` in the process that runs the work (after any fork). The application edges
+(``panogs run``, ``panogs worker``) call these with explicit numbers; the core itself reads no environment.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import MutableMapping
+from pathlib import Path
+
+CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")  # cgroup v2: "<quota> <period>" in microseconds, or "max <period>"
+
+# The thread counts of the pools a pipeline process loads: OpenMP (torch's intra-op pool, libgomp or Intel's
+# libiomp), MKL, OpenBLAS (numpy's), OpenCV's own pool. They are set to the process's count, whatever the
+# environment held. (open3d's TBB pool has no such variable: it follows the CPU affinity only.)
+THREAD_COUNT_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+
+# The passive wait policy, per runtime. Defaults only: an operator who sets one keeps it.
+WAIT_POLICY = {
+    "OMP_WAIT_POLICY": "PASSIVE",  # libgomp and libiomp: an idle thread sleeps instead of spinning
+    "KMP_BLOCKTIME": "0",  # libiomp (Intel OpenMP, MKL's Intel threading): spin 0 ms after a parallel region
+    "OPENBLAS_THREAD_TIMEOUT": "4",  # OpenBLAS: spin 2^4 cycles (its least) before sleeping, not 2^28
+    "OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": "0",  # OpenCV's pool spins 2000 rounds per idle worker by default
+    "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": "0",  # and 10000 in the calling thread
+}
+
+# Libraries that start their pools when imported: once loaded, the variables above no longer change them.
+POOL_LIBRARIES = ("numpy", "torch", "scipy", "open3d", "cv2")
+
+
+def cgroup_cpu_limit(cpu_max: Path = CGROUP_CPU_MAX) -> int | None:
+    """The cores a cgroup v2 CPU quota allows (``quota / period``, rounded up), or None without a quota or file."""
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+    except (OSError, ValueError):
+        return None
+    if quota == "max":
+        return None
+    try:
+        return max(1, math.ceil(int(quota) / int(period)))
+    except (ValueError, ZeroDivisionError):
+        return None
+
+
+def available_cores(cpu_max: Path = CGROUP_CPU_MAX) -> int:
+    """The cores this process may run on: its CPU affinity, capped by its cgroup's CPU quota (a container's
+    ``--cpus``), at least 1."""
+    if hasattr(os, "sched_getaffinity"):
+        cores = len(os.sched_getaffinity(0))
+    else:  # macOS and Windows have no affinity call
+        cores = os.cpu_count() or 1
+    limit = cgroup_cpu_limit(cpu_max)
+    return max(1, min(cores, limit) if limit is not None else cores)
+
+
+def threads_per_process(cores: int, processes: int) -> int:
+    """The threads each of ``processes`` concurrent workers gets from ``cores``: an equal share, at least 1."""
+    if cores < 1 or processes < 1:
+        raise ValueError(f"cores ({cores}) and processes ({processes}) must be at least 1")
+    return max(1, cores // processes)
+
+
+def thread_environment(threads: int) -> dict[str, str]:
+    """The environment variables of ``threads`` threads per pool with a passive wait policy."""
+    if threads < 1:
+        raise ValueError(f"threads must be at least 1, got {threads}")
+    return {**dict.fromkeys(THREAD_COUNT_VARIABLES, str(threads)), **WAIT_POLICY}
+
+
+def apply_thread_environment(environ: MutableMapping[str, str], threads: int) -> None:
+    """Set the thread counts in ``environ`` (this process's ``os.environ``, inherited by its children) and the
+    wait policy where ``environ`` has none. Call before numpy or torch is imported."""
+    for name, value in thread_environment(threads).items():
+        if name in THREAD_COUNT_VARIABLES:
+            environ[name] = value
+        else:
+            environ.setdefault(name, value)
+
+
+def loaded_too_early() -> list[str]:
+    """The pool libraries already imported in this process (their pools kept the sizes they started with)."""
+    return [name for name in POOL_LIBRARIES if name in sys.modules]
+
+
+def set_torch_threads(threads: int) -> None:
+    """Set torch's intra-op threads (and its inter-op threads, while torch still allows it) in this process.
+
+    Imports torch: call it in the process that runs the work, never in a prefork parent before it forks.
+    """
+    import torch
+
+    torch.set_num_threads(threads)
+    try:
+        torch.set_num_interop_threads(threads)
+    except RuntimeError:  # fixed once any inter-op work ran in this process; the intra-op count is what matters
+        pass
