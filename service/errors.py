@@ -29,6 +29,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.db.faults import DatabaseFault, classify
+from service.security_headers import API_HEADERS
 
 logger = logging.getLogger(__name__)
 
@@ -311,4 +312,5 @@ def internal_error_response(request: Request, exc: BaseException) -> JSONRespons
     request_id = uuid.uuid4().hex[:12]
     logger.error("unhandled error on %s %s (request %s)", request.method, request.url.path, request_id, exc_info=exc)
     body = {"type": "internal_error", "message": f"internal error (request {request_id}); see the server log"}
-    return JSONResponse(body, status_code=500)
+    # Answered by Starlette's outermost middleware, past the security headers' one: they are added here.
+    return JSONResponse(body, status_code=500, headers=API_HEADERS)

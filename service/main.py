@@ -25,6 +25,7 @@ from service.errors import install_error_handlers
 from service.queue import Sender, celery_sender
 from service.reaper import Reaper
 from service.results import ResultCache
+from service.security_headers import SecurityHeaders
 from service.settings import Settings, get_settings
 from service.storage import HashStates, Storage
 from service.uploads import ActiveUploads
@@ -93,4 +94,5 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(render_routes.router, prefix=API_PREFIX)  # issue 10: renders of a finished job
     app.include_router(app_routes.router)
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
+    app.add_middleware(SecurityHeaders)  # added last: the outermost, so that every answer carries the headers
     return app
