@@ -2,7 +2,10 @@
 
 Every error response is ``{"type": ..., "message": ...}`` (plus ``problems`` where there are several).
 No stack trace leaves the server: unexpected exceptions are logged with their traceback and a request id and
-answered with a 500 that names only that id.
+answered with a 500 that names only that id. Every error body, whichever handler writes it, goes through
+:func:`sanitize_message` on the way out: a path under the storage folder is cut to its part below it
+(``scenes/<id>/bundle/frames/0001.png``), any other absolute path becomes ``<path>``, and a message that holds a
+Python traceback is replaced by one naming a request id; the original is logged under that id.
 
 Database errors are answered by what they mean (``service.db.faults``): an integrity error is the client's
 conflict (409) or a refused value (422), an outage is a 503 with ``Retry-After``, and anything else is a bug
@@ -12,8 +15,10 @@ conflict (409) or a refused value (422), an outage is a 503 with ``Retry-After``
 from __future__ import annotations
 
 import logging
+import re
 import uuid
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -24,6 +29,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.db.faults import DatabaseFault, classify
+from service.security_headers import API_HEADERS
 
 logger = logging.getLogger(__name__)
 
@@ -97,6 +103,13 @@ class PayloadTooLarge(ServiceError):
     type = "payload_too_large"
 
 
+class InsufficientStorage(ServiceError):
+    """The storage volume has not the room a request needs (keeping ``min_free_disk_bytes`` free)."""
+
+    status_code = 507
+    type = "insufficient_storage"
+
+
 class UnsupportedMediaType(ServiceError):
     """Wrong Content-Type for the endpoint."""
 
@@ -167,6 +180,76 @@ _FAULT_ANSWERS = {
 RETRY_AFTER_S = 2  # a database outage: when the client should try again
 
 
+# An absolute POSIX path of two segments or more, not inside a word, a URL or a relative path ("a/b", "x://h/p").
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/~-])/[\w.+@~-]+(?:/[\w.+@~-]*)+")
+_API_PATHS = ("/v1/", "/app/", "/docs/", "/healthz", "/readyz")  # the service's own routes are not host paths
+_TRACEBACK = re.compile(r"Traceback \(most recent call last\)|File \"[^\"]*\", line \d+")
+REDACTED_PATH = "<path>"
+
+
+def sanitize_message(text: str, roots: Sequence[Path] = ()) -> str:
+    """``text`` without host paths: below one of ``roots`` a path is shown relative to it, any other becomes
+    ``<path>``. The service's own URL paths (``/v1/...``) stay."""
+    prefixes = sorted((str(Path(r)).rstrip("/") + "/" for r in roots), key=len, reverse=True)
+
+    def replace(match: re.Match[str]) -> str:
+        found = match.group(0)
+        if found.startswith(_API_PATHS):
+            return found
+        for prefix in prefixes:
+            if found.startswith(prefix) and len(found) > len(prefix):
+                return found[len(prefix) :]
+        return REDACTED_PATH
+
+    return _ABSOLUTE_PATH.sub(replace, text)
+
+
+def has_traceback(text: str) -> bool:
+    """Whether ``text`` holds (part of) a Python traceback."""
+    return _TRACEBACK.search(text) is not None
+
+
+def _storage_roots(request: Request) -> list[Path]:
+    """The folders whose paths a message may name relative to them: the storage folder, then the data folder."""
+    roots: list[Path] = []
+    storage = getattr(request.app.state, "storage", None)
+    if storage is not None:
+        roots.append(storage.root)
+    settings = getattr(request.app.state, "settings", None)
+    if settings is not None:
+        roots += [settings.storage, Path(settings.data_dir).resolve()]
+    return roots
+
+
+def safe_error_body(request: Request, body: dict[str, Any]) -> dict[str, Any]:
+    """The body of an error response as it may leave the server (module docstring); logs what it changed."""
+    texts = [body.get("message", ""), *(body.get("problems") or [])]
+    if any(isinstance(t, str) and has_traceback(t) for t in texts):
+        request_id = uuid.uuid4().hex[:12]
+        logger.error("a traceback was about to be answered on %s %s (request %s): %r", request.method,
+                     request.url.path, request_id, body)  # fmt: skip
+        return {
+            "type": body.get("type", "error"),
+            "message": f"internal error (request {request_id}); see the server log",
+        }
+    roots = _storage_roots(request)
+    out = dict(body)
+    if isinstance(body.get("message"), str):
+        out["message"] = sanitize_message(body["message"], roots)
+    if isinstance(body.get("problems"), list):
+        out["problems"] = [sanitize_message(p, roots) if isinstance(p, str) else p for p in body["problems"]]
+    if out != body:
+        logger.info("host paths cut from the error answered on %s %s: %r", request.method, request.url.path, body)
+    return out
+
+
+def error_response(
+    request: Request, body: dict[str, Any], status_code: int, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    """The one way an error leaves the server: a sanitised JSON body (:func:`safe_error_body`)."""
+    return JSONResponse(safe_error_body(request, body), status_code=status_code, headers=headers)
+
+
 def _format_location(loc: tuple[Any, ...]) -> str:
     parts = [str(p) for p in loc if p not in ("body",)]
     return ".".join(parts) or "body"
@@ -176,17 +259,17 @@ def install_error_handlers(app: FastAPI) -> None:
     """Register the one JSON error format for every error the app can answer."""
 
     @app.exception_handler(ServiceError)
-    async def _service_error(_request: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse(exc.body(), status_code=exc.status_code, headers=exc.headers)
+    async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return error_response(request, exc.body(), exc.status_code, exc.headers)
 
     @app.exception_handler(RequestValidationError)
-    async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(validation_body(exc.errors(), app.state.settings.max_validation_problems), status_code=422)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return error_response(request, validation_body(exc.errors(), app.state.settings.max_validation_problems), 422)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         body = {"type": _STATUS_TYPES.get(exc.status_code, "error"), "message": str(exc.detail)}
-        return JSONResponse(body, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+        return error_response(request, body, exc.status_code, getattr(exc, "headers", None))
 
     @app.exception_handler(DBAPIError)
     @app.exception_handler(PoolTimeoutError)
@@ -221,7 +304,7 @@ def database_error_response(request: Request, exc: DBAPIError | PoolTimeoutError
     cause = type(exc.orig).__name__ if isinstance(exc, DBAPIError) else type(exc).__name__
     logger.warning("database %s on %s %s: %s", fault.value, request.method, request.url.path, cause)
     headers = {"Retry-After": str(RETRY_AFTER_S)} if fault is DatabaseFault.OUTAGE else None
-    return JSONResponse({"type": kind, "message": message}, status_code=status, headers=headers)
+    return error_response(request, {"type": kind, "message": message}, status, headers)
 
 
 def internal_error_response(request: Request, exc: BaseException) -> JSONResponse:
@@ -229,4 +312,5 @@ def internal_error_response(request: Request, exc: BaseException) -> JSONRespons
     request_id = uuid.uuid4().hex[:12]
     logger.error("unhandled error on %s %s (request %s)", request.method, request.url.path, request_id, exc_info=exc)
     body = {"type": "internal_error", "message": f"internal error (request {request_id}); see the server log"}
-    return JSONResponse(body, status_code=500)
+    # Answered by Starlette's outermost middleware, past the security headers' one: they are added here.
+    return JSONResponse(body, status_code=500, headers=API_HEADERS)

@@ -6,6 +6,9 @@
   lease) and stops, and any file it wrote after the delete is an orphan for the sweep.
 - **Quotas** per tenant: stored bytes (unconsumed uploads + scenes + job results) and concurrent jobs (queued or
   running). A request that would pass one is refused with 413 / 429 and a message naming the limit and its setting.
+  Each stored byte counts once: an upload being made into a scene stops counting as its scene is measured.
+- **Free disk**: an upload is created, and each PATCH accepted, only when the bytes it still needs fit on the
+  storage volume with ``min_free_disk_bytes`` left free (507 otherwise); an extraction is bounded the same way.
 - **Retention**: finished jobs older than ``retention_days`` are deleted with their results.
 """
 
@@ -23,7 +26,7 @@ from sqlalchemy.orm import Session
 from service.db import crud
 from service.db.base import utcnow
 from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
-from service.errors import QuotaExceeded
+from service.errors import InsufficientStorage, QuotaExceeded
 from service.settings import Settings
 from service.storage import Storage
 
@@ -54,31 +57,53 @@ def check_storage_quota(session: Session, settings: Settings, tenant_id: uuid.UU
         return
     used = stored_bytes(session, tenant_id)
     if used + more > settings.quota_bytes:
+        needs = f"this needs {more:,} more" if more else "its uploads are counted at their Upload-Length"
         raise QuotaExceeded(
-            f"storage quota exceeded: this tenant stores {used:,} bytes and this needs {more:,} more; the limit is "
+            f"storage quota exceeded: this tenant stores {used:,} bytes and {needs}; the limit is "
             f"{settings.quota_bytes:,} bytes (PANOGS_QUOTA_BYTES); delete scenes or jobs to make room",
             status_code=413,
         )
 
 
-def room_left(session: Session, settings: Settings, tenant_id: uuid.UUID) -> int | None:
-    """Bytes the tenant may still store; None when there is no quota."""
+def room_left(session: Session, settings: Settings, tenant_id: uuid.UUID, releasing: int = 0) -> int | None:
+    """Bytes the tenant may still store, once ``releasing`` stored bytes are gone; None when there is no quota."""
     if settings.quota_bytes is None:
         return None
-    return max(0, settings.quota_bytes - stored_bytes(session, tenant_id))
+    return max(0, settings.quota_bytes - stored_bytes(session, tenant_id) + releasing)
 
 
-def extraction_limit(session: Session, settings: Settings, storage: Storage, tenant_id: uuid.UUID) -> tuple[int, str]:
+def disk_room(settings: Settings, storage: Storage) -> int:
+    """Bytes the storage volume may still take, keeping ``min_free_disk_bytes`` free."""
+    return max(0, shutil.disk_usage(storage.root).free - settings.min_free_disk_bytes)
+
+
+def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str) -> None:
+    """Refuse (507) when ``needed`` bytes do not fit on the storage volume with ``min_free_disk_bytes`` left free."""
+    room = disk_room(settings, storage)
+    if needed > room:
+        raise InsufficientStorage(
+            f"not enough free disk: {what} needs {needed:,} more bytes, the storage volume can take {room:,} "
+            f"while keeping {settings.min_free_disk_bytes:,} bytes free (PANOGS_MIN_FREE_DISK_BYTES); retry later "
+            "or ask the operator to free space"
+        )
+
+
+def extraction_limit(
+    session: Session, settings: Settings, storage: Storage, tenant_id: uuid.UUID, releasing: int = 0
+) -> tuple[int, str]:
     """The most bytes an archive may expand to, and what sets it: the bundle limit, the tenant's quota room, or the
-    free disk (less ``min_free_disk_bytes``). Never above what the core allows by default."""
+    free disk (less ``min_free_disk_bytes``). Never above what the core allows by default.
+
+    ``releasing``: stored bytes that stop counting when the extraction succeeds (the upload being extracted is
+    deleted then), so that a scene may use the room of the upload it comes from.
+    """
     from panogs_core.io.archive import DEFAULT_MAX_BYTES as DEFAULT_MAX_EXTRACTED_BYTES
 
     candidates = [(settings.bundle_max_bytes or DEFAULT_MAX_EXTRACTED_BYTES, "the bundle size limit")]
-    room = room_left(session, settings, tenant_id)
+    room = room_left(session, settings, tenant_id, releasing)
     if room is not None:
         candidates.append((room, f"this tenant's storage quota ({settings.quota_bytes:,} bytes, PANOGS_QUOTA_BYTES)"))
-    free = shutil.disk_usage(storage.root).free - settings.min_free_disk_bytes
-    candidates.append((max(0, free), "the free disk space of the storage volume"))
+    candidates.append((disk_room(settings, storage), "the free disk space of the storage volume"))
     return min(candidates, key=lambda c: c[0])
 
 

@@ -26,6 +26,7 @@ from service.json_body import BoundedJsonBody, body_limits
 from service.queue import Sender, celery_sender
 from service.reaper import Reaper
 from service.results import ResultCache
+from service.security_headers import SecurityHeaders
 from service.settings import Settings, get_settings
 from service.storage import HashStates, Storage
 from service.uploads import ActiveUploads
@@ -95,4 +96,5 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(app_routes.router)
     app.add_middleware(BoundedJsonBody, limits=body_limits(settings))  # inside BodyLimit: it sees capped bodies only
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
+    app.add_middleware(SecurityHeaders)  # added last: the outermost, so that every answer carries the headers
     return app

@@ -4,26 +4,41 @@ The API process never imports torch (docs/service.md), so a render runs ``panogs
 with the job's folder, the pose written to a temporary file, and one torch thread; the API validates the request
 first (with numpy only), so that the child fails only for reasons the client cannot fix. The child needs the
 ``pipeline`` extra on the API host; without it the endpoint answers 503 with that reason.
+
+Every number of a request is checked against a stated range (docs/service.md, "Renders"): a focal length within
+``FOCAL_RANGE`` times the image's larger side, a principal point within one image size around the image, a proper
+rotation and a translation of at most ``MAX_TRANSLATION_M``. Outside them the rasterizer's arithmetic overflows, so
+such a view has no image worth drawing; it is a 422 naming the field. A child that fails anyway is logged here with
+its stderr under a request id, and the client gets that id, never the child's traceback or a path.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import math
 import os
 import subprocess
 import sys
 import tempfile
+import uuid
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from service.errors import InvalidInput, NotFound, ServiceUnavailable
+from service.errors import InvalidInput, NotFound, ServiceUnavailable, sanitize_message
+
+logger = logging.getLogger(__name__)
 
 MAX_RENDER_PIXELS = 1920 * 1080  # per render; larger sizes are refused with 422
 RENDER_TIMEOUT_S = 120.0  # the child process is killed after this long (503)
+FOCAL_RANGE = (0.02, 200.0)  # fx, fy per pixel of the larger side: fields of view from about 176 to 0.3 degrees
+MAX_TRANSLATION_M = 1e5  # a camera farther than 100 km from the scene's origin is refused
+ROTATION_TOLERANCE = 1e-3  # R @ R.T may differ from the identity by this much per entry
+RENDER_MODULE = "panogs_core.cli"  # run as `python -m RENDER_MODULE render ...`
 LAYERS = ("color", "depth", "depth_vis", "semantic", "instance", "panoptic", "relevance")
 Layer = Literal["color", "depth", "depth_vis", "semantic", "instance", "panoptic", "relevance"]
 
@@ -39,6 +54,26 @@ class RenderCamera(BaseModel):
     fy: float = Field(gt=0, allow_inf_nan=False)
     cx: float = Field(allow_inf_nan=False)
     cy: float = Field(allow_inf_nan=False)
+
+    @field_validator("fx", "fy")
+    @classmethod
+    def _plausible_focal(cls, value: float, info: ValidationInfo) -> float:
+        side = max(info.data.get("width", 1), info.data.get("height", 1))
+        low, high = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+        if not low <= value <= high:
+            raise ValueError(
+                f"{value!r} is outside [{low:g}, {high:g}] ({FOCAL_RANGE[0]:g} to {FOCAL_RANGE[1]:g} times the "
+                f"image's larger side of {side} pixels)"
+            )
+        return value
+
+    @field_validator("cx", "cy")
+    @classmethod
+    def _principal_point_near_the_image(cls, value: float, info: ValidationInfo) -> float:
+        size = info.data.get("width" if info.field_name == "cx" else "height", 1)
+        if not -size <= value <= 2 * size:
+            raise ValueError(f"{value!r} is outside [{-size}, {2 * size}] (one image size around the image of {size})")
+        return value
 
 
 class RenderCreate(BaseModel):
@@ -59,11 +94,27 @@ class RenderCreate(BaseModel):
             raise ValueError("give both width and height, or neither")
         if self.layer == "relevance" and not self.query:
             raise ValueError("the relevance layer needs a query")
-        if len(self.T_world_cam) != 4 or any(len(row) != 4 for row in self.T_world_cam):
-            raise ValueError("T_world_cam must be a 4x4 matrix")
-        if not all(math.isfinite(v) for row in self.T_world_cam for v in row):
-            raise ValueError("T_world_cam holds NaN or infinite values")
         return self
+
+    @field_validator("T_world_cam")
+    @classmethod
+    def _rigid_pose(cls, value: list[list[float]]) -> list[list[float]]:
+        if len(value) != 4 or any(len(row) != 4 for row in value):
+            raise ValueError("T_world_cam must be a 4x4 matrix")
+        if not all(math.isfinite(v) for row in value for v in row):
+            raise ValueError("T_world_cam holds NaN or infinite values")
+        pose = np.asarray(value, dtype=np.float64)
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        orthonormal = np.allclose(rotation @ rotation.T, np.eye(3), atol=ROTATION_TOLERANCE)
+        if not np.allclose(pose[3], [0, 0, 0, 1]) or not orthonormal or np.linalg.det(rotation) <= 0:
+            raise ValueError(
+                "not a rigid transform: the rotation must be orthonormal with determinant +1 (tolerance "
+                f"{ROTATION_TOLERANCE:g}) and the last row 0 0 0 1"
+            )
+        distance = float(np.linalg.norm(translation))
+        if distance > MAX_TRANSLATION_M:
+            raise ValueError(f"the translation is {distance:.6g} m from the origin; at most {MAX_TRANSLATION_M:g} m")
+        return value
 
 
 def torch_installed() -> bool:
@@ -110,7 +161,7 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
         if body.camera is not None:
             doc["camera"] = body.camera.model_dump()
         pose_file.write_text(json.dumps(doc))
-        argv = [sys.executable, "-m", "panogs_core.cli", "render", str(out_dir), "--pose", str(pose_file)]
+        argv = [sys.executable, "-m", RENDER_MODULE, "render", str(out_dir), "--pose", str(pose_file)]
         argv += ["--size", f"{width}x{height}", "--out", str(Path(tmp) / "out")]
         if body.query:
             argv += ["--query", body.query]
@@ -120,8 +171,19 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
             done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)
         except subprocess.TimeoutExpired as exc:
             raise ServiceUnavailable(f"render: no image after {timeout_s:.0f} s") from exc
-        if done.returncode == 2:  # a user error, already worded by the CLI
-            raise InvalidInput(done.stderr.strip().removeprefix("panogs render: "))
+        if done.returncode == 2:  # a user error, already worded by the CLI; its paths are ours, not the client's
+            message = done.stderr.strip().removeprefix("panogs render: ").replace(str(pose_file), "the request")
+            raise InvalidInput(sanitize_message(message, [out_dir]))
         if done.returncode != 0:
-            raise ServiceUnavailable(f"render failed (exit {done.returncode}): {done.stderr.strip()[-500:]}")
+            raise _child_failed(done.returncode, done.stderr, out_dir)
         return (Path(tmp) / "out" / f"{body.layer}.png").read_bytes()
+
+
+def _child_failed(returncode: int, stderr: str, out_dir: Path) -> ServiceUnavailable:
+    """The 503 for a render child that crashed: its stderr goes to the server log under a request id, the client
+    is told that id (a traceback names our source files and the job's folder)."""
+    request_id = uuid.uuid4().hex[:12]
+    logger.error(
+        "render of %s failed (exit %s, request %s); its stderr:\n%s", out_dir, returncode, request_id, stderr[-20000:]
+    )
+    return ServiceUnavailable(f"render failed (exit {returncode}, request {request_id}); see the server log")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from fastapi.testclient import TestClient
-from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key, upload_bytes
+from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key, pack, upload_bytes, write_tiny_bundle
 from test_results import _unit, finish_job
 
 from service.db.base import utcnow
@@ -104,6 +104,10 @@ class TestDelete:
         assert Storage(settings.storage).job_dir(uuid.UUID(job_id)).is_dir()
 
 
+def _add_compressible_note(root: Path) -> None:
+    (root / "notes.txt").write_bytes(bytes(100_000))
+
+
 @BOTH_BACKENDS
 class TestQuotas:
     def test_concurrent_jobs_refused_with_429_naming_the_limit(self, settings: Settings, tiny_zip: bytes) -> None:
@@ -136,12 +140,14 @@ class TestQuotas:
             accepted = limited_client.post("/v1/uploads", headers={**headers, "Upload-Length": "100"})
             assert accepted.status_code == 201
 
-    def test_extraction_is_bounded_by_the_quota(self, settings: Settings, tiny_zip: bytes) -> None:
-        # Room for the archive itself, but not for what it expands to.
-        limited = settings.model_copy(update={"quota_bytes": len(tiny_zip) + 10})
+    def test_extraction_is_bounded_by_the_quota(self, settings: Settings, tmp_path: Path) -> None:
+        # Room for the archive itself, but not for what it expands to: a bundle with 100 kB of zeros in a note
+        # (the archive being extracted counts once, so the quota must be below the extracted size).
+        padded = pack(write_tiny_bundle(tmp_path / "padded", mutate=_add_compressible_note))
+        limited = settings.model_copy(update={"quota_bytes": len(padded) + 10})
         auth = new_key(limited, "alice")
         with TestClient(create_app(limited, sender=RecordingSender(), run_reaper=False)) as client:
-            upload = upload_bytes(client, auth, tiny_zip, filename="tiny.zip")
+            upload = upload_bytes(client, auth, padded, filename="padded.zip")
             response = client.post("/v1/scenes", json={"upload_id": upload["id"]}, headers=auth)
             assert response.status_code == 422
             problems = response.json()["problems"]

@@ -112,3 +112,67 @@ def test_an_api_host_without_torch_answers_503_with_the_reason(
     r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist()}, headers=auth)
     assert r.status_code == 503
     assert "pipeline extra" in r.json()["message"]
+
+
+@pytest.mark.parametrize(
+    ("camera", "field"),
+    [
+        ({"fx": 1e-300}, "camera.fx"),
+        ({"fy": 1e9}, "camera.fy"),
+        ({"cx": 1.7e308}, "camera.cx"),
+        ({"cy": -1e6}, "camera.cy"),
+    ],
+)
+def test_extreme_camera_values_are_refused_naming_the_field(
+    client: TestClient, auth: dict[str, str], finished_job: str, camera: dict[str, float], field: str
+) -> None:
+    doc = {"width": 32, "height": 24, "fx": 24.0, "fy": 24.0, "cx": 15.5, "cy": 11.5, **camera}
+    r = client.post(
+        f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist(), "camera": doc}, headers=auth
+    )
+    assert r.status_code == 422, r.text
+    assert field in json.dumps(r.json())
+    assert "Traceback" not in r.text
+
+
+def test_a_crashing_render_child_is_logged_and_answered_without_traceback_or_path(
+    client: TestClient,
+    auth: dict[str, str],
+    finished_job: str,
+    settings: Settings,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from service import renders
+
+    # The real child process, running a module that crashes the way a rasterizer bug would.
+    (tmp_path / "crashing_render.py").write_text(
+        "import sys\nraise RuntimeError('overflow while rendering ' + sys.argv[2])\n"
+    )
+    monkeypatch.setenv("PYTHONPATH", f"{tmp_path}:{Path(renders.__file__).parents[1]}")
+    monkeypatch.setattr(renders, "RENDER_MODULE", "crashing_render")
+    with caplog.at_level("ERROR", logger="service.renders"):
+        r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist()}, headers=auth)
+    assert r.status_code == 503
+    message = r.json()["message"]
+    assert "Traceback" not in r.text
+    assert "crashing_render" not in r.text
+    assert str(settings.storage) not in r.text
+    assert str(tmp_path) not in r.text
+    request_id = message.split("request ")[1].split(")")[0]
+    logged = [rec.getMessage() for rec in caplog.records if request_id in rec.getMessage()]
+    assert logged
+    assert "Traceback" in logged[0]
+    assert "overflow while rendering" in logged[0]
+
+
+def test_far_and_mirrored_poses_are_refused(client: TestClient, auth: dict[str, str], finished_job: str) -> None:
+    far = np.eye(4)
+    far[:3, 3] = [0, 0, 1e7]
+    mirrored = np.diag([1.0, 1.0, -1.0, 1.0])
+    for pose, needle in ((far, "translation"), (mirrored, "determinant")):
+        r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": pose.tolist()}, headers=auth)
+        assert r.status_code == 422, r.text
+        assert "T_world_cam" in json.dumps(r.json())
+        assert needle in json.dumps(r.json())

@@ -5,6 +5,7 @@ stand-ins on PATH here, so the test neither needs nor changes the machine's pack
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -98,7 +99,24 @@ def test_missing_chromium_is_installed_as_root(tmp_path: Path) -> None:
 
 def test_old_node_is_refused(tmp_path: Path) -> None:
     system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
-    system._command("node", "if [ \"$1\" = -v ]; then echo v16.0.0; else echo 16; fi")
+    system._command("node", 'if [ "$1" = -v ]; then echo v16.0.0; else echo 16; fi')
     done = system.run()
     assert done.returncode == 1
     assert "needs node 18 or later" in done.stderr
+
+
+def test_the_readme_session_tools_are_installed_as_root(tmp_path: Path) -> None:
+    """curl, jq and zip (the README's curl session): on a PATH that has none of them, apt-get installs them."""
+    system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
+    base = tmp_path / "base"  # only what the script and the stand-ins run, without curl, jq and zip
+    base.mkdir()
+    for name in ("bash", "sh", "cat", "env", "touch", "chmod", "printf"):
+        found = shutil.which(name)
+        assert found is not None
+        (base / name).symlink_to(found)
+    installed = " ".join(f'touch "{system.bin}/{t}" && chmod +x "{system.bin}/{t}";' for t in ("curl", "jq", "zip"))
+    system._command("apt-get", f'echo "$@" >> "{system.apt_log}"; [ "$1" = install ] && {{ {installed} }}; exit 0')
+    env = {"PATH": f"{system.bin}{os.pathsep}{base}", "PYTHON": sys.executable, "CHROMIUM": str(system.chromium)}
+    done = subprocess.run([str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == ["update -qq", "install -y curl jq zip -qq"]

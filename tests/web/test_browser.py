@@ -23,10 +23,12 @@ pytestmark = pytest.mark.slow
 
 JOB_TIMEOUT_MS = 300_000  # the tiny scene takes ~15 s alone; the machine may be shared
 VIEWPORT = {"width": 1200, "height": 760}
+CSP_VIOLATIONS: list[str] = []  # what Chromium refused under the app's Content-Security-Policy, from every page
 
 
 def _sign_in(context: Any, url: str, key: str) -> Any:
     page = context.new_page()
+    page.on("console", lambda m: CSP_VIOLATIONS.append(m.text) if "Content Security Policy" in m.text else None)
     page.goto(f"{url}/app")
     page.fill("#sign-in input[name=key]", key)
     page.click("#sign-in button[type=submit]")
@@ -248,3 +250,11 @@ def test_deleting_the_job_removes_it_and_its_files(
     page.wait_for_selector(f'tr[data-job-id="{job_id}"]', state="detached", timeout=15_000)
     assert not folder.exists()
     assert api.get(f"/v1/jobs/{job_id}").status_code == 404
+
+
+def test_the_app_ran_under_its_content_security_policy(page: Any, served: dict[str, Any]) -> None:
+    """Last in the module: every page above (sign-in, upload, viewer, queries) ran with nothing refused."""
+    from service.security_headers import APP_CSP
+
+    assert httpx.get(f"{served['url']}/app").headers["content-security-policy"] == APP_CSP
+    assert sorted(set(CSP_VIOLATIONS)) == []  # each kind once

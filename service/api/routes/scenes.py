@@ -32,7 +32,8 @@ def create_scene(
     if upload is None:
         raise NotFound("upload", body.upload_id)
     # An archive may expand only as far as the tenant's quota and the free disk allow, not to the bundle limit.
-    limit, reason = lifecycle.extraction_limit(session, settings, storage, tenant.id)
+    # The upload stops counting once its scene exists: its bytes are room for the scene (counted once).
+    limit, reason = lifecycle.extraction_limit(session, settings, storage, tenant.id, releasing=upload.length)
     try:
         scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=limit, settings=settings)
     except InvalidBundle as exc:

@@ -17,7 +17,7 @@ from service.db import crud
 from service.db.models import Upload, UploadState
 from service.db.session import session_scope
 from service.errors import Conflict, NotFound, PayloadTooLarge, ServiceError
-from service.lifecycle import check_storage_quota
+from service.lifecycle import check_disk_room, check_storage_quota
 from service.schemas import UploadPublic, error_responses
 from service.settings import Settings
 from service.storage import Storage
@@ -30,7 +30,7 @@ _BODY = {
         "content": {up.OCTET: {"schema": {"type": "string", "format": "binary"}}},
     }
 }
-_ERRORS = error_responses(404, 409, 412, 413, 415, 460)
+_ERRORS = error_responses(404, 409, 412, 413, 415, 460, 507)
 TusVersion = Annotated[str | None, Header(alias="Tus-Resumable", description="1.0.0")]
 
 
@@ -114,13 +114,18 @@ async def append(
     upload_id: uuid.UUID,
     request: Request,
     tenant: TenantDep,
+    settings: SettingsDep,
     storage: StorageDep,
     factory: FactoryDep,
     upload_offset: Annotated[int, Header(alias="Upload-Offset", ge=0, description="must equal the current offset")],
     upload_checksum: Annotated[str | None, Header(alias="Upload-Checksum", description="sha256 <base64>")] = None,
     tus_resumable: TusVersion = None,
 ) -> Response:
-    """Append the body at ``Upload-Offset`` (which must be the offset the server has)."""
+    """Append the body at ``Upload-Offset`` (which must be the offset the server has).
+
+    The bytes the upload still needs (Upload-Length less what arrived) must fit on the disk (507) and the tenant
+    must still be within its storage quota (413), checked before a byte is written.
+    """
     up.check_tus_version(tus_resumable)
     checksum = up.parse_checksum(upload_checksum)
     up.check_content_type(request)
@@ -129,6 +134,7 @@ async def append(
         raise Conflict(f"Upload-Offset {upload_offset} does not match the server's offset {upload.offset}")
     if upload.state != UploadState.RECEIVING:
         raise Conflict(f"upload {upload.id} is {upload.state.value}; it takes no more bytes")
+    await run_in_threadpool(_in_session, factory, _check_room_to_continue, settings, storage, upload)
     upload = await _write(request, factory, storage, upload, checksum)
     return Response(status_code=204, headers=up.tus_headers(Upload_Offset=upload.offset))
 
@@ -148,8 +154,18 @@ def _create_within_quota(
     length: int,
     metadata: dict[str, str],
 ) -> Upload:
+    if length > settings.max_upload_bytes:  # the size limit first: it is what the client must change
+        raise PayloadTooLarge(f"Upload-Length {length} exceeds the limit of {settings.max_upload_bytes} bytes")
     check_storage_quota(session, settings, tenant_id, length)
+    check_disk_room(settings, storage, length, f"an upload of Upload-Length {length:,}")
     return up.create_upload(session, storage, tenant_id, length, metadata, settings.max_upload_bytes)
+
+
+def _check_room_to_continue(session: Session, settings: Settings, storage: Storage, upload: Upload) -> None:
+    """The quota (this upload counts at its full length already) and the free disk for the bytes still to come."""
+    check_storage_quota(session, settings, upload.api_key_id, 0)
+    remaining = upload.length - upload.offset
+    check_disk_room(settings, storage, remaining, f"upload {upload.id} ({upload.offset:,} of {upload.length:,} bytes)")
 
 
 def _discard_by_id(session: Session, storage: Storage, upload_id: uuid.UUID) -> None:
