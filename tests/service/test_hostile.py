@@ -18,7 +18,9 @@ On the code before issue 14 these fail (the test ids say which item each case gu
 class the issue does not list): item 1 (a vocabulary that is a path is accepted), 2 (deep / huge JSON: 500s),
 3 (render numbers: a traceback in a 503), 4 (the storage path in a 422), 5 (images decoded before their
 header is read; cv2 raising on huge declared sizes: 500), 7 (no free-disk check on uploads) and 8 (no
-security headers).
+security headers); and three classes the issue does not list: a NUL character in a stored text (job vocabulary,
+scene name, upload filename) is a 500 on PostgreSQL, a .npy header whose shape overflows int64 is accepted or a
+500, and a PLY vertex count of thousands of digits is a 500.
 """
 
 from __future__ import annotations
@@ -751,6 +753,48 @@ def _upload_made_with_room(tmp_path: Path, key: dict[str, str], length: int) -> 
         response = client.post("/v1/uploads", headers={**key, "Upload-Length": str(length)})
         assert response.status_code == 201, response.text
         return str(response.json()["id"])
+
+
+# -- text that a database may refuse -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("field", ["job-vocabulary", "scene-name", "upload-filename", "upload-filename-with-body"])
+def test_nul_characters_in_stored_text(any_world: World, field: str) -> None:
+    """U+0000 in a text the service stores (PostgreSQL refuses it in text columns): accepted or a 4xx, never a
+    500, and nothing left behind either way. (Not one of issue 14's items: found by this suite.)"""
+    world = any_world
+    client, auth = world.client, world.mallory
+    nul = "chair\x00/etc/passwd"
+    if field.startswith("upload-filename"):
+        metadata = f"filename {_b64(nul)}"
+        before = (_rows(world, Upload), listing(world.storage))
+        headers = {**auth, "Tus-Resumable": "1.0.0", "Upload-Length": "10", "Upload-Metadata": metadata}
+        body = b""
+        if field.endswith("with-body"):
+            headers["Content-Type"], body = OCTET, b"0123456789"
+        response = client.post("/v1/uploads", content=body, headers=headers)
+        assert_safe(world, response, (nul, metadata))
+        if response.status_code == 201:
+            assert client.delete(f"/v1/uploads/{response.json()['id']}", headers=auth).status_code == 204
+        assert (_rows(world, Upload), listing(world.storage)) == before
+    elif field == "scene-name":
+        bad = BadBundle(pack_members(world.valid_members, "zip"), "a valid bundle, a NUL in its name")
+        before, scenes = listing(world.storage), _scene_count(world)
+        upload = upload_bytes(client, auth, bad.data, filename="ok.zip")
+        response = client.post("/v1/scenes", json={"upload_id": upload["id"], "name": nul}, headers=auth)
+        assert_safe(world, response, (nul,))
+        if response.status_code == 201:
+            assert client.delete(f"/v1/scenes/{response.json()['id']}", headers=auth).status_code == 204
+        else:
+            client.delete(f"/v1/uploads/{upload['id']}", headers=auth)
+        assert (listing(world.storage), _scene_count(world)) == (before, scenes)
+    else:
+        before_jobs = _rows(world, Job)
+        response = client.post("/v1/jobs", json={"scene_id": world.mallory_scene, "vocabulary": nul}, headers=auth)
+        if response.status_code == 202:
+            client.delete(f"/v1/jobs/{response.json()['id']}", headers=auth)
+        assert_safe(world, response, (nul,))
+        assert _rows(world, Job) == before_jobs
 
 
 # -- /app/session and the headers of every answer ---------------------------------------------------------------------
