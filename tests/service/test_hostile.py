@@ -779,7 +779,7 @@ def test_nul_characters_in_stored_text(any_world: World, field: str) -> None:
         assert (_rows(world, Upload), listing(world.storage)) == before
     elif field == "scene-name":
         bad = BadBundle(pack_members(world.valid_members, "zip"), "a valid bundle, a NUL in its name")
-        before, scenes = listing(world.storage), _scene_count(world)
+        stored, scenes = listing(world.storage), _scene_count(world)
         upload = upload_bytes(client, auth, bad.data, filename="ok.zip")
         response = client.post("/v1/scenes", json={"upload_id": upload["id"], "name": nul}, headers=auth)
         assert_safe(world, response, (nul,))
@@ -787,7 +787,7 @@ def test_nul_characters_in_stored_text(any_world: World, field: str) -> None:
             assert client.delete(f"/v1/scenes/{response.json()['id']}", headers=auth).status_code == 204
         else:
             client.delete(f"/v1/uploads/{upload['id']}", headers=auth)
-        assert (listing(world.storage), _scene_count(world)) == (before, scenes)
+        assert (listing(world.storage), _scene_count(world)) == (stored, scenes)
     else:
         before_jobs = _rows(world, Job)
         response = client.post("/v1/jobs", json={"scene_id": world.mallory_scene, "vocabulary": nul}, headers=auth)
