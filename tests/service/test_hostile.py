@@ -755,6 +755,24 @@ def _upload_made_with_room(tmp_path: Path, key: dict[str, str], length: int) -> 
         return str(response.json()["id"])
 
 
+# -- names in paths ----------------------------------------------------------------------------------------------
+
+# Percent-encoded: a client (httpx as well) resolves a literal ".." segment before sending.
+TRAVERSALS = ["%2e%2e", "..%2fscene.json", "%2e%2e%2f%2e%2e%2fetc%2fpasswd", "..%5c..%5cpasswd", "%00", ".env",
+              "gaussians.ply%00.txt", "instances.json%2f..%2f..%2fpanogs.db"]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", TRAVERSALS)
+def test_names_in_paths_never_leave_their_folder(world: World, name: str) -> None:
+    """An artifact or app asset named with a traversal (raw or percent-encoded): a 404 or another 4xx, and
+    never the bytes of a file outside the job's artifacts or the app's assets."""
+    for url in (f"/v1/jobs/{world.mallory_job}/artifacts/{name}", f"/app/static/{name}"):
+        response = world.client.get(url, headers=world.mallory)
+        assert_refused(world, response, sent=(name,))
+        assert b"root:" not in response.content
+        assert b"SQLite format" not in response.content
+
+
 # -- text that a database may refuse -------------------------------------------------------------------------------
 
 
