@@ -19,6 +19,7 @@ from service.errors import InvalidInput, NotFound
 from service.lifecycle import check_job_quota
 from service.schemas import InlineVocabulary, InlineVocabularyPublic, JobCreate, JobError, JobPublic
 from service.settings import Settings
+from service.stored_text import printable_text
 
 
 def config_factory(pipeline_function: str) -> Callable[[dict[str, Any]], Any]:
@@ -70,6 +71,7 @@ def create_job(
     """
     fingerprint = request_hash(body)
     if idempotency_key is not None:
+        printable_text(idempotency_key, "Idempotency-Key")
         earlier = _same_request(session, tenant_id, idempotency_key, fingerprint)
         if earlier is not None:
             return earlier, False

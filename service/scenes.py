@@ -20,6 +20,7 @@ from service.db.models import Scene, Upload, UploadState
 from service.errors import Conflict, InvalidBundle
 from service.settings import Settings
 from service.storage import Storage, detect_archive, dir_size
+from service.stored_text import printable_text
 from service.uploads import discard_upload
 
 if TYPE_CHECKING:
@@ -77,6 +78,8 @@ def create_scene(
     from panogs_core.bundle import open_bundle
     from panogs_core.errors import BundleError
 
+    if name is not None:
+        printable_text(name, "name")
     if upload.state != UploadState.COMPLETE or not crud.set_upload_state(
         session, upload.id, UploadState.COMPLETE, UploadState.CONSUMED
     ):

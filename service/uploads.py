@@ -35,6 +35,7 @@ from service.errors import (
     UnsupportedMediaType,
 )
 from service.storage import BLOCK, ChunkWriter, HashStates, Storage
+from service.stored_text import printable_text
 
 TUS_VERSION = "1.0.0"
 TUS_EXTENSIONS = "creation,creation-with-upload,termination,checksum"
@@ -103,6 +104,9 @@ def create_upload(
         expected = expected.strip().lower()
         if len(expected) != 64 or any(c not in "0123456789abcdef" for c in expected):
             raise InvalidInput("Upload-Metadata: sha256 must be 64 hex digits")
+    filename = metadata.get("filename") or None
+    if filename is not None:
+        printable_text(filename, "Upload-Metadata: filename")
     upload_id = uuid.uuid4()
     path = storage.upload_file(upload_id)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -110,7 +114,7 @@ def create_upload(
     upload = Upload(
         id=upload_id,
         api_key_id=tenant_id,
-        filename=(metadata.get("filename") or None),
+        filename=filename,
         length=length,
         offset=0,
         expected_sha256=expected,
@@ -119,7 +123,13 @@ def create_upload(
     if upload.filename is not None:
         upload.filename = upload.filename[:255]
     session.add(upload)
-    session.commit()
+    try:
+        session.commit()
+    except BaseException:
+        # The row was not made (database refused or away): its empty file must not outlive it.
+        session.rollback()
+        storage.remove_tree(path.parent)
+        raise
     return upload
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from enum import Enum
 
-from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError, SQLAlchemyError
+from sqlalchemy.exc import DataError, DBAPIError, IntegrityError, InterfaceError, OperationalError, SQLAlchemyError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 
 
@@ -50,6 +50,10 @@ def classify(exc: SQLAlchemyError) -> DatabaseFault:
         return DatabaseFault.BUG
     if isinstance(exc, IntegrityError):
         return _integrity_fault(driver_code(exc))
+    if isinstance(exc, DataError):
+        # A value the database cannot hold (a NUL in a PostgreSQL text column, a number out of range): the value
+        # is refused, as by a CHECK rule; the API checks stored text first (service/stored_text.py).
+        return DatabaseFault.CONSTRAINT
     if exc.connection_invalidated or isinstance(exc, InterfaceError):
         return DatabaseFault.OUTAGE
     if isinstance(exc, OperationalError) and _is_transient(driver_code(exc)):

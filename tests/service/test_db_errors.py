@@ -137,3 +137,12 @@ def test_exhausted_pool_is_an_outage(tmp_path: Path) -> None:
     with engine.connect():  # the pool's only connection is busy
         response = answer(engine, "SELECT 1")
     assert response.status_code == 503
+
+
+def test_a_value_the_database_cannot_hold_is_invalid_input(tables: Tables) -> None:
+    # PostgreSQL refuses an integer out of its column's range with a DataError (SQLSTATE 22003); SQLite stores it.
+    if tables.engine.dialect.name != "postgresql":
+        pytest.skip("SQLite holds any integer")
+    response = answer(tables.engine, f"INSERT INTO {tables.parent} (id, name, size) VALUES (2, 'b', 99999999999)")
+    assert response.status_code == 422
+    assert response.json()["type"] == "invalid_input"
