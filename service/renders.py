@@ -164,7 +164,7 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
         argv = [sys.executable, "-m", RENDER_MODULE, "render", str(out_dir), "--pose", str(pose_file)]
         argv += ["--size", f"{width}x{height}", "--out", str(Path(tmp) / "out")]
         if body.query:
-            argv += ["--query", body.query]
+            argv.append(f"--query={body.query}")  # one token: a query that starts with "-" is not an option
         # One thread: renders run beside the API's own work (docs/service.md, one thread per call).
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         try:

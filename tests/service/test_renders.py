@@ -68,6 +68,18 @@ def test_render_returns_the_png_of_the_layer(client: TestClient, auth: dict[str,
     assert img[6, 8, 2] < 60
 
 
+def test_a_query_that_looks_like_an_option_is_taken_as_a_query(
+    client: TestClient, auth: dict[str, str], finished_job: str
+) -> None:
+    # The query travels to the render child as one "--query=..." token: "-h" is a query the child looks up (not a
+    # class of this job's vocabulary, whose space has no text encoder), not a request for the child's help.
+    body = {"T_world_cam": np.eye(4).tolist(), "width": 16, "height": 12, "layer": "relevance", "query": "-h"}
+    r = client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth)
+    assert r.status_code == 422, r.text
+    assert "query '-h' is not a class of the vocabulary" in r.json()["message"]
+    assert "usage:" not in r.text
+
+
 @pytest.mark.parametrize(
     ("body", "needle"),
     [
