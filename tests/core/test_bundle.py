@@ -842,6 +842,14 @@ BINARY_HEADERS = [
         "bytes, the file holds 0 after its header",
     ),
     (
+        "cells times dim wraps",  # 4 cells x 2**62 is 0 in int64: within the pixel limit, and passed as complete
+        lambda r: (
+            _edit(_set(["features", "dim"], 2**62))(r),
+            _write(_F, _raw_npy(f"(4, 1, {2**62})"))(r),
+        ),
+        f"{_F}: shape (4, 1, {2**62}) of float32 declares {2**66:,} data bytes, the file holds 0 after its header",
+    ),
+    (
         "wraps to the data size",  # (2**61 + 1) * 32 bytes is 32 modulo 2**64: the 32 bytes present matched
         _write(_F, _raw_npy(f"({2**61 + 1}, 1, {DIM})", data=bytes(32))),
         f"{_F}: shape ({2**61 + 1}, 1, {DIM}) of float32 declares {(2**61 + 1) * 32:,} data bytes, the file holds 32",
