@@ -16,14 +16,17 @@ path in them is relative to the bundle root.
 from __future__ import annotations
 
 import logging
+import lzma
 import math
+import os
 import shutil
 import tempfile
 import weakref
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,6 +35,7 @@ from panogs_core.bounded_json import JsonLimits, read_json_file
 from panogs_core.errors import BundleError, InputError
 from panogs_core.io.archive import DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES, extract_archive, is_archive
 from panogs_core.io.image_header import ImageHeader, read_image_header
+from panogs_core.io.npy_header import NpyHeader, read_npy_header
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.io.writer import FORMAT_ID
 from panogs_core.types import Camera, ClassKind, Frame, Geometry, GroundTruth, Vocabulary
@@ -43,7 +47,7 @@ logger = logging.getLogger(__name__)
 ROTATION_TOL = 1e-3  # docs/scene_format.md §2.1: orthonormal rotation, det 1, tolerance 1e-3
 _LAST_ROW_TOL = 1e-6  # the last pose row is exact in any sane writer; allow float printing noise only
 _FEATURE_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
-_MAX_GT_POINTS = 500_000_000  # refuse absurd declared gt shapes before allocating them
+_GT_KEYS = ("semantic", "instance", "points")  # the members of gt/labels.npz that are read (docs/scene_format.md §4)
 _FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
     "depth": (".png",),
     "color": (".png", ".jpg", ".jpeg"),
@@ -53,6 +57,9 @@ _FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
 _FRAME_KEYS = frozenset({"id", "pose", *_FRAME_FILES})
 _TOP_KEYS = frozenset({"format", "name", "camera", "depth_scale", "features", "frames"})
 DEFAULT_MAX_IMAGE_PIXELS = 100_000_000  # 10000 x 10000; the 8K UHD frame (7680 x 4320) is 33 million
+# gt/labels.npz is read whole during validation: 1 GiB holds 38 million labelled points with positions (28 bytes
+# each), 10x a large ScanNet or Replica mesh.
+DEFAULT_MAX_GROUND_TRUTH_BYTES = 1024**3
 
 
 @dataclass(frozen=True)
@@ -62,10 +69,13 @@ class BundleLimits:
     Attributes:
         json: Depth, size and integer limits of ``scene.json`` and ``vocabulary.json``.
         max_image_pixels: Most pixels (width x height) of one image, and cells (Hf x Wf) of one feature map.
+        max_ground_truth_bytes: Most bytes the arrays of ``gt/labels.npz`` may expand to (their declared sizes
+            are checked before any is decompressed).
     """
 
     json: JsonLimits = field(default_factory=JsonLimits)
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+    max_ground_truth_bytes: int = DEFAULT_MAX_GROUND_TRUTH_BYTES
 
 
 @dataclass(frozen=True)
@@ -257,7 +267,7 @@ def _validate(root: Path, *, limits: BundleLimits, source: str | None = None) ->
     frames = _check_frames(root, manifest, header, limits, problems) if manifest is not None else []
     num_vertices = _check_geometry(root, problems)
     vocabulary = _check_vocabulary(root, header.feature_dim, limits.json, problems)
-    has_gt = _check_ground_truth(root, vocabulary, num_vertices, problems)
+    has_gt = _check_ground_truth(root, vocabulary, num_vertices, limits, problems)
     if problems:
         raise BundleError(_relative_to(problems, root), source=source or root.name)
     # No problem implies every header field parsed; the asserts only narrow the types.
@@ -592,10 +602,7 @@ def _check_features(root: Path, rel: str, dim: int | None, limits: BundleLimits,
     header = _npy_header(root / rel, rel, problems)
     if header is None:
         return
-    shape, fortran, dtype, complete = header
-    if dtype.hasobject:
-        problems.append(f"{rel}: holds pickled Python objects, expected a plain float16/float32 array")
-        return
+    shape, dtype = header.shape, header.dtype
     if dtype not in _FEATURE_DTYPES:
         problems.append(f"{rel}: dtype {dtype}, expected float16 or float32")
     if len(shape) != 3 or min(shape, default=0) < 1:
@@ -608,25 +615,31 @@ def _check_features(root: Path, rel: str, dim: int | None, limits: BundleLimits,
                 f"{rel}: {shape[1]}x{shape[0]} cells ({shape[0] * shape[1]:,}), over the pixel limit of "
                 f"{limits.max_image_pixels:,}"
             )
-    if fortran:
+    if header.fortran_order:
         problems.append(f"{rel}: Fortran order, expected C order")
-    if not complete:
-        problems.append(f"{rel}: file size does not match its header {shape} {dtype} (truncated?)")
 
 
-def _npy_header(path: Path, rel: str, problems: list[str]) -> tuple[tuple[int, ...], bool, np.dtype[Any], bool] | None:
-    """(shape, fortran order, dtype, data size matches the file) of a .npy, without reading the data."""
+def _npy_header(path: Path, rel: str, problems: list[str]) -> NpyHeader | None:
+    """The header of a .npy, when it is valid and the file holds exactly the data it declares; else a problem.
+
+    Only the header is read. Declared sizes are exact Python integers compared with the file's real size, so a
+    shape that multiplies past int64 is refused, never wrapped to a small size that matches.
+    """
     try:
         with path.open("rb") as fh:
-            shape, fortran, dtype = _read_npy_header(fh)
-            offset = fh.tell()
-            fh.seek(0, 2)
-            data_size = fh.tell() - offset
-    except (ValueError, OSError, SyntaxError) as exc:
-        problems.append(f"{rel}: not a valid .npy file ({_reason(exc)})")
+            header = read_npy_header(fh, rel)
+            available = os.fstat(fh.fileno()).st_size - header.offset
+    except InputError as exc:
+        problems.append(str(exc))
         return None
-    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize if not dtype.hasobject else data_size
-    return tuple(int(s) for s in shape), bool(fortran), dtype, data_size == expected
+    except OSError as exc:
+        problems.append(f"{rel}: cannot be read ({_reason(exc)})")
+        return None
+    problem = header.size_problem(available)
+    if problem is not None:
+        problems.append(f"{rel}: {problem}")
+        return None
+    return header
 
 
 def _check_geometry(root: Path, problems: list[str]) -> int | None:
@@ -697,9 +710,9 @@ def _load_embeddings(
     header = _npy_header(root / rel, rel, problems)
     if header is None:
         return None
-    shape, _, dtype, complete = header
-    if dtype.hasobject or dtype.kind != "f" or not complete:
-        problems.append(f"{rel}: dtype {dtype}, expected a complete plain float array")
+    shape, dtype = header.shape, header.dtype
+    if dtype.kind != "f":
+        problems.append(f"{rel}: dtype {dtype}, expected a float array")
         return None
     expected = (num_classes, dim if dim is not None else shape[-1] if shape else 0)
     if shape != expected:
@@ -714,7 +727,7 @@ def _load_embeddings(
 
 
 def _check_ground_truth(
-    root: Path, vocabulary: Vocabulary | None, num_vertices: int | None, problems: list[str]
+    root: Path, vocabulary: Vocabulary | None, num_vertices: int | None, limits: BundleLimits, problems: list[str]
 ) -> bool:
     """True when ``gt/labels.npz`` is present and valid."""
     rel = "gt/labels.npz"
@@ -725,7 +738,7 @@ def _check_ground_truth(
     if not path.exists():
         return False
     n_before = len(problems)
-    arrays = _load_npz(path, rel, problems)
+    arrays = _load_npz(path, rel, limits.max_ground_truth_bytes, problems)
     if arrays is None:
         return False
     sem, ins, pts = arrays.get("semantic"), arrays.get("instance"), arrays.get("points")
@@ -755,41 +768,60 @@ def _check_ground_truth(
     return len(problems) == n_before
 
 
-def _load_npz(path: Path, rel: str, problems: list[str]) -> dict[str, np.ndarray] | None:
-    """The arrays of an .npz, refusing pickles and absurd declared shapes before allocating anything."""
+def _load_npz(path: Path, rel: str, max_bytes: int, problems: list[str]) -> dict[str, np.ndarray] | None:
+    """The arrays of ``gt/labels.npz`` named in :data:`_GT_KEYS` (other members are not read).
+
+    Every member's header is read first and its declared size compared, as an exact integer, with the member's
+    uncompressed size in the zip (which the zip reader never reads past) and the sum with ``max_bytes``: an
+    array that claims more than its member holds, or members that would expand past the limit (a zip bomb),
+    are refused before anything is decompressed beyond the headers.
+    """
     try:
         with zipfile.ZipFile(path) as zf:
-            for name in zf.namelist():
-                with zf.open(name) as fh:
-                    shape, _, dtype = _read_npy_header(fh)
-                if dtype.hasobject:
-                    problems.append(f"{rel}: {name} holds pickled Python objects, expected plain arrays")
-                    return None
-                if int(np.prod(shape, dtype=np.int64)) > _MAX_GT_POINTS * 3:
-                    problems.append(f"{rel}: {name} declares shape {shape}, too large")
-                    return None
-        with np.load(path, allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, SyntaxError) as exc:
+            members = _npz_members(zf, rel, problems)
+            if members is None:
+                return None
+            total = sum(info.file_size for info in members.values())
+            if total > max_bytes:
+                problems.append(
+                    f"{rel}: arrays expand to {total:,} bytes, over the ground-truth limit of {max_bytes:,} bytes"
+                )
+                return None
+            arrays = {}
+            for key, info in members.items():
+                with zf.open(info) as fh:
+                    arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
+            return arrays
+    except InputError as exc:
+        problems.append(str(exc))
+        return None
+    except (
+        zipfile.BadZipFile, ValueError, OSError, EOFError, RuntimeError, NotImplementedError, zlib.error,
+        lzma.LZMAError,
+    ) as exc:  # fmt: skip
+        # RuntimeError: an encrypted member; NotImplementedError: a compression method zipfile lacks.
         problems.append(f"{rel}: not a valid .npz file ({_reason(exc)})")
         return None
 
 
-# -- small helpers -------------------------------------------------------------------------------------------
-
-
-def _read_npy_header(fh: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype[Any]]:
-    """(shape, fortran_order, dtype) of a .npy stream, leaving ``fh`` at the first data byte.
-
-    Raises:
-        ValueError: if the magic string or the header is malformed.
-    """
-    version = np.lib.format.read_magic(fh)
-    if version == (1, 0):
-        return np.lib.format.read_array_header_1_0(fh)  # type: ignore[no-any-return]
-    if version in ((2, 0), (3, 0)):  # 3.0 only changes the header's text encoding
-        return np.lib.format.read_array_header_2_0(fh)  # type: ignore[no-any-return]
-    raise ValueError(f"unsupported .npy version {version}")
+def _npz_members(zf: zipfile.ZipFile, rel: str, problems: list[str]) -> dict[str, zipfile.ZipInfo] | None:
+    """Key -> member of the wanted arrays, each with a valid header that matches its member's size."""
+    members: dict[str, zipfile.ZipInfo] = {}
+    for info in zf.infolist():
+        key = info.filename.removesuffix(".npy")
+        if key not in _GT_KEYS:
+            continue
+        if key in members:
+            problems.append(f"{rel}: member {info.filename!r} appears twice, expected one array per key")
+            return None
+        with zf.open(info) as fh:
+            header = read_npy_header(fh, f"{rel}: {info.filename}")
+        problem = header.size_problem(info.file_size - header.offset)
+        if problem is not None:
+            problems.append(f"{rel}: {info.filename}: {problem}")
+            return None
+        members[key] = info
+    return members
 
 
 def _imread(root: Path, rel: str) -> np.ndarray:  # as stored: (H, W) or (H, W, C) BGR

@@ -42,7 +42,10 @@ _WRITE_TYPES: dict[str, str] = {
 }
 
 # A header longer than this is not a PLY header (guards against reading a whole binary file as header lines).
-_MAX_HEADER_LINES = 10_000
+MAX_HEADER_LINES = 10_000
+MAX_HEADER_BYTES = 1024**2  # also bounds one line: a header of comments from any real writer is a few KB
+MAX_COUNT_DIGITS = 19  # an element count fits in int64; more digits than that is refused before int() sees it
+_SMALL_READ = 65_536  # reads up to this size are not checked against the file size first
 
 
 @dataclass(frozen=True)
@@ -174,53 +177,116 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:  # name -> (N,
 
 
 def _read_header(fh: BinaryIO, path: Path) -> _Header:
-    """Parse the header up to ``end_header``, leaving ``fh`` at the first data byte."""
-    if fh.readline().strip() != b"ply":
+    """Parse the header up to ``end_header``, leaving ``fh`` at the first data byte.
+
+    Every number in it is bounded before it is used: the header's length (:data:`MAX_HEADER_LINES`,
+    :data:`MAX_HEADER_BYTES`), each element count's digits, and the data the counts declare against the bytes
+    the file holds after the header. Messages name the file and the header line.
+    """
+    if fh.readline(MAX_HEADER_BYTES).strip() != b"ply":
         raise InputError(f"{path.name}: not a PLY file (first line is not 'ply')")
     encoding = ""
     elements: list[tuple[str, int, list[_Property]]] = []
-    for _ in range(_MAX_HEADER_LINES):
-        raw = fh.readline()
+    used = fh.tell()
+    for number in range(2, MAX_HEADER_LINES + 1):
+        raw = fh.readline(MAX_HEADER_BYTES - used + 1)
+        used += len(raw)
+        if used > MAX_HEADER_BYTES:
+            raise InputError(f"{path.name}: line {number}: PLY header longer than {MAX_HEADER_BYTES:,} bytes")
         if not raw:
             raise InputError(f"{path.name}: PLY header has no end_header")
         try:
             words = raw.decode("ascii").split()
         except UnicodeDecodeError as exc:
-            raise InputError(f"{path.name}: PLY header is not ASCII") from exc
+            raise InputError(f"{path.name}: line {number}: PLY header is not ASCII") from exc
+        where = f"{path.name}: line {number}"
         if not words or words[0] in ("comment", "obj_info"):
             continue
         if words[0] == "end_header":
             break
         if words[0] == "format":
-            if len(words) != 3 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise InputError(f"{path.name}: unsupported PLY format line {' '.join(words)!r}")
-            encoding = words[1]
+            encoding = _parse_format(words, where)
         elif words[0] == "element":
-            if len(words) != 3 or not words[2].isdigit():
-                raise InputError(f"{path.name}: malformed PLY element line {' '.join(words)!r}")
-            elements.append((words[1], int(words[2]), []))
+            elements.append(_parse_element(words, [e[0] for e in elements], where))
         elif words[0] == "property":
             if not elements:
-                raise InputError(f"{path.name}: PLY property before any element")
-            elements[-1][2].append(_parse_property(words, path))
+                raise InputError(f"{where}: PLY property before any element")
+            prop = _parse_property(words, where)
+            if any(p.name == prop.name for p in elements[-1][2]):
+                raise InputError(f"{where}: PLY property {_short(prop.name)!r} repeated in element {elements[-1][0]!r}")
+            elements[-1][2].append(prop)
         else:
-            raise InputError(f"{path.name}: unknown PLY header keyword {words[0]!r}")
+            raise InputError(f"{where}: unknown PLY header keyword {_short(words[0])!r}")
     else:
-        raise InputError(f"{path.name}: PLY header has no end_header")
+        raise InputError(f"{path.name}: PLY header has no end_header within {MAX_HEADER_LINES:,} lines")
     if not encoding:
         raise InputError(f"{path.name}: PLY header has no format line")
     parsed = tuple(_Element(name, count, tuple(props)) for name, count, props in elements)
     if not any(e.name == "vertex" for e in parsed):
         raise InputError(f"{path.name}: PLY has no vertex element")
+    _check_declared_size(parsed, encoding, os.fstat(fh.fileno()).st_size - fh.tell(), path)
     return _Header(encoding, parsed)
 
 
-def _parse_property(words: list[str], path: Path) -> _Property:
+def _parse_format(words: list[str], where: str) -> str:
+    if len(words) != 3 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian") or words[2] != "1.0":
+        raise InputError(
+            f"{where}: unsupported PLY format line {_short(' '.join(words))!r}, expected e.g. 'format "
+            "binary_little_endian 1.0'"
+        )
+    return words[1]
+
+
+def _parse_element(words: list[str], seen: list[str], where: str) -> tuple[str, int, list[_Property]]:
+    if len(words) != 3 or not words[2].isdigit():
+        raise InputError(
+            f"{where}: malformed PLY element line {_short(' '.join(words))!r}, expected 'element NAME COUNT'"
+        )
+    if len(words[2]) > MAX_COUNT_DIGITS:
+        raise InputError(
+            f"{where}: PLY element {_short(words[1])!r} count of {len(words[2]):,} digits, expected at most "
+            f"{MAX_COUNT_DIGITS} (and no more rows than the file holds)"
+        )
+    if words[1] in seen:
+        raise InputError(f"{where}: PLY element {_short(words[1])!r} repeated, expected each element once")
+    return words[1], int(words[2]), []
+
+
+def _check_declared_size(elements: tuple[_Element, ...], encoding: str, available: int, path: Path) -> None:
+    """Refuse counts that the data after the header cannot hold, before any row is read or allocated.
+
+    A binary row takes at least its scalars' and list lengths' bytes; an ASCII row at least one character and a
+    separator per property. An element with rows but no properties would take no bytes at all, so any count
+    would fit: it is refused.
+    """
+    needed = 0
+    for element in elements:
+        if element.count and not element.properties:
+            raise InputError(f"{path.name}: PLY element {element.name!r} has {element.count:,} rows but no properties")
+        if encoding == "ascii":
+            row = 2 * len(element.properties)
+        else:
+            row = sum(np.dtype(p.count_dtype or p.dtype).itemsize for p in element.properties)
+        needed += row * element.count
+        if needed > available + (1 if encoding == "ascii" else 0):  # the last ASCII value needs no separator
+            raise InputError(
+                f"{path.name}: PLY element {element.name!r} truncated or its count false: {element.count:,} rows "
+                f"need at least {needed:,} bytes of data, the file holds {available:,} after its header"
+            )
+
+
+def _parse_property(words: list[str], where: str) -> _Property:
     if len(words) == 3 and words[1] in _PLY_TYPES:
         return _Property(words[2], _PLY_TYPES[words[1]])
     if len(words) == 5 and words[1] == "list" and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
+        if np.dtype(_PLY_TYPES[words[2]]).kind not in "iu":  # a list length of float type has no meaning
+            raise InputError(f"{where}: PLY list length type {words[2]!r}, expected an integer type")
         return _Property(words[4], _PLY_TYPES[words[3]], count_dtype=_PLY_TYPES[words[2]])
-    raise InputError(f"{path.name}: malformed PLY property line {' '.join(words)!r}")
+    raise InputError(f"{where}: malformed PLY property line {_short(' '.join(words))!r}")
+
+
+def _short(text: str) -> str:
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _read_binary(fh: BinaryIO, header: _Header, path: Path) -> dict[str, np.ndarray]:
@@ -265,6 +331,8 @@ def _read_binary_row(fh: BinaryIO, element: _Element, order: str, path: Path) ->
         n = int(_unpack(fh, order, prop.count_dtype, 1, path, element.name)[0])
         if n < 0:
             raise InputError(f"{path.name}: PLY element {element.name!r} has a negative list length")
+        if n * np.dtype(prop.dtype).itemsize > _SMALL_READ:  # a large read allocates its size before it reads
+            _require_bytes(fh, n * np.dtype(prop.dtype).itemsize, path, element.name)
         row.append(list(_unpack(fh, order, prop.dtype, n, path, element.name)))
     return row
 
@@ -336,7 +404,13 @@ def _ascii_row(tokens: list[str], pos: int, element: _Element, path: Path) -> tu
 def _cast_ascii(column: np.ndarray, prop: _Property, path: Path) -> np.ndarray:
     if np.dtype(prop.dtype).kind in "iu":
         if not np.all(np.isfinite(column)) or np.any(column != np.round(column)):
-            raise InputError(f"{path.name}: PLY property {prop.name!r} must hold integers")
+            raise InputError(f"{path.name}: PLY property {_short(prop.name)!r} must hold integers")
+        info = np.iinfo(prop.dtype)
+        if column.size and (column.min() < info.min or column.max() > info.max):  # a cast would wrap silently
+            raise InputError(
+                f"{path.name}: PLY property {_short(prop.name)!r} has values in [{column.min():g}, "
+                f"{column.max():g}], outside its type's range [{info.min}, {info.max}]"
+            )
     return column.astype(prop.dtype)
 
 

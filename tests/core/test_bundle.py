@@ -349,7 +349,11 @@ BROKEN: list[tuple[str, Callable[[Path], object], str]] = [
         "expected (Hf, Wf, D)",
     ),
     ("fortran", _replace_npy("features/000000.npy", np.zeros((2, 3, DIM), np.float32, order="F")), "Fortran"),
-    ("features truncated", _truncate("features/000000.npy", 0.9), "features/000000.npy: file size"),
+    (
+        "features truncated",
+        _truncate("features/000000.npy", 0.9),
+        "features/000000.npy: shape (6, 8, 8) of float16 declares 768 data bytes, the file holds",
+    ),
     ("not npy", lambda r: (r / "features/000001.npy").write_bytes(b"\x93NUMPY junk"), "not a valid .npy"),
     ("no features", _edit(_drop_key("features")), "no frame has features"),
     ("no masks", _edit(_drop_key("masks")), "no frame has masks"),
@@ -784,3 +788,202 @@ def test_synthetic_bundle_fits_the_default_limits(bundle_dir: Path) -> None:
         bundle_dir, limits=BundleLimits(json=JsonLimits(max_bytes=16 * 1024**2), max_image_pixels=40_000_000)
     )
     assert len(scene.frames) == 3
+
+
+# -- binary headers: .npy shapes and .npz members are bounded before anything is allocated (issue 14) ---------
+
+
+def _raw_npy(shape: str, descr: str = "<f4", data: bytes = b"") -> bytes:
+    """A version 1.0 .npy whose header says ``shape`` (any text: np.save cannot write a false shape)."""
+    text = "{'descr': '%s', 'fortran_order': False, 'shape': %s, }" % (descr, shape)  # noqa: UP031
+    header = text.encode("latin1") + b" " * ((64 - (10 + len(text) + 1) % 64) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + data
+
+
+def _write(rel: str, data: bytes) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        (root / rel).write_bytes(data)
+
+    return apply
+
+
+def _gt_zip(members: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        with zipfile.ZipFile(root / "gt" / "labels.npz", "w", method) as zf:
+            for name, data in members.items():
+                zf.writestr(name, data)
+
+    return apply
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array, allow_pickle=False)
+    return buffer.getvalue()
+
+
+_F = "features/000000.npy"
+_LABELS = _npy(np.zeros(NUM_VERTICES, np.int64))
+BINARY_HEADERS = [
+    (
+        "size past int64",  # the brief's case: np.prod in int64 wrapped it, an empty file passed as complete
+        _write(_F, _raw_npy(f"({10**19}, 6, {DIM})")),
+        f"{_F}: shape (10000000000000000000, 6, {DIM}), expected at most 32 integer sizes in [0, 2**63)",
+    ),
+    (
+        "size past any int",  # np.prod raised OverflowError: a 500 at the API
+        _write(_F, _raw_npy(f"({10**30}, 6, {DIM})")),
+        f"{_F}: shape ({10**30}, 6, {DIM}), expected at most 32 integer sizes in [0, 2**63)",
+    ),
+    (
+        "product past int64",  # each size fits, the product does not: exact integers, never wrapped
+        _write(_F, _raw_npy(f"({10**18}, 6, {DIM})")),
+        f"{_F}: shape (1000000000000000000, 6, {DIM}) of float32 declares 192,000,000,000,000,000,000 data "
+        "bytes, the file holds 0 after its header",
+    ),
+    (
+        "cells times dim wraps",  # 4 cells x 2**62 is 0 in int64: within the pixel limit, and passed as complete
+        lambda r: (
+            _edit(_set(["features", "dim"], 2**62))(r),
+            _write(_F, _raw_npy(f"(4, 1, {2**62})"))(r),
+        ),
+        f"{_F}: shape (4, 1, {2**62}) of float32 declares {2**66:,} data bytes, the file holds 0 after its header",
+    ),
+    (
+        "wraps to the data size",  # (2**61 + 1) * 32 bytes is 32 modulo 2**64: the 32 bytes present matched
+        _write(_F, _raw_npy(f"({2**61 + 1}, 1, {DIM})", data=bytes(32))),
+        f"{_F}: shape ({2**61 + 1}, 1, {DIM}) of float32 declares {(2**61 + 1) * 32:,} data bytes, the file holds 32",
+    ),
+    ("negative size", _write(_F, _raw_npy(f"(-5, 6, {DIM})")), f"{_F}: shape (-5, 6, {DIM}), expected at most 32"),
+    ("bool size", _write(_F, _raw_npy(f"(True, 6, {DIM})")), f"{_F}: shape (True, 6, {DIM}), expected at most 32"),
+    ("size over intp", _write(_F, _raw_npy(f"({2**70}, 0, {DIM})")), f"{_F}: shape ({2**70}, 0, {DIM}), expected"),
+    ("too many dims", _write(_F, _raw_npy("(1,) * 40")), f"{_F}: not a valid .npy file"),
+    (
+        "vocabulary past int64",
+        _write("vocabulary.npy", _raw_npy(f"(3, {2**62 + DIM})", data=bytes(3 * DIM * 4))),
+        f"vocabulary.npy: shape (3, {2**62 + DIM}) of float32 declares {3 * (2**62 + DIM) * 4:,} data bytes",
+    ),
+    (
+        "gt member past int64",  # passed the old int64 check by wrapping, then np.load failed to allocate
+        _gt_zip({"semantic.npy": _raw_npy(f"({2**61 + 1},)", "<i8", bytes(8)), "instance.npy": _LABELS}),
+        f"gt/labels.npz: semantic.npy: shape ({2**61 + 1},) of int64 declares {(2**61 + 1) * 8:,} data bytes, "
+        "the file holds 8",
+    ),
+    (
+        "gt member shorter than its header",
+        _gt_zip({"semantic.npy": _raw_npy("(1000000000,)", "<i8"), "instance.npy": _LABELS}),
+        "gt/labels.npz: semantic.npy: shape (1000000000,) of int64 declares 8,000,000,000 data bytes, the file holds 0",
+    ),
+    (
+        "gt pickled member",
+        _gt_zip({"semantic.npy": _raw_npy("(3,)", "|O"), "instance.npy": _LABELS}),
+        "gt/labels.npz: semantic.npy: holds pickled Python objects",
+    ),
+    (
+        "gt member twice",
+        _gt_zip({"semantic.npy": _LABELS, "instance.npy": _LABELS, "semantic": _LABELS}),
+        "gt/labels.npz: member 'semantic' appears twice",
+    ),
+    (
+        "gt not npy",
+        _gt_zip({"semantic.npy": b"hello", "instance.npy": _LABELS}),
+        "gt/labels.npz: semantic.npy: not a valid .npy file",
+    ),
+    (
+        "geometry count of 5000 digits",  # int() refused it with a ValueError: a 500 at the API
+        _write("geometry.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex " + b"9" * 5000 + b"\n"),
+        "geometry.ply: line 3: PLY element 'vertex' count of 5,000 digits, expected at most 19",
+    ),
+    (
+        "geometry count past the file",
+        _write(
+            "geometry.ply",
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 9223372036854775807\nproperty float x\n"
+            b"property float y\nproperty float z\nend_header\n" + bytes(12),
+        ),
+        "geometry.ply: PLY element 'vertex' truncated or its count false: 9,223,372,036,854,775,807 rows need at "
+        "least 110,680,464,442,257,309,684 bytes of data, the file holds 12 after its header",
+    ),
+]
+
+
+@pytest.mark.parametrize(("breaker", "expected"), [b[1:] for b in BINARY_HEADERS], ids=[b[0] for b in BINARY_HEADERS])
+def test_binary_header_is_bounded(bundle_dir: Path, breaker: Callable[[Path], object], expected: str) -> None:
+    breaker(bundle_dir)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # zipfile warns about the duplicate member name
+        problems = _problems(bundle_dir)
+    assert any(p.startswith(expected) for p in problems), problems
+
+
+def test_gt_unread_members_are_ignored(bundle_dir: Path) -> None:
+    # A member that is not one of the documented keys is never decompressed, whatever its header says.
+    scene_gt = np.load(bundle_dir / "gt" / "labels.npz")
+    members = {f"{k}.npy": _npy(scene_gt[k]) for k in scene_gt.files}
+    _gt_zip({**members, "junk.npy": _raw_npy(f"({10**30},)")})(bundle_dir)
+    assert open_bundle(bundle_dir).read_ground_truth() is not None
+
+
+def test_gt_zip_bomb_is_refused_by_declared_sizes(bundle_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # 64 MiB of zeros deflate to about 64 KB; the declared sizes alone are over a 32 MiB limit, so nothing is
+    # decompressed past the headers.
+    count = 8 * 1024**2
+    bomb = np.lib.format.header_data_from_array_1_0(np.zeros(1, np.int64))
+    bomb["shape"] = (count,)
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, bomb)
+    path = bundle_dir / "gt" / "labels.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        with zf.open("semantic.npy", "w", force_zip64=True) as fh:
+            fh.write(buffer.getvalue())
+            for _ in range(count // 2**20):
+                fh.write(bytes(8 * 2**20))
+        zf.writestr("instance.npy", _npy(np.zeros(count, np.int64)))
+    assert path.stat().st_size < 1_000_000
+
+    read_array = np.lib.format.read_array
+
+    def no_member_read(fh: Any, *args: Any, **kwargs: Any) -> np.ndarray:
+        assert not isinstance(fh, zipfile.ZipExtFile), "an array of the .npz was decompressed"
+        return read_array(fh, *args, **kwargs)
+
+    monkeypatch.setattr(np.lib.format, "read_array", no_member_read)
+    with pytest.raises(BundleError) as info:
+        open_bundle(bundle_dir, limits=BundleLimits(max_ground_truth_bytes=32 * 1024**2))
+    expected = (
+        f"gt/labels.npz: arrays expand to {2 * (8 * count + 128):,} bytes, over the ground-truth limit of "
+        "33,554,432 bytes"
+    )
+    assert expected in info.value.problems, info.value.problems
+
+
+@pytest.mark.parametrize(
+    ("patch", "expected"),
+    [
+        (lambda flag, method: (flag, 99), "not a valid .npz file (That compression method is not supported)"),
+        (lambda flag, method: (flag | 1, method), "not a valid .npz file"),  # the 'encrypted' flag
+    ],
+    ids=["unknown compression", "encrypted"],
+)
+def test_gt_member_zipfile_cannot_read(
+    bundle_dir: Path, patch: Callable[[int, int], tuple[int, int]], expected: str
+) -> None:
+    # Both raised past the old handler (NotImplementedError, RuntimeError): a 500 at the API.
+    path = bundle_dir / "gt" / "labels.npz"
+    data = bytearray(path.read_bytes())
+    for signature, at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # local headers; central directory entries
+        start = data.find(signature)
+        while start != -1:
+            flag, method = struct.unpack_from("<HH", data, start + at)
+            struct.pack_into("<HH", data, start + at, *patch(flag, method))
+            start = data.find(signature, start + 4)
+    path.write_bytes(bytes(data))
+    problems = _problems(bundle_dir)
+    assert any(p.startswith("gt/labels.npz: " + expected) for p in problems), problems
+
+
+def test_gt_limit_counts_every_read_member(bundle_dir: Path) -> None:
+    # The tiny bundle's labels: two members of 20 int64 and a 128-byte header each, 576 bytes in all.
+    assert open_bundle(bundle_dir, limits=BundleLimits(max_ground_truth_bytes=576)).has_ground_truth
+    with pytest.raises(BundleError, match=r"gt/labels\.npz: arrays expand to 576 bytes, over the ground-truth limit"):
+        open_bundle(bundle_dir, limits=BundleLimits(max_ground_truth_bytes=575))

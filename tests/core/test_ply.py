@@ -153,6 +153,84 @@ class TestReadPly:
             read_ply_vertices(path)
         assert "broken.ply" in str(info.value)
 
+    @pytest.mark.parametrize(
+        ("content", "match"),
+        [
+            (  # int() refused it with a ValueError (Python's 4,300-digit limit), which became a 500
+                b"ply\nformat ascii 1.0\nelement vertex " + b"7" * 5000 + b"\nproperty float x\nend_header\n",
+                "broken.ply: line 3: PLY element 'vertex' count of 5,000 digits, expected at most 19",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 0" + b"0" * 30 + b"1\nproperty float x\nend_header\n1\n",
+                "broken.ply: line 3: PLY element 'vertex' count of 32 digits",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nend_header\n1 2 3\n",
+                "broken.ply: PLY element 'vertex' truncated or its count false: 3 rows need at least 12 bytes of data, "
+                "the file holds 6 after its header",
+            ),
+            (  # an element of rows without properties takes no bytes: any count would fit the file
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
+                b"element junk 9223372036854775807\nend_header\n\0\0\0\0",
+                "broken.ply: PLY element 'junk' has 9,223,372,036,854,775,807 rows but no properties",
+            ),
+            (  # rows with lists take at least their length prefix each: a count is bounded by the file too
+                b"ply\nformat binary_little_endian 1.0\nelement face 1000\nproperty list uchar int v\n"
+                b"element vertex 1\nproperty float x\nend_header\n" + bytes(500),
+                "broken.ply: PLY element 'face' truncated or its count false: 1,000 rows need at least 1,000 bytes",
+            ),
+            (  # a list length of 4 billion: refused before a 16 GB read is attempted
+                b"ply\nformat binary_little_endian 1.0\nelement face 1\nproperty list uint int v\n"
+                b"element vertex 1\nproperty float x\nend_header\n\xff\xff\xff\xff" + bytes(4),
+                "broken.ply: PLY element 'face' truncated",
+            ),
+            (b"ply\ncomment " + b"c" * (1024**2 + 10) + b"\n", "broken.ply: line 2: PLY header longer than 1,048,576"),
+            (b"ply\n" + b"comment\n" * 10_000, "broken.ply: PLY header has no end_header within 10,000 lines"),
+            (b"ply\nformat ascii 2.0\nend_header\n", "broken.ply: line 2: unsupported PLY format line 'format ascii 2"),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list float int v\nend_header\n",
+                "broken.ply: line 4: PLY list length type 'float', expected an integer type",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty uchar x\nend_header\n1 1\n",
+                "broken.ply: line 5: PLY property 'x' repeated in element 'vertex'",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nelement vertex 1\nend_header\n",
+                "broken.ply: line 5: PLY element 'vertex' repeated",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nbogus" + b"b" * 500 + b"\n",
+                "broken.ply: line 5: unknown PLY header keyword 'bogusbbb",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 2\nproperty uchar red\nend_header\n300 1\n",
+                r"broken.ply: PLY property 'red' has values in \[1, 300\], outside its type's range \[0, 255\]",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 2\nproperty uchar red\nend_header\n" + b"9" * 5000 + b" 1\n",
+                "broken.ply: PLY property 'red' must hold integers",  # the value parses as inf
+            ),
+        ],
+        ids=[
+            "count of 5000 digits", "count of leading zeros", "ascii count", "no properties", "list rows",
+            "list length", "long line", "many lines", "format version", "list length type", "property twice",
+            "element twice", "long keyword", "uchar range", "huge ascii value",
+        ],
+    )  # fmt: skip
+    def test_header_numbers_are_bounded(self, tmp_path: Path, content: bytes, match: str) -> None:
+        path = tmp_path / "broken.ply"
+        path.write_bytes(content)
+        with pytest.raises(InputError, match=match) as info:
+            read_ply_vertices(path)
+        assert len(str(info.value)) < 400  # a value is quoted, never a whole line of the file
+
+    def test_largest_count_that_fits_is_read(self, tmp_path: Path) -> None:
+        path = tmp_path / "big.ply"
+        write_ply(path, {"x": np.arange(1000, dtype=np.float32)})
+        assert vertex_count(path) == 1000
+        assert len(read_ply_vertices(path)["x"]) == 1000
+
     def test_missing_file(self, tmp_path: Path) -> None:
         with pytest.raises(InputError, match=r"nope\.ply"):
             read_ply_vertices(tmp_path / "nope.ply")

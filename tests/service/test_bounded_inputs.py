@@ -125,6 +125,90 @@ class TestImages:
         assert "depth/000000.png: 64x48 (3,072 pixels), over the pixel limit of 3,000" in body["problems"]
 
 
+def _raw_npy(shape: str, descr: str = "<f4") -> bytes:
+    """A .npy holding only a header that says ``shape`` (np.save cannot write a false shape)."""
+    text = "{'descr': '%s', 'fortran_order': False, 'shape': %s, }" % (descr, shape)  # noqa: UP031
+    header = text.encode("latin1") + b" " * ((64 - (10 + len(text) + 1) % 64) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header
+
+
+_WRAPPING_DIM = 2**62  # a float-exact features.dim: 4 cells x 2**62 is 2**64, 0 as np.prod(..., int64) computed it
+
+
+def _wrapping_feature_dim(root: Path) -> None:
+    """Empty feature maps whose int64 element count wrapped to 0: main passed them as complete, then a 500."""
+    edit_manifest(root, lambda m: m["features"].update(dim=_WRAPPING_DIM))
+    for i in range(2):
+        (root / f"features/{i:06d}.npy").write_bytes(_raw_npy(f"(4, 1, {_WRAPPING_DIM})"))
+    (root / "vocabulary.json").write_text(
+        '{"classes": [{"name": "wall", "kind": "stuff"}, {"name": "chair", "kind": "thing"}]}'
+    )
+    (root / "vocabulary.npy").unlink()
+
+
+def _gt_with_huge_member(root: Path) -> None:
+    (root / "gt").mkdir()
+    with zipfile.ZipFile(root / "gt" / "labels.npz", "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("semantic.npy", _raw_npy(f"({10**30},)", "<i8"))
+        zf.writestr("instance.npy", _raw_npy(f"({10**17},)", "<i8"))
+
+
+class TestBinaryHeaders:
+    """Numbers in .npy, .npz and PLY headers (issue 14): each was a 500, or an accepted scene, before."""
+
+    @pytest.mark.parametrize(
+        ("mutate", "expected"),
+        [
+            (
+                _wrapping_feature_dim,
+                f"features/000000.npy: shape (4, 1, {_WRAPPING_DIM}) of float32 declares {_WRAPPING_DIM * 16:,} data "
+                "bytes, the file holds 0 after its header (truncated, or a false shape)",
+            ),
+            (
+                lambda root: (root / "features/000000.npy").write_bytes(_raw_npy(f"({10**19}, 6, 8)")),
+                "features/000000.npy: shape (10000000000000000000, 6, 8), expected at most 32 integer sizes in "
+                "[0, 2**63)",
+            ),
+            (
+                lambda root: (root / "features/000001.npy").write_bytes(_raw_npy(f"({10**18}, 6, 8)")),
+                "features/000001.npy: shape (1000000000000000000, 6, 8) of float32 declares "
+                "192,000,000,000,000,000,000 data bytes, the file holds 0 after its header (truncated, or a false "
+                "shape)",
+            ),
+            (  # np.prod raised OverflowError
+                _gt_with_huge_member,
+                f"gt/labels.npz: semantic.npy: shape ({10**30},), expected at most 32 integer sizes in [0, 2**63)",
+            ),
+            (  # int() refused the 5,000 digits with a ValueError
+                lambda root: (root / "geometry.ply").write_bytes(
+                    b"ply\nformat binary_little_endian 1.0\nelement vertex " + b"5" * 5000 + b"\nproperty float x\n"
+                ),
+                "geometry.ply: line 3: PLY element 'vertex' count of 5,000 digits, expected at most 19 (and no more "
+                "rows than the file holds)",
+            ),
+        ],
+        ids=[
+            "feature dim wraps",
+            "feature size past int64",
+            "feature bytes past int64",
+            "gt member past any int",
+            "ply count digits",
+        ],
+    )
+    def test_refused_naming_the_file(
+        self,
+        client: TestClient,
+        auth: dict[str, str],
+        settings: Settings,
+        tmp_path: Path,
+        mutate: Callable[[Path], object],
+        expected: str,
+    ) -> None:
+        body = _refused(client, auth, _bundle(tmp_path, mutate), settings)
+        assert expected in body["problems"], body
+        assert client.get("/v1/scenes", headers=auth).json()["count"] == 0
+
+
 class TestArchiveNames:
     def test_long_member_name_names_no_host_path(
         self, client: TestClient, auth: dict[str, str], settings: Settings, tmp_path: Path
