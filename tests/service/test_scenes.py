@@ -81,6 +81,22 @@ class TestCreate:
         assert response.status_code == 201, response.text
         assert response.json()["name"] == "kitchen"
 
+    @BOTH_BACKENDS
+    def test_a_control_character_in_the_name_is_refused_and_the_upload_kept(
+        self, client: TestClient, auth: dict[str, str], tmp_path: Path
+    ) -> None:
+        root = write_tiny_bundle(tmp_path / "b")
+        edit_manifest(root, lambda m: m.update(name="room\x00/etc/passwd"))
+        upload = upload_bytes(client, auth, pack(root, "zip"))
+        for body in ({"upload_id": upload["id"], "name": "bad\x1b[2Jname"}, {"upload_id": upload["id"]}):
+            response = client.post("/v1/scenes", json=body, headers=auth)
+            assert response.status_code == 422, response.text
+            assert "control or separator character" in response.json()["message"]
+        # Neither refusal used the upload up: the same upload makes a scene once the request names it.
+        response = client.post("/v1/scenes", json={"upload_id": upload["id"], "name": "kitchen"}, headers=auth)
+        assert response.status_code == 201, response.text
+        assert client.get("/v1/scenes", headers=auth).json()["count"] == 1
+
     def test_upload_used_once(self, client: TestClient, auth: dict[str, str], tiny_zip: bytes) -> None:
         upload = upload_bytes(client, auth, tiny_zip)
         assert client.post("/v1/scenes", json={"upload_id": upload["id"]}, headers=auth).status_code == 201
