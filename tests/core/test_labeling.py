@@ -361,7 +361,7 @@ class TestLabelSets:
         with pytest.raises(InputError, match="no such file"):
             vocabulary_from_name_or_file(str(tmp_path / "nope.json"))
         (tmp_path / "bad.json").write_text("{not json")
-        with pytest.raises(InputError, match="bad.json: not valid JSON"):
+        with pytest.raises(InputError, match=r"bad\.json: not valid JSON"):
             vocabulary_from_name_or_file(str(tmp_path / "bad.json"))
 
     def test_builtin_name_never_opens_a_path(self, tmp_path: Path) -> None:
