@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed bench-gaussians clean web view bench-viewer
+	bench-speed bench-gaussians clean web view bench-viewer deploy-check
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -88,6 +88,12 @@ bench-gaussians: install ## Gaussian scene: held-out PSNR/SSIM of the fit, CPU c
 	$(PY) bench/gaussians.py quality
 	$(PY) bench/gaussians.py cost
 	$(PY) bench/gaussians.py stage
+
+# The docker deployment built and run end to end (tools/deploy-check): both images (stand-in bases made from Debian
+# packages when no registry answers), the compose stack with two workers, the README's curl session, a worker
+# stopped mid-job, then the teardown of what it started. Needs Docker with Compose v2, curl, jq and zip; no .venv.
+deploy-check: ## build the images, run the compose stack end to end, tear it down
+	tools/deploy-check
 
 clean: ## remove demo output and caches
 	rm -rf $(DEMO) .pytest_cache .ruff_cache .mypy_cache tests/web/artifacts

@@ -153,7 +153,9 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
     width, height = check_request(body, out_dir)
     if not torch_installed():
         raise ServiceUnavailable(
-            "renders need the pipeline extra (torch) on the API host: pip install 'panogs[pipeline]'"
+            "renders need the pipeline extra (torch, open3d) on the API host: pip install 'panogs[pipeline]'; "
+            "in the docker deployment, rebuild the API image with --build-arg API_KIND=full "
+            "(docker compose: PANOGS_API_KIND=full, its default; docs/service.md, Deployment)"
         )
     with tempfile.TemporaryDirectory(prefix="panogs-render-") as tmp:
         pose_file = Path(tmp) / "pose.json"

@@ -129,7 +129,7 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
             loaded.instances, vocabulary, query, feature_space=loaded.feature_space, encoder=remote, **options
         )
     except EncoderUnavailableError as exc:
-        raise InvalidInput(f"free-text query not possible: {exc}") from exc
+        raise InvalidInput(f"free-text query not possible: {exc}{_text_extra_hint(str(exc))}") from exc
     except InputError as exc:
         raise InvalidInput(str(exc)) from exc
     except EncoderFailed as exc:
@@ -137,6 +137,17 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
     took_ms = (time.perf_counter() - start) * 1000.0
     return QueryResult(
         hits=[QueryHitPublic(**hit.to_json()) for hit in hits], query_kind=kind, took_ms=round(took_ms, 3)
+    )
+
+
+def _text_extra_hint(reason: str) -> str:
+    """How to add the text encoders where the reason is their absence: pip for a host, a build argument for the
+    docker deployment's API image (its default build is slim)."""
+    if "panogs[text]" not in reason:
+        return ""
+    return (
+        "; in the docker deployment, rebuild the API image with --build-arg API_KIND=full "
+        "(docker compose: PANOGS_API_KIND=full, its default; docs/service.md, Deployment)"
     )
 
 
