@@ -264,6 +264,11 @@ class TestInline:
         assert _job_count(settings) == 0
 
 
+# The labels are what this test reads: a two-iteration appearance fit keeps the real pipeline short (the fit has its
+# own tests).
+FAST = {"appearance": {"iterations": 2}}
+
+
 @pytest.mark.slow
 class TestRealPipeline:
     def test_inline_vocabulary_end_to_end(self, make_settings: Any, tmp_path: Path) -> None:
@@ -285,7 +290,9 @@ class TestRealPipeline:
             auth = new_key(settings)
             scene = make_scene(client, auth, archive)
             response = client.post(
-                "/v1/jobs", json={"scene_id": scene["id"], "vocabulary": {"classes": classes}}, headers=auth
+                "/v1/jobs",
+                json={"scene_id": scene["id"], "vocabulary": {"classes": classes}, "config": FAST},
+                headers=auth,
             )
             assert response.status_code == 202, response.text
             job_id = response.json()["id"]
