@@ -6,14 +6,12 @@ themselves: ``make readme-check``.)"""
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import re
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
+from tool_modules import load_tool
 
 from panogs_core.cli import StageLines, format_instances, format_metrics
 from panogs_core.pipeline import STAGES
@@ -21,17 +19,7 @@ from panogs_core.pipeline import STAGES
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _load_tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("readme_demo", REPO / "tools" / "readme_demo.py")
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["readme_demo"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-tool = _load_tool()
+tool = load_tool("readme_demo")
 
 NUM = r"[ \d.-]"
 # One pattern per kind of line, named by a token; the block must spell a sentence of tokens (SHAPE).

@@ -4,29 +4,17 @@ and a PNG, not an error body (issue 14, item 9: the job was deleted before its r
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 from service_harness import under_ci
+from tool_modules import load_tool
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _load_tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("readme_session", REPO / "tools" / "readme_session.py")
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["readme_session"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-tool = _load_tool()
+tool = load_tool("readme_session")
 
 
 def test_the_block_is_found_and_moved_to_another_port() -> None:
