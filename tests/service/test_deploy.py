@@ -23,7 +23,7 @@ from service.settings import Settings
 REPO = Path(__file__).resolve().parents[2]
 FIELDS = {f"PANOGS_{name.upper()}" for name in Settings.model_fields}
 IMAGE_SCRIPTS = REPO / "tools" / "docker" / "image"
-# The builds of the pinned torch 2.13.0 (pytorch/pytorch RELEASE.md: CUDA 12.6 and 13.0 stable, 13.2
+# The builds of the pinned torch 2.13.0 (PyTorch's release compatibility matrix: CUDA 12.6 and 13.0 stable, 13.2
 # experimental; PyPI's own 2.13.0 is the CUDA 13.0 one). cu124 and cu128 are not among them.
 CUDA_VARIANTS = {"cu126", "cu130", "cu132"}
 DEPLOYMENT_FILES = ("Dockerfile", "docker-compose.yml", ".env.example", "docs/service.md")
