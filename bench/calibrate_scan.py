@@ -12,7 +12,7 @@ the key frames, fused features) and prints, next to the real capture's figures:
     primitive, class shares of all primitives (unannotated included), cabinet instances;
 (b) the simple baseline "fused-feature argmax": per primitive, the class whose text embedding has the highest
     cosine with the fused feature; a primitive seen by no key frame gets -1 ("no fill", always wrong) or the
-    class of its nearest seen primitive ("fill"). mIoU is ``panogs_core.evaluation.evaluate`` in standard mode
+    class of its nearest seen primitive ("fill"). mIoU is ``panogs_core.evaluation.metrics.evaluate`` in standard mode
     (unannotated ground truth left out, classes present in the ground truth averaged).
 
 ``--markdown`` prints the tables as markdown (docs/synthetic.md holds them with this script's command line).
@@ -36,11 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core import stages  # noqa: E402
-from panogs_core.bundle import Scene, open_bundle  # noqa: E402
-from panogs_core.config import PipelineConfig  # noqa: E402
-from panogs_core.evaluation import evaluate  # noqa: E402
-from panogs_core.pipeline import resolve_scene_vocabulary  # noqa: E402
+from panogs_core.evaluation.metrics import evaluate  # noqa: E402
+from panogs_core.io.bundle.reader import Scene, open_bundle  # noqa: E402
+from panogs_core.pipeline import stage_table as stages  # noqa: E402
+from panogs_core.pipeline.config import PipelineConfig  # noqa: E402
+from panogs_core.pipeline.run import resolve_scene_vocabulary  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
 # Issue 8, measured on the held-out real capture (ScanNet-style mesh and key frames every 20th frame).

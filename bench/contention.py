@@ -55,8 +55,8 @@ def child(policy: str, bundle: Path, out: Path, overrides: dict[str, object], th
         set_torch_threads(used)  # what the job process does when its first task runs (worker/tasks.py)
     import torch
 
-    from panogs_core.config import PipelineConfig
-    from panogs_core.pipeline import run_pipeline
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.pipeline.run import run_pipeline
 
     result = run_pipeline(bundle, out, PipelineConfig().with_overrides(overrides), resume=False)
     stages = {t.name: round(t.wall_s, 3) for t in result.timings}

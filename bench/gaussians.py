@@ -37,9 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.appearance import AppearanceConfig, fit_appearance  # noqa: E402
-from panogs_core.bundle import Scene, open_bundle  # noqa: E402
-from panogs_core.primitives import PrimitivesConfig, build_primitives, gaussian_log_scales  # noqa: E402
+from panogs_core.gaussians import AppearanceConfig, fit_appearance  # noqa: E402
+from panogs_core.io.bundle.reader import Scene, open_bundle  # noqa: E402
+from panogs_core.stages.primitives import PrimitivesConfig, build_primitives, gaussian_log_scales  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
 WORK = ROOT / "bench" / "results" / "gaussians"
@@ -87,9 +87,9 @@ def _initial_colors(scene: Scene, prims: Any) -> np.ndarray:
     """The colours export would write without the fit: the geometry's, else fused from the frames, else grey."""
     if prims.colors is not None:
         return np.asarray(prims.colors, np.float32)
-    from panogs_core.config import PipelineConfig
-    from panogs_core.export import primitive_colors
-    from panogs_core.stages import fusion, visibility
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.pipeline.stage_table import fusion, visibility
+    from panogs_core.stages.export import primitive_colors
 
     cfg = PipelineConfig()
     vis = visibility(scene, prims, cfg, lambda d, t: None)
@@ -157,9 +157,9 @@ def cost_case(work: Path, copies: int, width: int, iterations: int, render_only:
     only, with the top-weight ids of the label renders), and the peak RSS."""
     import torch
 
-    from panogs_core.appearance import resolve_schedule
-    from panogs_core.appearance_fit import Fitter
-    from panogs_core.rasterizer import rasterize
+    from panogs_core.gaussians import resolve_schedule
+    from panogs_core.gaussians.fit import Fitter
+    from panogs_core.gaussians.rasterizer import rasterize
 
     scene, prims = _room_primitives(work, copies)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -51,13 +51,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.baselines import fill_nearest_seen, fused_argmax, label_components
-from panogs_core.bundle import open_bundle
-from panogs_core.config import PipelineConfig
-from panogs_core.evaluation import evaluate
-from panogs_core.fusion import FusedFeatures
-from panogs_core.pipeline import resolve_scene_vocabulary, run_pipeline
-from panogs_core.primitives import Primitives
+from panogs_core.evaluation.baselines import fill_nearest_seen, fused_argmax, label_components
+from panogs_core.evaluation.metrics import evaluate
+from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.run import resolve_scene_vocabulary, run_pipeline
+from panogs_core.stages.fusion import FusedFeatures
+from panogs_core.stages.primitives import Primitives
 from panogs_core.synthetic import make_scene
 
 PREVIOUS = {"evidence_fused_weight": 0.0, "unseen": "field", "vote": "superprimitive", "instances": "clusters",
@@ -116,8 +116,8 @@ def score(pred_sem, pred_ins, gt, vocab, seen) -> dict[str, float]:
 
 def plain_fusion(scene, run_dir: Path, num_points: int) -> FusedFeatures:
     """The reference's fusion (own feature cell, no mask pooling) from the run's visibility checkpoint."""
-    from panogs_core.fusion import FusionConfig, fuse_features
-    from panogs_core.visibility import Visibility
+    from panogs_core.stages.fusion import FusionConfig, fuse_features
+    from panogs_core.stages.visibility import Visibility
 
     vis = Visibility.load(run_dir / "stages" / "visibility.npz")
     return fuse_features(scene, vis, num_points, FusionConfig(fuse_colors=False, mask_pooling=0.0))

@@ -1,9 +1,9 @@
-"""The cost of one appearance-fit snapshot (panogs_core.snapshots): seconds to write and read it, and its size.
+"""The cost of one appearance-fit snapshot (panogs_core.pipeline.snapshots): seconds to write and read it, and its size.
 
 Usage:
     python bench/snapshot_cost.py [--gaussians 30000 150000] [--degrees 1 3] [--repeats 3]
 
-The state has the shapes of a real fit's (:meth:`panogs_core.appearance_fit.Fitter.state`): every parameter group
+The state has the shapes of a real fit's (:meth:`panogs_core.gaussians.fit.Fitter.state`): every parameter group
 and its two Adam moments, at ``N`` Gaussians and SH degree ``d``. Figures are the median of the repeats.
 """
 
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from panogs_core.snapshots import StageSnapshot
-from panogs_core.spherical_harmonics import num_coefficients
+from panogs_core.gaussians.spherical_harmonics import num_coefficients
+from panogs_core.pipeline.snapshots import StageSnapshot
 
 
 def fit_state(n: int, degree: int) -> dict[str, object]:

@@ -28,10 +28,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.bundle import open_bundle
-from panogs_core.fusion import feature_cells
+from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.stages.fusion import feature_cells
+from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 from panogs_core.synthetic import make_scene
-from panogs_core.visibility import VisibilityConfig, compute_visibility
 
 
 def measure(bundle: Path) -> dict[str, float]:

@@ -2,7 +2,8 @@
 
 Pure functions and small frozen dataclasses, arrays in and arrays out. Importing the package is cheap and
 imports neither torch nor open3d: each stage module imports what it needs. The entry points are
-``panogs_core.bundle.open_bundle``, ``panogs_core.pipeline.run_pipeline`` and ``panogs_core.query.query_instances``.
+``panogs_core.io.bundle.reader.open_bundle``, ``panogs_core.pipeline.run.run_pipeline`` and
+``panogs_core.language.query.query_instances``; docs/architecture.md places every subpackage.
 """
 
 __version__ = "0.1.0"

@@ -36,7 +36,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from panogs_core.labelsets import vocabulary_from_name_or_file
+    from panogs_core.language.label_sets import vocabulary_from_name_or_file
 
     vocabulary = (
         vocabulary_from_name_or_file(args.vocabulary, feature_space=args.feature_space) if args.vocabulary else None
@@ -49,11 +49,11 @@ def _cmd_import(args: argparse.Namespace) -> int:
         "feature_space": args.feature_space,
     }
     if args.layout == "scannet":
-        from panogs_core.io.scannet import import_scannet
+        from panogs_core.io.importers.scannet import import_scannet
 
         report = import_scannet(args.src, args.dst, **common)
     else:
-        from panogs_core.io.replica import import_replica
+        from panogs_core.io.importers.replica import import_replica
 
         report = import_replica(args.src, args.dst, depth_scale=args.depth_scale, **common)
     print(report.summary())
@@ -66,7 +66,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from panogs_core.bundle import open_bundle
+    from panogs_core.io.bundle.reader import open_bundle
 
     scene = open_bundle(args.bundle)
     print(
@@ -247,9 +247,9 @@ def _positive_int(text: str) -> int:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     _limit_threads(args.threads)
-    from panogs_core.config import PipelineConfig
-    from panogs_core.labelsets import is_builtin_name, vocabulary_from_name_or_file
-    from panogs_core.pipeline import run_pipeline
+    from panogs_core.language.label_sets import is_builtin_name, vocabulary_from_name_or_file
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.pipeline.run import run_pipeline
     from panogs_core.types import Vocabulary
 
     cfg = PipelineConfig.from_yaml(Path(args.config)) if args.config else PipelineConfig()
@@ -296,9 +296,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _eval_against(run_dir: str, gt_file: str, *, as_json: bool) -> int:
     """Score a finished run against a ground-truth file (``.npz`` or ScanNet annotations)."""
-    from panogs_core.evaluation import evaluate_ground_truth
+    from panogs_core.evaluation.metrics import evaluate_ground_truth
     from panogs_core.io.ground_truth import load_ground_truth
-    from panogs_core.results import load_run_labels
+    from panogs_core.io.run_folder import load_run_labels
 
     run = load_run_labels(run_dir)
     gt = load_ground_truth(gt_file, run.vocabulary, vertices=run.points, vertices_name="the run's primitives")
@@ -318,9 +318,9 @@ def _eval_against(run_dir: str, gt_file: str, *, as_json: bool) -> int:
 def _cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from panogs_core.query import query_instances
-    from panogs_core.results import load_result
-    from panogs_core.text_encoders import get_text_encoder
+    from panogs_core.io.run_folder import load_result
+    from panogs_core.language.query import query_instances
+    from panogs_core.language.text_encoders import get_text_encoder
 
     loaded = load_result(args.run)
     query: str | np.ndarray = np.load(args.vector) if args.vector else " ".join(args.text)
@@ -444,7 +444,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from panogs_core.errors import InputError
-    from panogs_core.views import parse_size, render_to_dir
+    from panogs_core.gaussians.views import parse_size, render_to_dir
 
     pose = None
     if args.pose:
@@ -462,7 +462,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _add_render_command(sub: Any) -> None:
-    """``panogs render``: PNG views of a finished run's Gaussian scene (panogs_core/views.py)."""
+    """``panogs render``: PNG views of a finished run's Gaussian scene (panogs_core/gaussians/views.py)."""
     p = sub.add_parser("render", help="render a view of a run: colour, depth, semantic, instance, query relevance")
     p.add_argument("run", help="the --out folder of a run")
     view = p.add_mutually_exclusive_group(required=True)

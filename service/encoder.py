@@ -35,7 +35,7 @@ def _serve(conn: Connection, model_path: str | None) -> None:  # pragma: no cove
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     import numpy as np
 
-    from panogs_core.text_encoders import get_text_encoder
+    from panogs_core.language.text_encoders import get_text_encoder
 
     while True:
         try:
@@ -136,7 +136,7 @@ class EncoderProcess:
 
 
 class RemoteTextEncoder:
-    """A ``panogs_core.text_encoders.TextEncoder`` whose work happens in the encoder process."""
+    """A ``panogs_core.language.text_encoders.TextEncoder`` whose work happens in the encoder process."""
 
     def __init__(self, process: EncoderProcess, space: str, dim: int) -> None:
         self._process = process

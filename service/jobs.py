@@ -26,11 +26,11 @@ def config_factory(pipeline_function: str) -> Callable[[dict[str, Any]], Any]:
     """What turns a job's overrides into the pipeline's config: ``PipelineConfig.from_dict``, or the
     ``make_config`` of the module of a stand-in pipeline (``Settings.pipeline_function``)."""
     module_name = pipeline_function.partition(":")[0]
-    if module_name != "panogs_core.pipeline":
+    if module_name != "panogs_core.pipeline.run":
         make_config = getattr(importlib.import_module(module_name), "make_config", None)
         if make_config is not None:
             return make_config  # type: ignore[no-any-return]
-    from panogs_core.config import PipelineConfig
+    from panogs_core.pipeline.config import PipelineConfig
 
     return PipelineConfig.from_dict
 
@@ -119,7 +119,7 @@ def check_vocabulary(body: JobCreate, scene: Scene) -> None:
 def vocabulary_columns(body: JobCreate) -> dict[str, Any]:
     """The job row's vocabulary columns for a request: a built-in name, or the inline classes (each with its
     kind, defaulted as the pipeline would) and their embeddings, or nothing (the bundle's own)."""
-    from panogs_core.labelsets import default_kind
+    from panogs_core.language.label_sets import default_kind
 
     vocabulary = body.vocabulary
     if not isinstance(vocabulary, InlineVocabulary):

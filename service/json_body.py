@@ -4,7 +4,7 @@ FastAPI parses a JSON body with ``json.loads`` and validates it with pydantic, n
 ``config`` nested 300 levels deep in a 2 KB body passed both and broke pydantic's serializer (a 500), and
 1,000 levels break the parser itself. This middleware reads every body FastAPI would parse as JSON (the same
 rule: no ``Content-Type``, ``application/json`` or ``application/*+json``), checks it with
-:func:`panogs_core.bounded_json.loads`, and answers a broken limit with 422 ``invalid_input`` naming the field,
+:func:`panogs_core.io.bounded_json.loads`, and answers a broken limit with 422 ``invalid_input`` naming the field,
 the limit and its setting. Bodies within the limits go on unchanged; a syntax error is left to FastAPI, whose
 own 422 says where. It sits inside :class:`service.body_limit.BodyLimit`, so it never buffers more than that
 cap. The tus endpoint (``/v1/uploads``) carries bytes, not JSON, and is not read here.
@@ -16,7 +16,7 @@ import json
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from panogs_core.bounded_json import JsonLimitError, JsonLimits, JsonSyntaxError, loads
+from panogs_core.io.bounded_json import JsonLimitError, JsonLimits, JsonSyntaxError, loads
 from service.body_limit import UNCAPPED_PREFIX
 from service.settings import Settings
 

@@ -97,7 +97,7 @@ def extraction_limit(
     ``releasing``: stored bytes that stop counting when the extraction succeeds (the upload being extracted is
     deleted then), so that a scene may use the room of the upload it comes from.
     """
-    from panogs_core.io.archive import DEFAULT_MAX_BYTES as DEFAULT_MAX_EXTRACTED_BYTES
+    from panogs_core.io.bundle.archive import DEFAULT_MAX_BYTES as DEFAULT_MAX_EXTRACTED_BYTES
 
     candidates = [(settings.bundle_max_bytes or DEFAULT_MAX_EXTRACTED_BYTES, "the bundle size limit")]
     room = room_left(session, settings, tenant_id, releasing)

@@ -125,7 +125,7 @@ def torch_installed() -> bool:
 def check_request(body: RenderCreate, out_dir: Path) -> tuple[int, int]:
     """The render's size; refuses what the child would refuse, with the same messages (422), or 404."""
     from panogs_core.errors import InputError
-    from panogs_core.views import parse_camera, parse_pose, run_camera
+    from panogs_core.gaussians.views import parse_camera, parse_pose, run_camera
 
     try:
         parse_pose(body.T_world_cam, "T_world_cam")

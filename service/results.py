@@ -1,6 +1,6 @@
 """A finished job's results as the API serves them: instances and queries, loaded once and kept warm.
 
-Results are read with ``panogs_core.results.load_result`` (numpy only) and kept in a small LRU per API
+Results are read with ``panogs_core.io.run_folder.load_result`` (numpy only) and kept in a small LRU per API
 process; a finished job's folder never changes, so the cache needs no invalidation beyond the job id.
 Free text is encoded by :mod:`service.encoder` (a child process); class names and vectors need no encoder.
 """
@@ -30,7 +30,7 @@ from service.storage import Storage
 class Loaded:
     """A finished job's result as the API serves it."""
 
-    result: Any  # panogs_core.results.LoadedResult: instances (with features), vocabulary, feature space
+    result: Any  # panogs_core.io.run_folder.LoadedResult: instances (with features), vocabulary, feature space
     instances_body: bytes  # the JSON of GET /instances
 
 
@@ -48,7 +48,7 @@ class ResultCache:
             if job_id in self._items:
                 self._items.move_to_end(job_id)
                 return self._items[job_id]
-        from panogs_core.results import load_result
+        from panogs_core.io.run_folder import load_result
 
         rows = [InstancePublic.model_validate(r) for r in read_instances(out_dir)]
         body = InstancesPublic(data=rows, count=len(rows)).model_dump_json().encode()
@@ -100,7 +100,7 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
     import numpy as np
 
     from panogs_core.errors import EncoderUnavailableError, InputError
-    from panogs_core.query import query_instances
+    from panogs_core.language.query import query_instances
 
     start = time.perf_counter()
     vocabulary = loaded.vocabulary

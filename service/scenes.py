@@ -1,6 +1,6 @@
 """Making a scene from a complete upload: validate with the core validator, keep it only if it is valid.
 
-``panogs_core.bundle.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
+``panogs_core.io.bundle.reader.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
 bombs) and checks every rule of docs/scene_format.md, reporting every problem at once, within the limits of the
 settings (JSON depth, size and integers; pixels per image: each image's header is read before it is decoded). A
 refused bundle leaves nothing behind: the extraction folder, the archive and the upload are deleted. Problems
@@ -24,9 +24,9 @@ from service.stored_text import printable_text
 from service.uploads import discard_upload
 
 if TYPE_CHECKING:
-    from panogs_core.bundle import BundleLimits
+    from panogs_core.io.bundle.reader import BundleLimits
 
-# The words each limit's problem line uses (panogs_core.bounded_json, panogs_core.bundle), and its setting.
+# The words each limit's problem line uses (panogs_core.io.bounded_json, panogs_core.io.bundle.reader), and its setting.
 LIMIT_SETTINGS = {
     "JSON depth limit": "PANOGS_MAX_JSON_DEPTH",
     "JSON size limit": "PANOGS_BUNDLE_MAX_JSON_BYTES",
@@ -37,8 +37,8 @@ LIMIT_SETTINGS = {
 
 def bundle_limits(settings: Settings) -> BundleLimits:
     """What a bundle's files may declare, from the settings."""
-    from panogs_core.bounded_json import JsonLimits
-    from panogs_core.bundle import BundleLimits
+    from panogs_core.io.bounded_json import JsonLimits
+    from panogs_core.io.bundle.reader import BundleLimits
 
     json_limits = JsonLimits(
         max_depth=settings.max_json_depth,
@@ -75,8 +75,8 @@ def create_scene(
         Conflict: the upload is not complete, or was already made into a scene.
         InvalidBundle: the bundle breaks the format; ``problems`` lists every problem. Nothing is kept.
     """
-    from panogs_core.bundle import open_bundle
     from panogs_core.errors import BundleError
+    from panogs_core.io.bundle.reader import open_bundle
 
     if name is not None:
         printable_text(name, "name")

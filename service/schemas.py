@@ -19,7 +19,7 @@ from pydantic import (
     model_validator,
 )
 
-from panogs_core.labelsets import BUILTIN_VOCABULARIES, describe_name, is_builtin_name
+from panogs_core.language.label_sets import BUILTIN_VOCABULARIES, describe_name, is_builtin_name
 from service.db.models import JobState, UploadState
 
 MAX_QUERY_CHARS = 1_000

@@ -55,13 +55,13 @@ class Settings(BaseSettings):
     progress_interval_s: float = Field(default=0.5, ge=0)  # least time between progress writes/cancel checks
     reaper_interval_s: float = Field(default=5.0, gt=0)  # API-side sweep for lost jobs and undispatched jobs
     transient_retry_s: float = Field(default=120.0, ge=0)  # how long the worker waits out a database outage
-    pipeline_function: str = "panogs_core.pipeline:run_pipeline"  # module:function the worker runs
+    pipeline_function: str = "panogs_core.pipeline.run:run_pipeline"  # module:function the worker runs
 
     # API.
     api_key_cache_s: float = Field(default=5.0, ge=0)  # a revoked key may work this much longer per process
     status_cache_s: float = Field(default=0.2, ge=0)  # a job's status may be this stale (< progress_interval_s)
     query_encoder: Literal["process", "off"] = "process"  # free-text queries: encoder in a child process
-    text_model_path: str | None = None  # local text-encoder weights (panogs_core.text_encoders)
+    text_model_path: str | None = None  # local text-encoder weights (panogs_core.language.text_encoders)
     result_cache_size: int = Field(default=32, ge=1)  # finished results kept loaded for queries
     auto_migrate: bool = True  # `panogs serve` upgrades the database to head on start
     max_json_body_bytes: int = Field(default=1024 * 1024, gt=0)  # JSON bodies (not uploads) above this: 413
@@ -69,7 +69,8 @@ class Settings(BaseSettings):
 
     # Hostile-input limits (issue 14): every JSON document from a user (request bodies, a bundle's JSON files)
     # and every image of a bundle. Each may be lowered; the ceiling (le) is the core's own limit, with which the
-    # worker validates the bundle again (panogs_core.bundle.BundleLimits), so a higher value could not hold there.
+    # worker validates the bundle again (panogs_core.io.bundle.reader.BundleLimits), so a higher value could not
+    # hold there.
     max_json_depth: int = Field(default=64, ge=2, le=64)  # nesting levels of arrays and objects
     max_json_int_digits: int = Field(default=20, ge=1, le=20)  # digits of one integer (20 holds any 64-bit one)
     bundle_max_json_bytes: int = Field(default=16 * 1024**2, gt=0, le=64 * 1024**2)  # scene.json, vocabulary.json

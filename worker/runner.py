@@ -60,7 +60,7 @@ ARTIFACTS = {
 
 
 class PipelineFn(Protocol):
-    """``panogs_core.pipeline.run_pipeline``'s signature, as the runner uses it."""
+    """``panogs_core.pipeline.run.run_pipeline``'s signature, as the runner uses it."""
 
     def __call__(
         self,
@@ -260,7 +260,7 @@ def job_vocabulary(session: Session, job: Job) -> str | Vocabulary | None:
         InputError: the stored value is not a built-in name (a row from before inline vocabularies that named a
             file: refused without repeating it), or the inline classes do not parse.
     """
-    from panogs_core.labelsets import builtin_vocabulary, inline_vocabulary, is_builtin_name
+    from panogs_core.language.label_sets import builtin_vocabulary, inline_vocabulary, is_builtin_name
 
     if job.vocabulary_classes is not None:
         embeddings = session.scalar(select(Job.vocabulary_embeddings).where(Job.id == job.id))

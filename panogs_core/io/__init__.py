@@ -1,13 +1,7 @@
-"""File formats and dataset layouts: the only part of the core that touches paths (besides ``bundle.py``).
+"""Files in and out: the only part of the core that reads or writes paths.
 
-``ply`` reads and writes PLY vertices, ``writer`` writes scene bundles, ``archive`` extracts uploaded bundle
-archives safely, ``scannet`` / ``replica`` convert those dataset layouts into bundles, and ``ground_truth`` reads
-evaluation labels (``.npz`` or ScanNet's annotation files).
+``bundle/`` is the scene-bundle format (reader, validation, writer, archives), ``importers/`` turn dataset layouts
+(ScanNet, Replica) into bundles, ``run_folder`` owns the files of a finished run, ``ground_truth`` reads evaluation
+labels, and ``ply``, ``bounded_json``, ``image_header``, ``npy_header``, ``run_json`` are the bounded readers and
+writers of single file types that the others share.
 """
-
-from __future__ import annotations
-
-from panogs_core.io.ply import read_ply_vertices, write_ply
-from panogs_core.io.writer import BundleWriter, ImportReport
-
-__all__ = ["BundleWriter", "ImportReport", "read_ply_vertices", "write_ply"]

@@ -30,7 +30,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
-from panogs_core.labelsets import BUILTIN_VOCABULARIES, STUFF_NAMES, builtin_vocabulary
+from panogs_core.language.label_sets import BUILTIN_VOCABULARIES, STUFF_NAMES, builtin_vocabulary
 from panogs_core.types import GroundTruth, Vocabulary
 
 logger = logging.getLogger(__name__)

@@ -127,7 +127,7 @@ def label_embeddings(feature_space: str) -> np.ndarray:  # (L, D) float32, unit 
 
     Args:
         feature_space: ``clip-vit-b32`` (shipped label-set rows) or ``minilm-l6`` (the offline sentence
-            encoder through :func:`panogs_core.text_encoders.encode_labels`).
+            encoder through :func:`panogs_core.language.text_encoders.encode_labels`).
 
     Raises:
         EncoderUnavailableError: for ``minilm-l6`` without the text extra installed.
@@ -136,7 +136,7 @@ def label_embeddings(feature_space: str) -> np.ndarray:  # (L, D) float32, unit 
     if feature_space == "clip-vit-b32":
         return clip_label_embeddings()
     if feature_space == "minilm-l6":
-        from panogs_core.text_encoders import encode_labels, get_text_encoder
+        from panogs_core.language.text_encoders import encode_labels, get_text_encoder
 
         emb = encode_labels(get_text_encoder("minilm-l6"), list(CLASS_NAMES))
         return np.asarray(emb, dtype=np.float32)

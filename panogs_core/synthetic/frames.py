@@ -12,8 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from panogs_core.io.writer import BundleWriter
+from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.progress import ProgressFn, report
+from panogs_core.stages.visibility import VisibilityConfig, frame_visibility
 from panogs_core.synthetic.catalog import catalogue_vocabulary
 from panogs_core.synthetic.degrade import degrade_color, degrade_depth
 from panogs_core.synthetic.layout import Layout
@@ -22,7 +23,6 @@ from panogs_core.synthetic.presets import Difficulty, SyntheticSpec
 from panogs_core.synthetic.render import Render, face_normals, render_view
 from panogs_core.synthetic.sampling import SurfacePoints
 from panogs_core.types import Camera
-from panogs_core.visibility import VisibilityConfig, frame_visibility
 
 FeatureFn = Callable[[np.ndarray, Render, np.ndarray, np.random.Generator], np.ndarray]
 

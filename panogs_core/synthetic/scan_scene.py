@@ -20,7 +20,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from panogs_core.io.writer import BundleWriter
+from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.progress import ProgressFn
 from panogs_core.synthetic.anchored import make_anchors, synthesize_anchored_features, with_clutter
 from panogs_core.synthetic.catalog import CLASS_ID

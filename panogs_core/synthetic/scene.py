@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from panogs_core.io.writer import BundleWriter
+from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.progress import ProgressFn
 from panogs_core.synthetic.catalog import label_embeddings
 from panogs_core.synthetic.coverage import ensure_coverage

@@ -17,7 +17,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from panogs_core.bounded_json import JsonLimitError, JsonSyntaxError, loads
+from panogs_core.io.bounded_json import JsonLimitError, JsonSyntaxError, loads
 from service.viewer.assets import static_dir
 from service.viewer.scene import build_scene
 
@@ -29,7 +29,7 @@ class RunViewer:
     """A finished run, ready to serve: its encoded scene and its loaded result for queries."""
 
     def __init__(self, run_dir: Path, encoder: Any = None) -> None:
-        from panogs_core.results import load_result
+        from panogs_core.io.run_folder import load_result
 
         self.run_dir = run_dir
         self.scene = build_scene(run_dir, extra={"title": run_dir.resolve().name})

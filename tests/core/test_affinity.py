@@ -8,16 +8,16 @@ from collections import Counter
 import numpy as np
 import pytest
 
-import panogs_core.affinity as affinity_module
-from panogs_core.affinity import (
+import panogs_core.stages.affinity as affinity_module
+from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.stages.affinity import (
     AffinityConfig,
     MaskHistograms,
     edge_affinity,
     segment_adjacency,
 )
-from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.masks import MaskObservations
-from panogs_core.neighbors import KnnGraph
+from panogs_core.stages.masks import MaskObservations
+from panogs_core.stages.neighbors import KnnGraph
 
 LN2 = math.log(2.0)
 

@@ -11,10 +11,9 @@ import pytest
 import torch
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
-from panogs_core.appearance import fit_appearance
-from panogs_core.bundle import open_bundle
 from panogs_core.errors import Cancelled, ConfigError
-from panogs_core.gaussian_scene import (
+from panogs_core.gaussians import fit_appearance
+from panogs_core.gaussians.config import (
     CPU_FIT_WIDTH,
     CPU_ITERATIONS,
     GPU_ITERATIONS,
@@ -22,10 +21,11 @@ from panogs_core.gaussian_scene import (
     GaussianScene,
     resolve_schedule,
 )
-from panogs_core.io.writer import BundleWriter
-from panogs_core.primitives import gaussian_log_scales
-from panogs_core.rasterizer import Gaussians3D, PinholeCamera, rasterize
-from panogs_core.snapshots import StageSnapshot
+from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera, rasterize
+from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle.writer import BundleWriter
+from panogs_core.pipeline.snapshots import StageSnapshot
+from panogs_core.stages.primitives import gaussian_log_scales
 from panogs_core.types import Camera
 
 CAMERA = Camera(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)

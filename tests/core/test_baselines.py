@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from panogs_core.baselines import fill_nearest_seen, fused_argmax, label_components, radius_pairs
+from panogs_core.evaluation.baselines import fill_nearest_seen, fused_argmax, label_components, radius_pairs
 
 
 def test_fused_argmax_marks_unseen() -> None:

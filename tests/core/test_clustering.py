@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from panogs_core.affinity import AffinityConfig, segment_affinity
-from panogs_core.clustering import (
+from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.progress import ProgressFn
+from panogs_core.stages.affinity import AffinityConfig, segment_affinity
+from panogs_core.stages.clustering import (
     ClusteringConfig,
     Clusters,
     _grow_clusters,
     _symmetric_graph,
     progressive_clustering,
 )
-from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.masks import MaskObservations
-from panogs_core.neighbors import KnnGraph
-from panogs_core.progress import ProgressFn
-from panogs_core.superprimitives import SuperPrimitives
+from panogs_core.stages.masks import MaskObservations
+from panogs_core.stages.neighbors import KnnGraph
+from panogs_core.stages.superprimitives import SuperPrimitives
 
 
 def _cluster(

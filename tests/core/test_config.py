@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from panogs_core.config import PipelineConfig
 from panogs_core.errors import ConfigError
+from panogs_core.pipeline.config import PipelineConfig
 
 
 def test_defaults_round_trip_through_yaml() -> None:

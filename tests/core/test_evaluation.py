@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import InputError, ShapeError
-from panogs_core.evaluation import evaluate, semantic_scores, transfer_to_points
-from panogs_core.labelsets import builtin_vocabulary
+from panogs_core.evaluation.metrics import evaluate, semantic_scores, transfer_to_points
+from panogs_core.language.label_sets import builtin_vocabulary
 from panogs_core.types import Vocabulary
 
 A = np.array

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.fusion import FusedFeatures, FusionConfig, confidence_weights, feature_cells, fuse_features
+from panogs_core.stages.fusion import FusedFeatures, FusionConfig, confidence_weights, feature_cells, fuse_features
+from panogs_core.stages.visibility import Visibility
 from panogs_core.types import Camera, Frame
-from panogs_core.visibility import Visibility
 
 CAM = Camera(width=8, height=6, fx=4.0, fy=4.0, cx=3.5, cy=2.5)
 D = 4
@@ -292,9 +292,9 @@ class TestFusionConfig:
 class TestFusionOnABundle:
     def test_end_to_end_with_written_bundle(self, tmp_path: Path) -> None:
         # A wall at z = 2 m seen by one camera; features: left half e0, right half e1 (float16 on disk).
-        from panogs_core.bundle import open_bundle
-        from panogs_core.io.writer import BundleWriter
-        from panogs_core.visibility import VisibilityConfig, compute_visibility
+        from panogs_core.io.bundle.reader import open_bundle
+        from panogs_core.io.bundle.writer import BundleWriter
+        from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 
         writer = BundleWriter(tmp_path / "b", name="wall", camera=CAM, feature_dim=D, feature_space="test")
         depth = np.full((CAM.height, CAM.width), 2.0)
@@ -345,7 +345,7 @@ class TestMaskPooling:
         np.testing.assert_array_equal(pooled.seen_count, plain.seen_count)
 
     def test_pooled_features_weight_pure_cells(self) -> None:
-        from panogs_core.fusion import mask_pooled_features
+        from panogs_core.stages.fusion import mask_pooled_features
 
         fmap = np.stack([np.eye(2, dtype=np.float32)])  # (1, 2, 2): cell 0 = e0, cell 1 = e1
         masks = np.array([[1, 1, 1, 0]])  # mask 1 covers all of cell 0 and half of cell 1

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import InputError
-from panogs_core.gaussian_ply import read_gaussian_ply, write_gaussian_ply
-from panogs_core.gaussian_scene import GaussianScene
+from panogs_core.gaussians.config import GaussianScene
+from panogs_core.gaussians.ply import read_gaussian_ply, write_gaussian_ply
 from panogs_core.io.ply import write_ply
 
 _PLY_TYPES = {"float": "<f4", "double": "<f8", "int": "<i4", "uint": "<u4", "uchar": "u1", "char": "i1"}

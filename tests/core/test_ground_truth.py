@@ -14,20 +14,20 @@ import cv2
 import numpy as np
 import pytest
 
-from panogs_core.bundle import open_bundle
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import InputError
-from panogs_core.evaluation import evaluate
-from panogs_core.export import write_vocabulary
+from panogs_core.evaluation.metrics import evaluate
+from panogs_core.io.bundle.reader import open_bundle
 from panogs_core.io.ground_truth import (
     SCANNET20_NYU40_IDS,
     load_ground_truth,
     nyu40_to_scannet20,
     read_scannet_ground_truth,
 )
+from panogs_core.io.importers.scannet import import_scannet
 from panogs_core.io.ply import write_ply
-from panogs_core.io.scannet import import_scannet
-from panogs_core.labelsets import builtin_vocabulary
+from panogs_core.language.label_sets import builtin_vocabulary
+from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Vocabulary
 
 D = 512  # the built-in ScanNet-20 embeddings are 512-d

@@ -12,8 +12,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from panogs_core.rasterizer import Gaussians3D, PinholeCamera, rasterize
-from panogs_core.splat_backends import gsplat_installed, rasterize_gsplat, resolve_backend
+from panogs_core.gaussians.backends import gsplat_installed, rasterize_gsplat, resolve_backend
+from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera, rasterize
 
 pytestmark = [
     pytest.mark.gpu,

@@ -11,15 +11,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import ConfigError, EncoderUnavailableError, InputError, NumericalError, ShapeError
-from panogs_core.labeling import (
-    InstanceInfo,
-    LabelingConfig,
-    PanopticLabels,
-    assign_panoptic,
-    instances_to_json,
-    vote_in_segments,
-)
-from panogs_core.labelsets import (
+from panogs_core.language.label_sets import (
     SPACE_TEMPERATURES,
     builtin_vocabulary,
     default_temperature,
@@ -27,6 +19,14 @@ from panogs_core.labelsets import (
     inline_vocabulary,
     load_vocabulary_file,
     vocabulary_from_name_or_file,
+)
+from panogs_core.stages.labeling import (
+    InstanceInfo,
+    LabelingConfig,
+    PanopticLabels,
+    assign_panoptic,
+    instances_to_json,
+    vote_in_segments,
 )
 from panogs_core.types import Vocabulary
 
@@ -432,7 +432,7 @@ class TestIssue8Rules:
     """The labelling rules of issue 8: fused evidence, island vote, unseen fill, class-component instances."""
 
     def test_fused_evidence_beats_a_smoothed_field(self) -> None:
-        from panogs_core.labeling import primitive_classes
+        from panogs_core.stages.labeling import primitive_classes
 
         emb = np.eye(4, dtype=np.float32)
         field_sims = np.eye(4, dtype=np.float32)[[WALL, WALL, WALL]]  # the field smoothed all into wall
@@ -444,7 +444,7 @@ class TestIssue8Rules:
         assert primitive_classes(field_sims, fused, emb, cfg)[0].tolist() == [WALL, WALL, -1]
 
     def test_island_vote_keeps_large_patches(self) -> None:
-        from panogs_core.labeling import vote_islands
+        from panogs_core.stages.labeling import vote_islands
 
         # A line of 30 primitives in one segment: 20 cabinet, then a patch of 8 counter, then 2 chair.
         cls = np.array([2] * 20 + [3] * 8 + [1] * 2)
@@ -456,7 +456,7 @@ class TestIssue8Rules:
         assert vote_islands(cls, seg, nbr, island_points=10)[20:28].tolist() == [2] * 8
 
     def test_island_vote_spares_confident_islands(self) -> None:
-        from panogs_core.labeling import vote_islands
+        from panogs_core.stages.labeling import vote_islands
 
         cls = np.array([2] * 20 + [3] * 4 + [1] * 4)
         nbr = np.stack([np.r_[1:28, 26], np.r_[1, 0:27]], 1)
@@ -469,9 +469,9 @@ class TestIssue8Rules:
         assert out[24:].tolist() == [1] * 4  # kept: its own evidence is confident
 
     def test_unseen_propagates_along_the_surface(self) -> None:
-        from panogs_core.baselines import fill_nearest_seen
-        from panogs_core.labeling import label_unseen
-        from panogs_core.neighbors import build_knn
+        from panogs_core.evaluation.baselines import fill_nearest_seen
+        from panogs_core.stages.labeling import label_unseen
+        from panogs_core.stages.neighbors import build_knn
 
         # A floor line (2 cm spacing), seen only at both ends, under a bed top 10 cm above its middle.
         xs = np.arange(0, 1.6, 0.02)
@@ -494,7 +494,7 @@ class TestIssue8Rules:
     def test_components_split_only_by_large_clusters(self) -> None:
         # Three touching chairs in a row (one class component), each its own cluster, and a fourth cluster
         # that is a small part (a leg) of the first chair.
-        from panogs_core.neighbors import build_knn
+        from panogs_core.stages.neighbors import build_knn
 
         xs = np.arange(0, 1.5, 0.01)
         points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1).astype(np.float32)
@@ -545,7 +545,7 @@ class TestPointSpacing:
     """Point counts and the join radius follow the point spacing (``scaled_to_spacing``)."""
 
     def test_counts_scale_with_the_area_a_point_stands_for(self) -> None:
-        from panogs_core.labeling import scaled_to_spacing
+        from panogs_core.stages.labeling import scaled_to_spacing
 
         cfg = LabelingConfig(island_points=100, split_min_points=200, min_instance_points=40, component_radius=0.1)
         coarse = scaled_to_spacing(cfg, 2 * cfg.reference_spacing)  # a point stands for 4x the area

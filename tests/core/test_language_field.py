@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
-from panogs_core.language_field import (
+from panogs_core.stages.language_field import (
     LanguageField,
     LanguageFieldConfig,
     decode_points,
@@ -22,7 +22,7 @@ DIM = 16
 
 @dataclass(frozen=True)
 class _Fused:
-    """Stand-in with the fields of ``panogs_core.fusion.FusedFeatures`` that the field reads."""
+    """Stand-in with the fields of ``panogs_core.stages.fusion.FusedFeatures`` that the field reads."""
 
     features: np.ndarray  # (N, D) float32
     weights: np.ndarray  # (N,) float32
@@ -155,7 +155,7 @@ class TestFitLanguageField:
             fit_language_field(bad, good, cfg)
 
     def test_accepts_fusion_output(self) -> None:
-        from panogs_core.fusion import FusedFeatures
+        from panogs_core.stages.fusion import FusedFeatures
 
         points, region, anchors = _three_regions(n_per=50, seed=6)
         fused = FusedFeatures(

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from panogs_core.affinity import AffinityConfig
 from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.masks import MaskLookupConfig, MaskObservations, observe_masks
+from panogs_core.stages.affinity import AffinityConfig
+from panogs_core.stages.masks import MaskLookupConfig, MaskObservations, observe_masks
+from panogs_core.stages.visibility import Visibility
 from panogs_core.types import Camera, Frame
-from panogs_core.visibility import Visibility
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import InputError, ShapeError
-from panogs_core.neighbors import KnnGraph, build_knn
+from panogs_core.stages.neighbors import KnnGraph, build_knn
 
 
 class TestBuildKnn:

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from panogs_core.errors import ConfigError
-from panogs_core.photometric import photometric_loss, psnr, ssim
-from panogs_core.spherical_harmonics import num_coefficients, rgb_to_dc, sh_basis, sh_to_color
+from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim
+from panogs_core.gaussians.spherical_harmonics import num_coefficients, rgb_to_dc, sh_basis, sh_to_color
 
 
 def test_dc_only_colour_is_view_independent_and_round_trips() -> None:

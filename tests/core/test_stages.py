@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from panogs_core.config import PipelineConfig
-from panogs_core.stages import stage_keys
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.stage_table import stage_keys
 from panogs_core.types import Vocabulary
 
 VOCAB = Vocabulary(names=("wall", "chair"), kinds=("stuff", "thing"), embeddings=np.eye(2, dtype=np.float32))

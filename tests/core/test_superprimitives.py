@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
-from panogs_core.masks import MaskObservations
-from panogs_core.neighbors import KnnGraph, build_knn
-from panogs_core.superprimitives import (
+from panogs_core.stages.masks import MaskObservations
+from panogs_core.stages.neighbors import KnnGraph, build_knn
+from panogs_core.stages.superprimitives import (
     SuperPrimitiveConfig,
     SuperPrimitives,
     edge_weights,

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from panogs_core.bundle import Scene, open_bundle
 from panogs_core.errors import ConfigError, EncoderUnavailableError
+from panogs_core.io.bundle.reader import Scene, open_bundle
 from panogs_core.synthetic import CLASS_KINDS, CLASS_NAMES, PRESETS, SyntheticSpec, build_layout, make_scene
 from panogs_core.synthetic.layout import NUM_STUFF
 from panogs_core.synthetic.placement import Boxes, inside_room, overlaps
@@ -258,7 +258,7 @@ class TestDeterminism:
 def test_minilm_space(tmp_path: Path) -> None:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     try:
-        from panogs_core.text_encoders import encode_labels, get_text_encoder
+        from panogs_core.language.text_encoders import encode_labels, get_text_encoder
 
         encoder = get_text_encoder("minilm-l6")
     except EncoderUnavailableError as exc:
@@ -274,7 +274,7 @@ def test_minilm_space(tmp_path: Path) -> None:
 
 def test_geometry_holds_only_observed_surfaces(easy_scene: Scene) -> None:
     """Every geometry point is seen by at least one frame (clean depth would show it; noisy easy depth too)."""
-    from panogs_core.visibility import VisibilityConfig, compute_visibility
+    from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 
     geo = easy_scene.read_geometry()
     assert geo is not None
@@ -404,7 +404,7 @@ class TestScanPreset:
 
     def test_some_geometry_seen_by_no_key_frame(self, scan: Scene) -> None:
         """The geometry comes from the dense trajectory; the sparse key frames miss part of it."""
-        from panogs_core.visibility import VisibilityConfig, compute_visibility
+        from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 
         geo = scan.read_geometry()
         assert geo is not None

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import EncoderUnavailableError
-from panogs_core.text_encoders import encode_labels, get_text_encoder
+from panogs_core.language.text_encoders import encode_labels, get_text_encoder
 
 
 @pytest.fixture

@@ -13,10 +13,8 @@ from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import InputError
-from panogs_core.export import write_vocabulary
-from panogs_core.gaussian_ply import write_gaussian_ply
-from panogs_core.types import Camera, Frame, Vocabulary
-from panogs_core.views import (
+from panogs_core.gaussians.ply import write_gaussian_ply
+from panogs_core.gaussians.views import (
     load_run_scene,
     parse_size,
     render_to_dir,
@@ -25,6 +23,8 @@ from panogs_core.views import (
     view_from_pose,
     write_cameras,
 )
+from panogs_core.stages.export import write_vocabulary
+from panogs_core.types import Camera, Frame, Vocabulary
 
 CAMERA = Camera(width=40, height=30, fx=30.0, fy=30.0, cx=19.5, cy=14.5)
 RED, BLUE = (0.9, 0.1, 0.1), (0.1, 0.1, 0.9)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import ConfigError, ShapeError
+from panogs_core.stages.visibility import Visibility, VisibilityConfig, compute_visibility, frame_visibility
 from panogs_core.types import Camera, Frame
-from panogs_core.visibility import Visibility, VisibilityConfig, compute_visibility, frame_visibility
 
 # 8 x 6 image; every quantity below is exact in float32 (powers of two and halves).
 CAM = Camera(width=8, height=6, fx=4.0, fy=4.0, cx=3.5, cy=2.5)

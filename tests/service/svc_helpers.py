@@ -47,7 +47,7 @@ class RecordingSender:
 
 def write_tiny_bundle(root: Path, *, dim: int = 8, mutate: Callable[[Path], None] | None = None) -> Path:
     """A valid 2-frame bundle (64x48, D=dim, a vocabulary), optionally broken by ``mutate(root)``."""
-    from panogs_core.io.writer import BundleWriter
+    from panogs_core.io.bundle.writer import BundleWriter
     from panogs_core.types import Camera, Vocabulary
 
     camera = Camera(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)

@@ -47,8 +47,8 @@ JOB_TIMEOUT_S = 400.0
 def bundle(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(folder, zip) of a tiny synthetic scene made by ``panogs synth``."""
     try:
-        import panogs_core.pipeline
-        import panogs_core.results  # noqa: F401
+        import panogs_core.io.run_folder
+        import panogs_core.pipeline.run  # noqa: F401
     except ImportError as exc:
         pytest.skip(f"the core pipeline is not importable yet: {exc}")
     tmp = tmp_path_factory.mktemp("e2e-bundle")
@@ -183,8 +183,8 @@ def _query_class(instances: list[dict[str, Any]]) -> str:
 
 def _library_query(out_dir: Path, query: str) -> list[int]:
     """What the library answers on the job's own output folder (the service must answer the same)."""
-    from panogs_core.query import query_instances
-    from panogs_core.results import load_result
+    from panogs_core.io.run_folder import load_result
+    from panogs_core.language.query import query_instances
 
     loaded = load_result(out_dir)
     space = loaded.feature_space

@@ -66,10 +66,10 @@ from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
 from svc_helpers import RecordingSender, edit_manifest, mark_succeeded, new_key, upload_bytes, write_tiny_bundle
 
-from panogs_core.export import write_vocabulary
-from panogs_core.gaussian_ply import write_gaussian_ply
+from panogs_core.gaussians.ply import write_gaussian_ply
+from panogs_core.gaussians.views import write_cameras
+from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
-from panogs_core.views import write_cameras
 from service.db.migrate import upgrade
 from service.db.models import Job, Upload
 from service.db.session import get_engine, get_session_factory, session_scope
@@ -163,7 +163,7 @@ def _settings(tmp: Path, backend: str, **overrides: Any) -> Settings:
         "api_key_cache_s": 0,
         "status_cache_s": 0,
         # Jobs are only created here, never run: their config is checked by the real PipelineConfig.
-        "pipeline_function": "panogs_core.pipeline:run_pipeline",
+        "pipeline_function": "panogs_core.pipeline.run:run_pipeline",
         "query_encoder": "off",  # free text needs no encoder process: it is refused (422) unless it is a class
         "quota_concurrent_jobs": None,
         "max_upload_bytes": 50_000_000,

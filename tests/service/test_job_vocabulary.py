@@ -275,8 +275,8 @@ class TestRealPipeline:
         """The real pipeline on a tiny synthetic scene, with the bundle's classes renamed and given inline
         (names, kinds and the bundle's own embeddings): the job succeeds and its instances and vocabulary.json
         carry the inline names."""
-        from panogs_core.config import PipelineConfig
-        from panogs_core.pipeline import STAGES, run_pipeline
+        from panogs_core.pipeline.config import PipelineConfig
+        from panogs_core.pipeline.run import STAGES, run_pipeline
 
         folder = tmp_path / "scene"
         subprocess.run([sys.executable, "-m", "panogs_core.cli", "synth", str(folder), "--preset", "tiny"],
@@ -285,7 +285,7 @@ class TestRealPipeline:
         embeddings = np.load(folder / "vocabulary.npy").astype(float).tolist()
         classes = [{"name": f"my {c['name']}", "kind": c["kind"], "embedding": e} for c, e in zip(own, embeddings)]
         archive = Path(shutil.make_archive(str(tmp_path / "scene"), "zip", folder)).read_bytes()
-        settings = make_settings("sqlite", pipeline_function="panogs_core.pipeline:run_pipeline")
+        settings = make_settings("sqlite", pipeline_function="panogs_core.pipeline.run:run_pipeline")
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
             auth = new_key(settings)
             scene = make_scene(client, auth, archive)

@@ -14,10 +14,10 @@ from fastapi.testclient import TestClient
 from gaussian_runs import opaque_gaussians
 from svc_helpers import make_scene, mark_succeeded
 
-from panogs_core.export import write_vocabulary
-from panogs_core.gaussian_ply import write_gaussian_ply
+from panogs_core.gaussians.ply import write_gaussian_ply
+from panogs_core.gaussians.views import write_cameras
+from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
-from panogs_core.views import write_cameras
 from service.renders import MAX_RENDER_PIXELS
 from service.settings import Settings
 from service.storage import Storage

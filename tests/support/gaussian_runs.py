@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from panogs_core.gaussian_scene import GaussianScene
-from panogs_core.spherical_harmonics import SH_C0
+from panogs_core.gaussians.config import GaussianScene
+from panogs_core.gaussians.spherical_harmonics import SH_C0
 
 
 def opaque_gaussians(means: np.ndarray, colors: np.ndarray, scale: float) -> GaussianScene:

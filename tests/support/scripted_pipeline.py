@@ -1,4 +1,4 @@
-"""A scripted stand-in for ``panogs_core.pipeline.run_pipeline``, to test and benchmark the service itself.
+"""A scripted stand-in for ``panogs_core.pipeline.run.run_pipeline``, to test and benchmark the service itself.
 
 Same signature and the same outputs' names, no torch, and a known duration: each stage takes
 ``PANOGS_SCRIPTED_STAGE_S`` seconds (default 0.2) in 5 progress steps, and leaves a checkpoint so that a

@@ -14,7 +14,7 @@ import pytest
 from tool_modules import load_tool
 
 from panogs_core.cli import StageLines, format_instances, format_metrics
-from panogs_core.pipeline import STAGES
+from panogs_core.pipeline.run import STAGES
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -17,8 +17,8 @@ import pytest
 from run_folder import write_run
 
 from panogs_core.errors import InputError
+from panogs_core.io.run_folder import load_result
 from panogs_core.palette import CLASS_PALETTE, instance_color
-from panogs_core.results import load_result
 from service.results import run_query
 from service.schemas import QueryCreate
 from service.viewer.export_html import export_html

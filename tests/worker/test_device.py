@@ -14,8 +14,8 @@ import pytest
 import scripted_pipeline as scripted
 from wk_helpers import read_job
 
-from panogs_core.config import PipelineConfig
 from panogs_core.errors import ConfigError
+from panogs_core.pipeline.config import PipelineConfig
 from service.db.models import JobState
 from service.settings import Settings
 from worker import runner, tasks
@@ -61,7 +61,7 @@ def test_the_task_decides_the_device_when_it_builds_its_environment(
 ) -> None:
     """The real pipeline's configs follow ``torch.cuda.is_available()`` as the task sees it."""
     torch = pytest.importorskip("torch")
-    real = settings.model_copy(update={"pipeline_function": "panogs_core.pipeline:run_pipeline"})
+    real = settings.model_copy(update={"pipeline_function": "panogs_core.pipeline.run:run_pipeline"})
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert tasks.build_job_env(real, threading.Event()).make_config({}).language_field.device == "cuda"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -92,7 +92,7 @@ def test_cuda_job_on_a_cpu_worker_fails_with_a_clear_message(
 def test_pipeline_report_names_a_device_per_stage(tmp_path: Path) -> None:
     """The real pipeline's report.json: the language field on the configured device, the rest on the CPU."""
     pytest.importorskip("torch")
-    from panogs_core.pipeline import run_pipeline
+    from panogs_core.pipeline.run import run_pipeline
     from panogs_core.synthetic import make_scene
 
     bundle = make_scene(tmp_path / "scene", preset="tiny", seed=0)

@@ -1,0 +1,1 @@
+"""Dataset layouts converted into scene bundles: ScanNet (SensReader export) and Replica (NICE-SLAM layout)."""

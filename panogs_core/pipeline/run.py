@@ -1,0 +1,345 @@
+"""The whole PanoGS pipeline: a scene bundle in, panoptic labels, instances and exports out.
+
+``run_pipeline`` runs the stages of ``STAGES`` in order (docs/architecture.md has the table and the data each
+passes on). Each stage's output is checkpointed under
+``out_dir/stages/`` together with a key (a hash of the input bundle, the stage's config and its upstream keys),
+so a crashed job resumes from its last finished stage and a re-run with new clustering thresholds reuses the
+fusion and the distilled field. The appearance fit also keeps snapshots of its partial work
+(:mod:`panogs_core.pipeline.snapshots`), so a run stopped in the middle of the fit resumes there.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import platform
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from panogs_core import __version__
+from panogs_core.io.bundle.reader import Scene, open_bundle
+from panogs_core.pipeline import stage_table as st
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
+from panogs_core.pipeline.snapshots import StageSnapshot
+from panogs_core.progress import ProgressFn
+from panogs_core.types import Vocabulary
+
+log = logging.getLogger(__name__)
+
+STAGES = (
+    "validate",
+    "primitives",
+    "appearance",
+    "visibility",
+    "fusion",
+    "language_field",
+    "masks",
+    "neighbors",
+    "superprimitives",
+    "clustering",
+    "labeling",
+    "export",
+)
+
+StageProgressFn = Callable[[str, int, int], None]
+T = TypeVar("T")
+C = TypeVar("C", bound=st.Checkpoint)
+
+
+@dataclass
+class PipelineResult:
+    """What a run produced. Files are in ``out_dir``; arrays are the in-memory copies."""
+
+    out_dir: Path
+    scene_name: str
+    num_primitives: int
+    instances: list[dict[str, Any]]
+    timings: list[StageStats]
+    metrics: dict[str, Any] | None = None
+    files: dict[str, Path] = field(default_factory=dict)
+    unseen: dict[str, int] = field(default_factory=dict)  # primitives no key frame saw, and how each was labelled
+    appearance: dict[str, Any] = field(default_factory=dict)  # the Gaussian scene's fit (PSNR before/after...)
+
+
+def _hash_json(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def hash_bundle(scene: Scene) -> str:
+    """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks)."""
+    digest = hashlib.sha256()
+    paths = [scene.root / "scene.json"]
+    for frame in scene.frames:
+        paths += [scene.root / p for p in (frame.depth, frame.color, frame.features, frame.masks) if p]
+    for extra in ("geometry.ply", "vocabulary.json", "vocabulary.npy", "gt/labels.npz"):
+        if (scene.root / extra).is_file():
+            paths.append(scene.root / extra)
+    for path in paths:
+        digest.update(str(path.relative_to(scene.root)).encode())
+        with open(path, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                digest.update(chunk)
+    return digest.hexdigest()
+
+
+class _Checkpoints:
+    """Stage outputs under ``stages/`` with a manifest of the key each was made with."""
+
+    def __init__(self, root: Path, enabled: bool) -> None:
+        self.root = root
+        self.enabled = enabled
+        root.mkdir(parents=True, exist_ok=True)
+        self._manifest_path = root / "manifest.json"
+        self.manifest: dict[str, str] = {}
+        if enabled and self._manifest_path.is_file():
+            self.manifest = json.loads(self._manifest_path.read_text())
+
+    def path(self, stage: str) -> Path:
+        return self.root / f"{stage}.npz"
+
+    def snapshot(self, stage: str, key: str) -> StageSnapshot:
+        """Where ``stage`` keeps its partial work under ``key``; read only when resuming."""
+        return StageSnapshot(self.root / f"{stage}.partial.pt", key, readable=self.enabled)
+
+    def has(self, stage: str, key: str) -> bool:
+        return self.enabled and self.manifest.get(stage) == key and self.path(stage).is_file()
+
+    def record(self, stage: str, key: str) -> None:
+        self.manifest[stage] = key
+        tmp = self._manifest_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.manifest, indent=1))
+        tmp.replace(self._manifest_path)
+
+
+class _StageProgress:
+    """A stage's ``on_progress(done, total)``, forwarded with the stage name; remembers the stage's units."""
+
+    def __init__(self, stage: str, sink: StageProgressFn | None) -> None:
+        self.stage = stage
+        self.sink = sink
+        self.total = 1
+
+    def __call__(self, done: int, total: int) -> None:
+        self.total = total
+        if self.sink is not None:
+            self.sink(self.stage, done, total)
+
+    def finish(self) -> None:
+        """Report the stage complete, in its own units."""
+        self(self.total, self.total)
+
+
+class _Runner:
+    """Runs stages with timing, progress and checkpoints; holds nothing but bookkeeping."""
+
+    def __init__(self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None) -> None:
+        self.checkpoints = _Checkpoints(out_dir / "stages", resume)
+        self.on_progress = on_progress
+        self.timings: list[StageStats] = []
+
+    def progress_for(self, stage: str) -> _StageProgress:
+        return _StageProgress(stage, self.on_progress)
+
+    def stage(self, spec: st.StageSpec[C], keys: Mapping[str, str], compute: Callable[[ProgressFn], C]) -> C:
+        """Load the checkpoint of ``spec`` if its key matches, else compute and save it."""
+        key = keys[spec.name]
+
+        def load_or_compute(report: ProgressFn, stats: StageStats) -> C:
+            if self.checkpoints.has(spec.name, key):
+                stats.cached = True
+                return spec.load(self.checkpoints.path(spec.name))
+            result = compute(report)
+            tmp = self.checkpoints.path(spec.name).with_suffix(".tmp.npz")
+            result.save(tmp)
+            tmp.replace(self.checkpoints.path(spec.name))
+            self.checkpoints.record(spec.name, key)
+            self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
+            return result
+
+        return self._timed(spec.name, load_or_compute)
+
+    def step(self, name: str, compute: Callable[[ProgressFn], T]) -> T:
+        """Run a stage that has no checkpoint (it is cheap, or its outputs are the run's files)."""
+        return self._timed(name, lambda report, _: compute(report))
+
+    def _timed(self, name: str, body: Callable[[ProgressFn, StageStats], T]) -> T:
+        report = self.progress_for(name)
+        with StageTimer(name) as timer:
+            report(0, 1)
+            result = body(report, timer.stats)
+            report.finish()
+        self.timings.append(timer.stats)
+        log.info(
+            "stage %s: %.2f s, peak %.0f MB%s",
+            name,
+            timer.stats.wall_s,
+            timer.stats.peak_rss_mb,
+            " (checkpoint)" if timer.stats.cached else "",
+        )
+        return result
+
+
+def resolve_scene_vocabulary(scene: Scene, spec: str | Vocabulary | None) -> Vocabulary:
+    """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for the CLIP space.
+
+    ``spec`` is a built-in label-set name or an already parsed :class:`Vocabulary`; never a path, so that a
+    service job cannot name a file of the worker's host (the CLI reads a ``--vocabulary FILE`` itself). Embeddings
+    are added with the space's text encoder when the chosen vocabulary has none.
+    """
+    from panogs_core.errors import InputError
+    from panogs_core.language.label_sets import builtin_vocabulary, ensure_embeddings
+
+    if isinstance(spec, Vocabulary):
+        vocabulary = spec
+    elif spec is not None:
+        vocabulary = builtin_vocabulary(spec, feature_space=scene.feature_space)
+    elif scene.vocabulary is not None:
+        vocabulary = scene.vocabulary
+    elif scene.feature_space == "clip-vit-b32":
+        vocabulary = builtin_vocabulary("scannet20", feature_space=scene.feature_space)
+    else:
+        raise InputError(
+            f"{scene.root / 'scene.json'}: the bundle has no vocabulary.json and features.space "
+            f"{scene.feature_space!r} has no default label set; pass a vocabulary "
+            "(--vocabulary scannet20|matterport21|FILE)"
+        )
+    return ensure_embeddings(vocabulary, scene.feature_space, scene.feature_dim)
+
+
+def run_pipeline(
+    bundle: str | Path | Scene,
+    out_dir: str | Path,
+    config: PipelineConfig | None = None,
+    *,
+    vocabulary: str | Vocabulary | None = None,
+    on_progress: StageProgressFn | None = None,
+    resume: bool = True,
+) -> PipelineResult:
+    """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
+
+    Args:
+        bundle: Bundle folder or archive, or an already opened :class:`Scene`.
+        out_dir: Output folder (created). Checkpoints go to ``out_dir/stages``.
+        config: Pipeline settings; defaults to :class:`PipelineConfig()`.
+        vocabulary: ``scannet20`` | ``matterport21`` | a :class:`Vocabulary` (e.g. a job's inline one, or the
+            CLI's ``--vocabulary FILE`` read by the CLI); overrides the bundle's. Never a path.
+        on_progress: ``on_progress(stage, done, total)``; may raise :class:`Cancelled` to stop.
+        resume: Reuse checkpoints whose keys match.
+
+    Returns:
+        The result summary; files are in ``out_dir``.
+
+    Raises:
+        BundleError: the bundle is invalid (every problem listed).
+        Cancelled: the progress callback asked to stop.
+    """
+    cfg = config or PipelineConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    runner = _Runner(out, resume, on_progress)
+    t_start = time.perf_counter()
+
+    scene = runner.step(
+        "validate", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(bundle, workdir=out / "bundle")
+    )
+    input_hash = hash_bundle(scene)
+    vocab = resolve_scene_vocabulary(scene, vocabulary)
+    keys = st.stage_keys(input_hash, cfg, vocab)
+
+    prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
+    fit_snapshot = runner.checkpoints.snapshot(st.APPEARANCE.name, keys[st.APPEARANCE.name])
+    gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p, fit_snapshot))
+    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
+    fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
+    field_ = None
+    if cfg.features_source == "field":
+        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
+    features = st.primitive_features(field_, fused)
+    masks = runner.stage(st.MASKS, keys, lambda p: st.masks(scene, vis, cfg, p))
+    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
+    sp = runner.stage(st.SUPERPRIMITIVES, keys, lambda p: st.superprimitives(prims, features, masks, knn, cfg, p))
+    clusters = runner.stage(st.CLUSTERING, keys, lambda p: st.clustering(sp, knn, masks, features, cfg, p))
+    labels = runner.stage(
+        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
+    )
+
+    def export(_: ProgressFn) -> PipelineResult:
+        from panogs_core.stages.export import write_outputs
+
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=gaussians)
+        return PipelineResult(
+            appearance=gaussians.summary(),
+            unseen=dict(labels.unseen),
+            out_dir=out,
+            scene_name=scene.name,
+            num_primitives=int(prims.points.shape[0]),
+            instances=[i.to_json() for i in labels.instances],
+            timings=runner.timings,
+            metrics=metrics,
+            files=files,
+        )
+
+    result = runner.step("export", export)
+    _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, time.perf_counter() - t_start, result)
+    return result
+
+
+def _vocabulary_label(spec: str | Vocabulary | None, scene: Scene) -> str:
+    """What report.json says of the run's label set: its built-in name, ``inline``, ``bundle`` or ``default``."""
+    if isinstance(spec, Vocabulary):
+        return "inline"
+    return spec or ("bundle" if scene.vocabulary is not None else "default")
+
+
+def _write_report(
+    out: Path,
+    scene: Scene,
+    cfg: PipelineConfig,
+    vocabulary_spec: str | Vocabulary | None,
+    input_hash: str,
+    timings: list[StageStats],
+    total_s: float,
+    result: PipelineResult,
+) -> None:
+    import torch
+
+    from panogs_core.gaussians import resolve_schedule
+
+    # The language field and the appearance fit run on a torch device; every other stage runs on the CPU.
+    fit_device = resolve_schedule(cfg.appearance, scene.camera.width, torch.cuda.is_available()).device
+    torch_device_stages = {"language_field": cfg.language_field.device, "appearance": fit_device}
+    stages = [{**t.to_json(), "device": torch_device_stages.get(t.name, "cpu")} for t in timings]
+    report = {
+        "scene": scene.name,
+        "input_sha256": input_hash,
+        "num_primitives": result.num_primitives,
+        "num_instances": len(result.instances),
+        # Primitives that no key frame saw, and how many of them each rule labelled (labeling.label_unseen).
+        "unseen_primitives": result.unseen,
+        # The Gaussian scene's appearance fit: PSNR / SSIM before and after, frames without colour, notes.
+        "appearance": result.appearance,
+        "num_frames": len(scene.frames),
+        "feature_space": scene.feature_space,
+        "feature_dim": scene.feature_dim,
+        "vocabulary": _vocabulary_label(vocabulary_spec, scene),
+        "stages": stages,
+        "total_wall_s": round(total_s, 3),
+        "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
+        "config": cfg.to_dict(),
+        "versions": {
+            "panogs": __version__,
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "torch": torch.__version__,
+            "cuda": torch.version.cuda,  # None in a CPU build of torch
+        },
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    result.files["report.json"] = out / "report.json"

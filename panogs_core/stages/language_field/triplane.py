@@ -1,0 +1,203 @@
+"""The torch half of the language field: the pyramid tri-plane + decoder model, its training and decoding.
+
+Kept apart from :mod:`panogs_core.stages.language_field` so that importing the stage's config (the API process
+validates job configs) does not import torch.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from panogs_core.errors import InputError, NumericalError
+from panogs_core.progress import ProgressFn, report
+
+if TYPE_CHECKING:
+    from panogs_core.stages.language_field.config import LanguageFieldConfig
+
+_DECODE_BATCH = 8192  # points per decoding batch: (8192, 512) float32 is 16 MiB (32768 held 128 MiB at peak)
+
+
+class _TriplaneDecoder(torch.nn.Module):
+    """Pyramid tri-plane encoder plus bias-free MLP decoder (docs/method.md §3.2-3.3)."""
+
+    def __init__(self, planes: list[torch.Tensor], weights: list[torch.Tensor]) -> None:
+        super().__init__()
+        self.planes = torch.nn.ParameterList([torch.nn.Parameter(p) for p in planes])  # each (3, C, R, R)
+        self.mlp = torch.nn.ParameterList([torch.nn.Parameter(w) for w in weights])  # each (out, in)
+
+    def encode(self, coords: torch.Tensor) -> torch.Tensor:
+        """Latent of points already mapped into the box as ``[-1, 1]^3``. ``(B, 3)`` -> ``(B, C)``."""
+        # Plane 0 is (x, y), plane 1 (x, z), plane 2 (y, z); first coordinate indexes the plane width
+        # (docs/method.md §3.2).
+        grid = torch.stack([coords[:, [0, 1]], coords[:, [0, 2]], coords[:, [1, 2]]])  # (3, B, 2)
+        grid = grid.unsqueeze(1)  # (3, 1, B, 2)
+        latent = coords.new_zeros(coords.shape[0], self.planes[0].shape[1])  # (B, C)
+        for plane in self.planes:
+            # DEPARTURE (reference: zero padding): "border" only matters outside the box, i.e. for
+            # decode_points on new points, which take the nearest face's value instead of a zero latent.
+            sampled = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            latent = latent + sampled.sum(dim=0).squeeze(1).t()  # sum over planes, then over levels
+        return latent
+
+    def hidden(self, coords: torch.Tensor) -> torch.Tensor:
+        """Input of the last (linear) layer. ``(B, 3)`` in ``[-1, 1]`` -> ``(B, H)``."""
+        h = self.encode(coords)
+        for weight in self.mlp[:-1]:
+            h = torch.relu(h @ weight.t())
+        return h
+
+    def forward(self, coords: torch.Tensor) -> torch.Tensor:
+        """Decoded (not normalised) feature. ``(B, 3)`` in ``[-1, 1]`` -> ``(B, D)``."""
+        return self.hidden(coords) @ self.mlp[-1].t()
+
+
+def _to_unit_cube(points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+    """Map world points into ``[-1, 1]^3`` over the box. ``(B, 3)`` -> ``(B, 3)``.
+
+    DEPARTURE (docs/method.md pitfall 5): the reference feeds ``[0, 1]`` to ``grid_sample``, which expects
+    ``[-1, 1]``, so only one quadrant of every plane is ever used (effective cells twice the nominal size). We
+    use the whole plane, so the cells are the nominal ``cell_sizes``.
+    """
+    return (points - bounds[0]) / (bounds[1] - bounds[0]) * 2.0 - 1.0
+
+
+def init_model(resolutions: list[int], dim: int, cfg: LanguageFieldConfig) -> _TriplaneDecoder:
+    """Planes ~ N(0, init_scale^2); decoder weights ~ U(+-1/sqrt(fan_in)) (PyTorch's default Linear init).
+
+    A local generator makes the initialisation reproducible without touching torch's global RNG.
+    """
+    gen = torch.Generator().manual_seed(cfg.seed)
+    planes = [torch.randn((3, cfg.channels, r, r), generator=gen) * cfg.init_scale for r in resolutions]
+    widths = [cfg.channels, *cfg.hidden_dims, dim]
+    weights = []
+    for fan_in, fan_out in itertools.pairwise(widths):
+        bound = 1.0 / math.sqrt(fan_in)
+        weights.append((torch.rand((fan_out, fan_in), generator=gen) * 2.0 - 1.0) * bound)
+    return _TriplaneDecoder(planes, weights).to(torch.device(cfg.device))
+
+
+def model_from_state(state: dict[str, np.ndarray], device: torch.device) -> _TriplaneDecoder:
+    """Rebuild the decoder from ``LanguageField.state`` (levels and layers in numeric order)."""
+
+    def ordered(prefix: str) -> list[torch.Tensor]:
+        keys = sorted((k for k in state if k.startswith(prefix)), key=lambda k: int(k[len(prefix) :]))
+        return [torch.from_numpy(np.asarray(state[k], dtype=np.float32).copy()) for k in keys]
+
+    planes, weights = ordered("planes."), ordered("mlp.")
+    if not planes or not weights:
+        raise InputError(f"language field state: expected 'planes.*' and 'mlp.*' arrays, found {sorted(state)}")
+    return _TriplaneDecoder(planes, weights).to(device)
+
+
+def state_of(model: _TriplaneDecoder) -> dict[str, np.ndarray]:
+    state = {f"planes.{i}": p.detach().cpu().numpy().copy() for i, p in enumerate(model.planes)}
+    state.update({f"mlp.{i}": w.detach().cpu().numpy().copy() for i, w in enumerate(model.mlp)})
+    return state
+
+
+@torch.no_grad()
+def decode_features(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Decoded unit features of world points, in batches. ``(P, 3)`` -> ``(P, D)`` float32."""
+    device = model.planes[0].device
+    bounds_t = torch.from_numpy(bounds.astype(np.float32)).to(device)
+    out = np.zeros((points.shape[0], model.mlp[-1].shape[0]), dtype=np.float32)  # (P, D)
+    for start in range(0, points.shape[0], _DECODE_BATCH):
+        chunk = torch.from_numpy(points[start : start + _DECODE_BATCH].astype(np.float32)).to(device)
+        pred = model(_to_unit_cube(chunk, bounds_t))
+        # Rows the decoder maps exactly to 0 stay 0 rather than becoming NaN.
+        pred = pred / pred.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        out[start : start + chunk.shape[0]] = pred.cpu().numpy()
+    return out
+
+
+def training_set(
+    points: np.ndarray, features: np.ndarray, weights: np.ndarray, bounds: np.ndarray, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Coordinates in [-1, 1], unit targets and weights of the primitives with weight > 0 only.
+
+    DEPARTURE (minor): zero-weight (unseen) primitives add exactly 0 to the loss, so they are left out of the
+    batches; the batch mean then runs over seen primitives only (a constant rescale that Adam ignores).
+    """
+    keep = np.flatnonzero(weights > 0)
+    coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds))  # (M, 3)
+    targets = torch.from_numpy(np.asarray(features[keep], dtype=np.float32))  # (M, D), a copy
+    if not torch.isfinite(targets).all():
+        raise InputError("fused.features: contains NaN or infinite values where the weight is > 0")
+    targets /= targets.norm(dim=1, keepdim=True).clamp_min(1e-12)  # cosine loss: only the direction matters
+    return coords.to(device), targets.to(device), torch.from_numpy(weights[keep]).to(device)
+
+
+# Device types with torch's fused Adam kernel (torch 2.13: cpu, cuda, mps, xpu); elsewhere the per-tensor loop.
+_FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps", "xpu")
+
+
+def _optimizer(model: _TriplaneDecoder, cfg: LanguageFieldConfig) -> torch.optim.Optimizer:
+    """Adam with the reference's two groups: planes (eps 1e-15, no decay) and decoder (L2 weight decay).
+
+    The fused implementation (one kernel per parameter for the whole update) where the device has one: on the
+    CPU torch otherwise picks the per-tensor loop, whose dozen element-wise passes over the planes (every
+    plane cell, every step) were half of the whole field's time (cProfile of `panogs run` on the large preset).
+    The update rule is the same; the rounding differs, so the decoded features move by a mean cosine of 2e-4.
+    Timings before and after: docs/benchmarks.md, "Speed of issue 8".
+    """
+    groups = [
+        {"params": list(model.planes), "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},
+        {"params": list(model.mlp), "lr": cfg.lr, "weight_decay": cfg.weight_decay},
+    ]
+    device = next(model.parameters()).device.type
+    return torch.optim.Adam(groups, betas=cfg.betas, fused=device in _FUSED_ADAM_DEVICES)
+
+
+def _cosine_to_targets(
+    model: _TriplaneDecoder,
+    coords: torch.Tensor,  # (B, 3) in [-1, 1]
+    targets: torch.Tensor,  # (B, D) unit rows
+) -> torch.Tensor:  # (B,)
+    """``cos(W h, t)`` for the decoded feature ``W h`` without forming the ``(B, D)`` prediction.
+
+    With the last layer ``W`` (D, H) linear and bias-free, ``W h . t = h . (W^T t)`` and
+    ``|W h|^2 = h^T (W^T W) h``: one (B, D) x (D, H) product forward and one backward instead of three, and no
+    (B, D) element-wise work; the value is the same cosine as torch.cosine_similarity (eps 1e-8), as targets
+    are unit rows. This is most of the training time on a CPU.
+    """
+    h = model.hidden(coords)  # (B, H)
+    last = model.mlp[-1]  # (D, H)
+    projected = targets @ last  # (B, H)
+    gram = last.t() @ last  # (H, H)
+    dot = (h * projected).sum(dim=1)
+    sq_norm = ((h @ gram) * h).sum(dim=1)
+    return dot / sq_norm.clamp_min(0.0).sqrt().clamp_min(1e-8)
+
+
+def train_model(
+    model: _TriplaneDecoder,
+    coords: torch.Tensor,  # (M, 3) in [-1, 1]
+    targets: torch.Tensor,  # (M, D) unit rows
+    weights: torch.Tensor,  # (M,) > 0
+    cfg: LanguageFieldConfig,
+    on_progress: ProgressFn | None,
+) -> None:
+    """Mini-batch Adam over shuffled primitives; the shuffle uses its own generator (seeded, reproducible)."""
+    optimizer = _optimizer(model, cfg)
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    count = coords.shape[0]
+    steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
+    epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
+    for epoch in range(epochs):
+        order = torch.randperm(count, generator=gen).to(coords.device)
+        for start in range(0, count, cfg.batch_size):
+            idx = order[start : start + cfg.batch_size]
+            cos = _cosine_to_targets(model, coords[idx], targets[idx])  # (B,)
+            loss = (weights[idx] * (1.0 - cos)).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        if not math.isfinite(float(loss.detach())):
+            raise NumericalError(f"language field: the loss became {float(loss.detach())} at epoch {epoch + 1}")
+        report(on_progress, epoch + 1, epochs)
