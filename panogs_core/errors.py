@@ -50,7 +50,8 @@ class Cancelled(PanoGSError):
 
     A long stage that keeps snapshots of its partial work (the appearance fit,
     :mod:`panogs_core.pipeline.snapshots`) writes one before it lets the exception through, so that a resumed run
-    continues where this one stopped; a subclass whose run must write nothing more (another worker now owns the job's folder) sets ``save_partial_work`` False.
+    continues where this one stopped; a subclass whose run must write nothing more (another worker now owns the
+    job's folder) sets ``save_partial_work`` False.
     """
 
     save_partial_work: bool = True
