@@ -26,7 +26,7 @@ sys.path[:0] = [str(REPO), str(REPO / "tests" / "service"), str(REPO / "tests" /
 
 CHILD = r"""
 import resource, sys, time
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.errors import BundleError
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 start = time.perf_counter()

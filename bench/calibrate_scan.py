@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.evaluation.metrics import evaluate  # noqa: E402
-from panogs_core.io.bundle.reader import Scene, open_bundle  # noqa: E402
+from panogs_core.io.bundle import Bundle, open_bundle  # noqa: E402
 from panogs_core.pipeline import stage_table as stages  # noqa: E402
 from panogs_core.pipeline.config import PipelineConfig  # noqa: E402
 from panogs_core.pipeline.run import resolve_scene_vocabulary  # noqa: E402
@@ -75,7 +75,7 @@ def _quiet(done: int, total: int) -> None:
     """A progress callback that reports nothing."""
 
 
-def fused_argmax(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def fused_argmax(scene: Bundle) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Stages up to fusion, then the argmax class per primitive.
 
     Returns:
@@ -107,7 +107,7 @@ def fill_nearest(points: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return out
 
 
-def miou(pred: np.ndarray, scene: Scene) -> float:
+def miou(pred: np.ndarray, scene: Bundle) -> float:
     """Standard-mode mIoU of a per-primitive class prediction (geometry ground truth, one label per vertex)."""
     gt, vocab = scene.read_ground_truth(), resolve_scene_vocabulary(scene, None)
     assert gt is not None

@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.gaussians import AppearanceConfig, fit_appearance  # noqa: E402
-from panogs_core.io.bundle.reader import Scene, open_bundle  # noqa: E402
+from panogs_core.io.bundle import Bundle, open_bundle  # noqa: E402
 from panogs_core.stages.primitives import PrimitivesConfig, build_primitives, gaussian_log_scales  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
@@ -83,7 +83,7 @@ def _scannet_like(work: Path) -> Path:
     return bundle
 
 
-def _initial_colors(scene: Scene, prims: Any) -> np.ndarray:
+def _initial_colors(scene: Bundle, prims: Any) -> np.ndarray:
     """The colours export would write without the fit: the geometry's, else fused from the frames, else grey."""
     if prims.colors is not None:
         return np.asarray(prims.colors, np.float32)

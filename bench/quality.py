@@ -53,7 +53,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.evaluation.baselines import fill_nearest_seen, fused_argmax, label_components
 from panogs_core.evaluation.metrics import evaluate
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import resolve_scene_vocabulary, run_pipeline
 from panogs_core.stages.fusion import FusedFeatures

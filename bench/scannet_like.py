@@ -40,8 +40,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.io.bundle.reader import open_bundle  # noqa: E402
-from panogs_core.io.bundle.writer import resample_nearest  # noqa: E402
+from panogs_core.io.bundle import open_bundle  # noqa: E402
+from panogs_core.io.importers.common import resample_nearest  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
 SCANNET_COLOR_SIZE = (1296, 968)  # (width, height) of ScanNet v2 colour frames

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.stages.fusion import feature_cells
 from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 from panogs_core.synthetic import make_scene

@@ -66,7 +66,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from panogs_core.io.bundle.reader import open_bundle
+    from panogs_core.io.bundle import open_bundle
 
     scene = open_bundle(args.bundle)
     print(

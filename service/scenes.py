@@ -24,7 +24,7 @@ from service.stored_text import printable_text
 from service.uploads import discard_upload
 
 if TYPE_CHECKING:
-    from panogs_core.io.bundle.reader import BundleLimits
+    from panogs_core.io.bundle import BundleLimits
 
 # The words each limit's problem line uses (panogs_core.io.bounded_json, panogs_core.io.bundle.reader), and its setting.
 LIMIT_SETTINGS = {
@@ -38,7 +38,7 @@ LIMIT_SETTINGS = {
 def bundle_limits(settings: Settings) -> BundleLimits:
     """What a bundle's files may declare, from the settings."""
     from panogs_core.io.bounded_json import JsonLimits
-    from panogs_core.io.bundle.reader import BundleLimits
+    from panogs_core.io.bundle import BundleLimits
 
     json_limits = JsonLimits(
         max_depth=settings.max_json_depth,
@@ -76,7 +76,7 @@ def create_scene(
         InvalidBundle: the bundle breaks the format; ``problems`` lists every problem. Nothing is kept.
     """
     from panogs_core.errors import BundleError
-    from panogs_core.io.bundle.reader import open_bundle
+    from panogs_core.io.bundle import open_bundle
 
     if name is not None:
         printable_text(name, "name")

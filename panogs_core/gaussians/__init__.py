@@ -35,7 +35,7 @@ from panogs_core.gaussians.config import (
     initial_gaussians,
     resolve_schedule,
 )
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
 from panogs_core.types import Frame
@@ -55,7 +55,7 @@ __all__ = [
 ]
 
 
-def split_frames(scene: Scene, cfg: AppearanceConfig) -> tuple[list[Frame], list[Frame], list[str]]:
+def split_frames(scene: Bundle, cfg: AppearanceConfig) -> tuple[list[Frame], list[Frame], list[str]]:
     """(fit frames, held-out frames, ids of frames without colour); only frames with a finite pose count.
 
     Held out: the frames at positions ``i % held_out_every == 0`` among the colour frames (as 3DGS holds out
@@ -74,7 +74,7 @@ def split_frames(scene: Scene, cfg: AppearanceConfig) -> tuple[list[Frame], list
 
 
 def fit_appearance(
-    scene: Scene,
+    scene: Bundle,
     prims: Any,
     colors: np.ndarray,  # (N, 3) float32 in [0, 1], the initial colours
     cfg: AppearanceConfig,

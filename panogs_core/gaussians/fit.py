@@ -15,7 +15,7 @@ from panogs_core.gaussians.backends import Backend, render
 from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera
 from panogs_core.gaussians.spherical_harmonics import num_coefficients, rgb_to_dc, sh_to_color
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Frame
@@ -29,7 +29,9 @@ ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen G
 class Fitter:
     """Parameters, optimiser and target images of one appearance fit."""
 
-    def __init__(self, scene: Scene, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule) -> None:
+    def __init__(
+        self, scene: Bundle, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule
+    ) -> None:
         self.scene = scene
         self.cfg = cfg
         self.schedule = schedule
@@ -217,7 +219,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float32).numpy().copy()
 
 
-def _scene_extent(scene: Scene) -> float:
+def _scene_extent(scene: Bundle) -> float:
     """3DGS ``spatial_lr_scale``: 1.1 x the largest distance of a camera centre from their mean (m)."""
     centres = np.stack([np.asarray(f.T_world_cam)[:3, 3] for f in scene.frames])
     return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) or 1.0

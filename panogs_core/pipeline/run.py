@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from panogs_core import __version__
-from panogs_core.io.bundle.reader import Scene, open_bundle
+from panogs_core.io.bundle import Bundle, open_bundle
 from panogs_core.pipeline import stage_table as st
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
@@ -72,7 +72,7 @@ def _hash_json(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def hash_bundle(scene: Scene) -> str:
+def hash_bundle(scene: Bundle) -> str:
     """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks)."""
     digest = hashlib.sha256()
     paths = [scene.root / "scene.json"]
@@ -186,7 +186,7 @@ class _Runner:
         return result
 
 
-def resolve_scene_vocabulary(scene: Scene, spec: str | Vocabulary | None) -> Vocabulary:
+def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vocabulary:
     """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for the CLIP space.
 
     ``spec`` is a built-in label-set name or an already parsed :class:`Vocabulary`; never a path, so that a
@@ -214,7 +214,7 @@ def resolve_scene_vocabulary(scene: Scene, spec: str | Vocabulary | None) -> Voc
 
 
 def run_pipeline(
-    bundle: str | Path | Scene,
+    bundle: str | Path | Bundle,
     out_dir: str | Path,
     config: PipelineConfig | None = None,
     *,
@@ -225,7 +225,7 @@ def run_pipeline(
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
     Args:
-        bundle: Bundle folder or archive, or an already opened :class:`Scene`.
+        bundle: Bundle folder or archive, or an already opened :class:`Bundle`.
         out_dir: Output folder (created). Checkpoints go to ``out_dir/stages``.
         config: Pipeline settings; defaults to :class:`PipelineConfig()`.
         vocabulary: ``scannet20`` | ``matterport21`` | a :class:`Vocabulary` (e.g. a job's inline one, or the
@@ -247,7 +247,7 @@ def run_pipeline(
     t_start = time.perf_counter()
 
     scene = runner.step(
-        "validate", lambda _: bundle if isinstance(bundle, Scene) else open_bundle(bundle, workdir=out / "bundle")
+        "validate", lambda _: bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=out / "bundle")
     )
     input_hash = hash_bundle(scene)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
@@ -291,7 +291,7 @@ def run_pipeline(
     return result
 
 
-def _vocabulary_label(spec: str | Vocabulary | None, scene: Scene) -> str:
+def _vocabulary_label(spec: str | Vocabulary | None, scene: Bundle) -> str:
     """What report.json says of the run's label set: its built-in name, ``inline``, ``bundle`` or ``default``."""
     if isinstance(spec, Vocabulary):
         return "inline"
@@ -300,7 +300,7 @@ def _vocabulary_label(spec: str | Vocabulary | None, scene: Scene) -> str:
 
 def _write_report(
     out: Path,
-    scene: Scene,
+    scene: Bundle,
     cfg: PipelineConfig,
     vocabulary_spec: str | Vocabulary | None,
     input_hash: str,

@@ -22,7 +22,7 @@ from typing import Generic, Protocol, TypeVar
 import numpy as np
 
 from panogs_core.gaussians import GaussianScene, fit_appearance
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
@@ -134,13 +134,13 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
     return keys
 
 
-def primitives(scene: Scene, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
+def primitives(scene: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
 
     return build_primitives(scene, cfg.primitives, on_progress=progress)
 
 
 def appearance(
-    scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn, snapshot: StageSnapshot | None = None
+    scene: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn, snapshot: StageSnapshot | None = None
 ) -> GaussianScene:
     """The Gaussian scene fitted to the colour frames, from the primitives' colours (grey where they have none:
     fused colours come later, and the fit learns the colour anyway)."""
@@ -148,13 +148,13 @@ def appearance(
     return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress, snapshot=snapshot)
 
 
-def visibility(scene: Scene, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:
+def visibility(scene: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:
 
     return compute_visibility(scene, prims.points, cfg.visibility, on_progress=progress)
 
 
 def fusion(
-    scene: Scene, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
+    scene: Bundle, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
 ) -> FusedFeatures:
 
     return fuse_features(scene, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
@@ -174,7 +174,7 @@ def primitive_features(field: LanguageField | None, fused: FusedFeatures) -> np.
     return feats / np.maximum(norms, 1e-12)
 
 
-def masks(scene: Scene, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
+def masks(scene: Bundle, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
 
     return observe_masks(scene, vis, cfg.affinity.mask_lookup(), on_progress=progress)
 

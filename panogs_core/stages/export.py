@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.gaussians.config import GaussianScene, initial_gaussians
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.io.ply import write_ply
 from panogs_core.palette import panoptic_colors
 from panogs_core.stages.clustering import Clusters
@@ -76,7 +76,7 @@ def primitive_colors(prims: Primitives, fused: FusedFeatures) -> np.ndarray:  # 
 
 def write_outputs(
     out: Path,
-    scene: Scene,
+    scene: Bundle,
     prims: Primitives,
     fused: FusedFeatures,
     superprimitives: SuperPrimitives,
@@ -143,7 +143,7 @@ def write_outputs(
 
 
 def compute_metrics(
-    scene: Scene, points: np.ndarray, semantic: np.ndarray, instance: np.ndarray, vocab: Vocabulary
+    scene: Bundle, points: np.ndarray, semantic: np.ndarray, instance: np.ndarray, vocab: Vocabulary
 ) -> dict[str, Any] | None:
     """Standard and paper metrics against ``gt/labels.npz``; None when there is no usable ground truth.
 

@@ -43,7 +43,7 @@ from typing import Any, Literal
 import numpy as np
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.visibility import Visibility
 from panogs_core.types import Frame
@@ -137,7 +137,7 @@ class FusedFeatures:
 
 
 def fuse_features(
-    scene: Scene,
+    scene: Bundle,
     visibility: Visibility,
     num_points: int,
     cfg: FusionConfig,
@@ -253,7 +253,7 @@ def _range(x: np.ndarray) -> float:
     return hi if hi > 0 else 1.0
 
 
-def _frames_by_id(scene: Scene, visibility: Visibility) -> list[Frame]:
+def _frames_by_id(scene: Bundle, visibility: Visibility) -> list[Frame]:
     by_id = {f.id: f for f in scene.frames}
     missing = [fid for fid in visibility.frame_ids if fid not in by_id]
     if missing:
@@ -279,7 +279,7 @@ class _FeatureSum:
 
     def add(
         self,
-        scene: Scene,
+        scene: Bundle,
         frame: Frame,
         point_index: np.ndarray,  # (T_v,) int32, unique within the frame
         row: np.ndarray,  # (T_v,) int32
@@ -463,7 +463,7 @@ class _ColorSum:
         self.total = np.zeros((num_points, 3), dtype=np.float32)  # (N, 3)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
 
-    def add(self, scene: Scene, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
+    def add(self, scene: Bundle, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
         image = scene.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
         if image is None:
             return

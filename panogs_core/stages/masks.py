@@ -19,7 +19,7 @@ from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.progress import ProgressFn, report
 
 if TYPE_CHECKING:
-    from panogs_core.io.bundle.reader import Scene
+    from panogs_core.io.bundle import Bundle
     from panogs_core.stages.visibility import Visibility
 
 
@@ -86,7 +86,7 @@ class MaskObservations:
 
 
 def observe_masks(
-    scene: Scene,
+    scene: Bundle,
     visibility: Visibility,
     cfg: MaskLookupConfig | None = None,
     *,

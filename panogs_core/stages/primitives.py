@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Frame
 
@@ -176,7 +176,7 @@ class Primitives:
             )
 
 
-def build_primitives(scene: Scene, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None) -> Primitives:
+def build_primitives(scene: Bundle, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None) -> Primitives:
     """Build the primitives of a scene: ``geometry.ply`` vertices, or a TSDF reconstruction of the depth.
 
     Args:
@@ -272,7 +272,7 @@ def _clip_colors(colors: np.ndarray) -> np.ndarray:  # (N, 3) float32 in [0, 1]
 # -------------------------------------------------------------------------------------------------- TSDF path
 
 
-def _tsdf_frames(scene: Scene, cfg: PrimitivesConfig) -> list[Frame]:
+def _tsdf_frames(scene: Bundle, cfg: PrimitivesConfig) -> list[Frame]:
     """Frames to integrate: every ``frame_stride``-th frame with a finite pose."""
     frames = [f for f in scene.frames[:: cfg.frame_stride] if np.all(np.isfinite(f.T_world_cam))]
     if not frames:
@@ -281,7 +281,7 @@ def _tsdf_frames(scene: Scene, cfg: PrimitivesConfig) -> list[Frame]:
 
 
 def _tsdf_points(
-    scene: Scene, cfg: PrimitivesConfig, on_progress: ProgressFn | None
+    scene: Bundle, cfg: PrimitivesConfig, on_progress: ProgressFn | None
 ) -> tuple[np.ndarray, np.ndarray | None]:  # (N, 3) float32, (N, 3) float32 or None
     """Fuse the depth frames into a TSDF, extract its surface points, downsample under the cap."""
     frames = _tsdf_frames(scene, cfg)
@@ -314,7 +314,7 @@ def _tsdf_points(
     return points_ds.astype(np.float32), None if colors_ds is None else _clip_colors(colors_ds)
 
 
-def _o3d_depth(scene: Scene, frame: Frame, cfg: PrimitivesConfig) -> Any:
+def _o3d_depth(scene: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
     """The frame's depth as an open3d float image in metres, or None when no pixel is in range.
 
     Readings outside ``[depth_min, depth_max]`` or non-finite become 0 (no depth). A frame without one valid
@@ -355,7 +355,7 @@ def _new_grid(cfg: PrimitivesConfig, with_color: bool, block_count: int) -> Any:
     )
 
 
-def _estimate_block_count(scene: Scene, frames: list[Frame], cfg: PrimitivesConfig) -> int:
+def _estimate_block_count(scene: Bundle, frames: list[Frame], cfg: PrimitivesConfig) -> int:
     """Blocks the scene needs: union of the blocks touched by up to 16 evenly spread frames, with a margin.
 
     A sample is enough because open3d's CPU hash map grows on demand (and a refusal is retried with twice the
@@ -378,7 +378,7 @@ def _estimate_block_count(scene: Scene, frames: list[Frame], cfg: PrimitivesConf
 
 
 def _integrate(
-    scene: Scene,
+    scene: Bundle,
     frames: list[Frame],
     cfg: PrimitivesConfig,
     with_color: bool,
@@ -403,7 +403,7 @@ def _integrate(
     return grid
 
 
-def _integrate_frame(grid: Any, scene: Scene, frame: Frame, cfg: PrimitivesConfig, with_color: bool) -> bool:
+def _integrate_frame(grid: Any, scene: Bundle, frame: Frame, cfg: PrimitivesConfig, with_color: bool) -> bool:
     """Integrate one frame (depth, and colour when the grid has it); False when it has no valid depth."""
     import open3d as o3d
 

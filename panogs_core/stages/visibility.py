@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import ConfigError, ShapeError
-from panogs_core.io.bundle.reader import Scene
+from panogs_core.io.bundle import Bundle
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Frame
 
@@ -130,7 +130,7 @@ class Visibility:
 
 
 def compute_visibility(
-    scene: Scene,
+    scene: Bundle,
     points: np.ndarray,  # (N, 3) float32, world, metres
     cfg: VisibilityConfig,
     *,

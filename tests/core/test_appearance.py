@@ -22,7 +22,7 @@ from panogs_core.gaussians.config import (
     resolve_schedule,
 )
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera, rasterize
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.stages.primitives import gaussian_log_scales

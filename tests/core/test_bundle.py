@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 import pytest
 
-import panogs_core.io.bundle.reader
+import panogs_core.io.bundle.validation
 from panogs_core.errors import BundleError, InputError
 from panogs_core.io.bounded_json import JsonLimits
+from panogs_core.io.bundle import FORMAT_ID, Bundle, BundleLimits, open_bundle
 from panogs_core.io.bundle.archive import extract_archive
-from panogs_core.io.bundle.reader import FORMAT_ID, BundleLimits, Scene, open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.types import Camera, Vocabulary
 
@@ -91,7 +91,7 @@ def _problems(root: Path) -> list[str]:
 class TestOpenValid:
     def test_smoke(self, bundle_dir: Path) -> None:
         scene = open_bundle(bundle_dir)
-        assert isinstance(scene, Scene)
+        assert isinstance(scene, Bundle)
         assert scene.name == "tiny"
         assert scene.camera == CAM
         assert (scene.feature_dim, scene.feature_space, scene.depth_scale) == (DIM, "test-space", 1000.0)
@@ -720,13 +720,13 @@ def test_images_over_a_limit_are_refused_without_being_decoded(
     (bundle_dir / "masks/000000.png").write_bytes(_declared_png(20_000, 20_000))
     (bundle_dir / "depth/000001.png").write_bytes(_declared_png(640, 480))
     decoded: list[str] = []
-    real_decode = panogs_core.io.bundle.reader._decode
+    real_decode = panogs_core.io.bundle.validation._decode
 
     def recording_decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
         decoded.append(rel)
         return real_decode(root, rel, problems)
 
-    monkeypatch.setattr(panogs_core.io.bundle.reader, "_decode", recording_decode)
+    monkeypatch.setattr(panogs_core.io.bundle.validation, "_decode", recording_decode)
     problems = _problems(bundle_dir)
     assert "masks/000000.png: 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000" in problems
     assert "depth/000001.png: 640x480, expected 64x48 (camera)" in problems
@@ -775,7 +775,7 @@ def test_no_problem_names_where_the_bundle_lies(bundle_dir: Path, monkeypatch: p
     def failing_header(path: Path, *, name: str | None = None) -> None:
         raise InputError(f"{name}: cannot be read ({path}: input/output error)")
 
-    monkeypatch.setattr(panogs_core.io.bundle.reader, "read_image_header", failing_header)
+    monkeypatch.setattr(panogs_core.io.bundle.validation, "read_image_header", failing_header)
     problems = _problems(bundle_dir)
     assert "depth/000000.png: cannot be read (depth/000000.png: input/output error)" in problems
     assert not any(str(bundle_dir) in p or str(bundle_dir.resolve()) in p for p in problems)

@@ -292,7 +292,7 @@ class TestFusionConfig:
 class TestFusionOnABundle:
     def test_end_to_end_with_written_bundle(self, tmp_path: Path) -> None:
         # A wall at z = 2 m seen by one camera; features: left half e0, right half e1 (float16 on disk).
-        from panogs_core.io.bundle.reader import open_bundle
+        from panogs_core.io.bundle import open_bundle
         from panogs_core.io.bundle.writer import BundleWriter
         from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 

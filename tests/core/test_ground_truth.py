@@ -17,7 +17,7 @@ import pytest
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import InputError
 from panogs_core.evaluation.metrics import evaluate
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.io.ground_truth import (
     SCANNET20_NYU40_IDS,
     load_ground_truth,

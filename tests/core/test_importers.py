@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import InputError
-from panogs_core.io.bundle.reader import open_bundle
-from panogs_core.io.bundle.writer import masks_to_ids, resample_nearest
+from panogs_core.io.bundle import open_bundle
+from panogs_core.io.importers.common import masks_to_ids, resample_nearest
 from panogs_core.io.importers.replica import import_replica
 from panogs_core.io.importers.scannet import import_scannet
 from panogs_core.io.ply import write_ply

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import ConfigError, InputError
-from panogs_core.io.bundle.reader import open_bundle
+from panogs_core.io.bundle import open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.stages.primitives import (
     Primitives,

@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from panogs_core.errors import ConfigError, EncoderUnavailableError
-from panogs_core.io.bundle.reader import Scene, open_bundle
+from panogs_core.io.bundle import Bundle, open_bundle
 from panogs_core.synthetic import CLASS_KINDS, CLASS_NAMES, PRESETS, SyntheticSpec, build_layout, make_scene
 from panogs_core.synthetic.layout import NUM_STUFF
 from panogs_core.synthetic.placement import Boxes, inside_room, overlaps
@@ -33,11 +33,11 @@ def easy(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
 
 
 @pytest.fixture(scope="module")
-def easy_scene(easy: tuple[Path, float]) -> Scene:
+def easy_scene(easy: tuple[Path, float]) -> Bundle:
     return open_bundle(easy[0])
 
 
-def _pixels_world(scene: Scene, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pixels_world(scene: Bundle, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Valid depth pixels of a frame: rows, columns and world points."""
     frame, cam = scene.frames[frame_index], scene.camera
     depth = scene.read_depth(frame)
@@ -48,7 +48,7 @@ def _pixels_world(scene: Scene, frame_index: int) -> tuple[np.ndarray, np.ndarra
     return v, u, cam_pts @ T[:3, :3].T + T[:3, 3]
 
 
-def _cells(v: np.ndarray, u: np.ndarray, shape: tuple[int, ...], scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+def _cells(v: np.ndarray, u: np.ndarray, shape: tuple[int, ...], scene: Bundle) -> tuple[np.ndarray, np.ndarray]:
     """docs/scene_format.md's pixel-to-cell rule."""
     rows = ((v + 0.5) * shape[0] / scene.camera.height).astype(np.int64)
     cols = ((u + 0.5) * shape[1] / scene.camera.width).astype(np.int64)
@@ -63,7 +63,7 @@ class TestBundle:
             assert (root / name).is_file(), name
         assert {p.name for p in root.iterdir()} >= {"color", "depth", "features", "masks"}
 
-    def test_cardinality(self, easy_scene: Scene) -> None:
+    def test_cardinality(self, easy_scene: Bundle) -> None:
         spec = PRESETS["tiny"]
         scene = easy_scene
         assert (scene.camera.width, scene.camera.height) == (spec.width, spec.height)
@@ -88,7 +88,7 @@ class TestBundle:
         assert geo.normals is not None
         assert geo.colors is not None
 
-    def test_vocabulary(self, easy_scene: Scene) -> None:
+    def test_vocabulary(self, easy_scene: Bundle) -> None:
         voc = easy_scene.vocabulary
         assert voc is not None
         assert voc.names == CLASS_NAMES
@@ -97,7 +97,7 @@ class TestBundle:
         assert voc.embeddings is not None
         assert voc.embeddings.shape == (len(CLASS_NAMES), 512)
 
-    def test_poses(self, easy_scene: Scene) -> None:
+    def test_poses(self, easy_scene: Bundle) -> None:
         for frame in easy_scene.frames:
             rot = frame.T_world_cam[:3, :3]
             np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-6)
@@ -162,7 +162,7 @@ class TestGroundTruth:
 
 
 class TestViews:
-    def test_backprojection(self, easy_scene: Scene) -> None:
+    def test_backprojection(self, easy_scene: Bundle) -> None:
         geo = easy_scene.read_geometry()
         assert geo is not None
         assert geo.normals is not None
@@ -174,7 +174,7 @@ class TestViews:
             dist.append(np.abs(np.sum((world - geo.points[nn]) * geo.normals[nn], axis=1)))
         assert np.median(np.concatenate(dist)) < 0.02
 
-    def test_features_easy(self, easy_scene: Scene) -> None:
+    def test_features_easy(self, easy_scene: Bundle) -> None:
         geo, gt, voc = easy_scene.read_geometry(), easy_scene.read_ground_truth(), easy_scene.vocabulary
         assert geo is not None
         assert gt is not None
@@ -190,7 +190,7 @@ class TestViews:
             hits.append(pred == gt.semantic[tree.query(world)[1]])
         assert np.concatenate(hits).mean() > 0.95
 
-    def test_masks_easy(self, easy_scene: Scene) -> None:
+    def test_masks_easy(self, easy_scene: Bundle) -> None:
         geo, gt = easy_scene.read_geometry(), easy_scene.read_ground_truth()
         assert geo is not None
         assert gt is not None
@@ -209,7 +209,7 @@ class TestViews:
             pure, total = pure + best.sum(), total + keep.sum()
         assert pure / total > 0.95
 
-    def test_all_instances_seen(self, easy_scene: Scene) -> None:
+    def test_all_instances_seen(self, easy_scene: Bundle) -> None:
         gt, geo = easy_scene.read_ground_truth(), easy_scene.read_geometry()
         assert gt is not None
         assert geo is not None
@@ -234,11 +234,11 @@ class TestDeterminism:
         a, b = open_bundle(again), open_bundle(easy[0])
         np.testing.assert_array_equal(a.frames[7].T_world_cam, b.frames[7].T_world_cam)
 
-    def test_other_seed_other_room(self, easy_scene: Scene, tmp_path: Path) -> None:
+    def test_other_seed_other_room(self, easy_scene: Bundle, tmp_path: Path) -> None:
         other, _ = _build(tmp_path / "other", difficulty="easy", seed=1)
         assert open_bundle(other).frames[0].T_world_cam.tolist() != easy_scene.frames[0].T_world_cam.tolist()
 
-    def test_difficulty_degrades(self, easy_scene: Scene, tmp_path: Path) -> None:
+    def test_difficulty_degrades(self, easy_scene: Bundle, tmp_path: Path) -> None:
         hard = open_bundle(_build(tmp_path / "hard", difficulty="hard", seed=0)[0])
         same_room = hard.read_ground_truth()
         assert same_room is not None
@@ -272,7 +272,7 @@ def test_minilm_space(tmp_path: Path) -> None:
     np.testing.assert_allclose(scene.vocabulary.embeddings, encode_labels(encoder, list(CLASS_NAMES)), atol=1e-5)
 
 
-def test_geometry_holds_only_observed_surfaces(easy_scene: Scene) -> None:
+def test_geometry_holds_only_observed_surfaces(easy_scene: Bundle) -> None:
     """Every geometry point is seen by at least one frame (clean depth would show it; noisy easy depth too)."""
     from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 
@@ -308,7 +308,7 @@ class TestTouchingSameClass:
             found += int(np.sum(cls[layout.contacts[:, 0]] == cls[layout.contacts[:, 1]]))
         assert found >= 3
 
-    def test_hidden_faces_between_touching_objects_are_not_in_the_geometry(self, easy_scene: Scene) -> None:
+    def test_hidden_faces_between_touching_objects_are_not_in_the_geometry(self, easy_scene: Bundle) -> None:
         # Two objects 0-1 cm apart hide the faces that look at each other: a scan never captures them. No
         # geometry point of one instance may sit within 5 mm of a point of another instance with the
         # opposite normal (two faces facing each other across a gap).
@@ -342,7 +342,7 @@ def test_same_class_instances_look_alike() -> None:
     assert cos.min() > 0.8
 
 
-def test_old_presets_unchanged(easy_scene: Scene) -> None:
+def test_old_presets_unchanged(easy_scene: Bundle) -> None:
     """The realistic preset must not move a byte of the older ones (benchmarks stay comparable).
 
     The numbers were read from a tiny / easy / seed 0 bundle made before the ``scan`` preset existed; counts
@@ -374,11 +374,11 @@ class TestScanPreset:
         return dataclasses.replace(PRESETS["scan"], width=160, height=120, num_frames=24, num_points=20_000)
 
     @pytest.fixture(scope="class")
-    def scan(self, tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    def scan(self, tmp_path_factory: pytest.TempPathFactory) -> Bundle:
         root = tmp_path_factory.mktemp("scan") / "scene"
         return open_bundle(make_scene(root, preset=self._small(), difficulty="default", seed=0))
 
-    def test_frames(self, scan: Scene) -> None:
+    def test_frames(self, scan: Bundle) -> None:
         spec = PRESETS["scan"]
         assert spec.realistic
         assert spec.feature_space == CLIP
@@ -389,7 +389,7 @@ class TestScanPreset:
         feats = scan.read_features(scan.feature_frames[0])
         assert feats.shape == (120 // 4, 160 // 4, 512)
 
-    def test_unannotated_ground_truth(self, scan: Scene) -> None:
+    def test_unannotated_ground_truth(self, scan: Bundle) -> None:
         gt, geo = scan.read_ground_truth(), scan.read_geometry()
         assert gt is not None
         assert geo is not None
@@ -402,7 +402,7 @@ class TestScanPreset:
         assert (unannotated & inner & (geo.points[:, 2] > 0.05)).sum() > 100
         assert gt.semantic.max() < len(CLASS_NAMES)
 
-    def test_some_geometry_seen_by_no_key_frame(self, scan: Scene) -> None:
+    def test_some_geometry_seen_by_no_key_frame(self, scan: Bundle) -> None:
         """The geometry comes from the dense trajectory; the sparse key frames miss part of it."""
         from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from panogs_core.errors import InputError
-from panogs_core.io.bundle.writer import (
+from panogs_core.io.importers.common import (
     ImportReport,
     SourceFrame,
     feature_dim_of,
