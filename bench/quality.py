@@ -51,11 +51,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.evaluation.baselines import fill_nearest_seen, fused_argmax, label_components
+from panogs_core.evaluation.baselines import fused_argmax, label_components
 from panogs_core.evaluation.metrics import evaluate
 from panogs_core.io.bundle import open_bundle
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import resolve_scene_vocabulary, run_pipeline
+from panogs_core.point_graphs import fill_nearest_seen
 from panogs_core.stages.fusion import FusedFeatures
 from panogs_core.stages.primitives import Primitives
 from panogs_core.synthetic import make_scene

@@ -1,9 +1,9 @@
-"""The simplest answers a 3D panoptic method has to beat, and the graph helpers they share with stage 8.
+"""The simplest answers a 3D panoptic method has to beat.
 
-Issue 8 measured them on held-out real captures, where they beat the full method: the argmax of the fused
-multi-view features per primitive (no field, no segments), with unseen primitives given their nearest seen
-primitive's label, and connected components of that argmax as instances. Every quality table keeps them
-(``bench/quality.py``), and stage 8 (``labeling.py``) reuses the two graph tools below.
+On held-out real captures they once beat the full method: the argmax of the fused multi-view features per
+primitive (no field, no segments), with unseen primitives given their nearest seen primitive's label, and
+connected components of that argmax as instances. Every quality table keeps them (``bench/quality.py``). Their
+graph tools are ``panogs_core.point_graphs``, which stage 8 uses too: the method never imports its baselines.
 
 - :func:`fused_argmax`: class per primitive from its fused feature; -1 where no key frame saw it.
 - :func:`fill_nearest_seen`: unseen primitives take the class of the nearest seen primitive (Euclidean).
@@ -14,9 +14,8 @@ primitive's label, and connected components of that argmax as instances. Every q
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
+
+from panogs_core.point_graphs import radius_pairs, same_label_components
 
 # The instance baseline of issue 8: "same label within 10 cm, under 100 vertices dropped".
 COMPONENT_RADIUS_M = 0.10
@@ -38,45 +37,6 @@ def fused_argmax(
     emb = emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
     seen = np.einsum("nd,nd->n", feats, feats) > 1e-12
     return np.where(seen, np.argmax(feats @ emb.T, axis=1), -1).astype(np.int64)
-
-
-def fill_nearest_seen(
-    points: np.ndarray,  # (N, 3)
-    classes: np.ndarray,  # (N,) int64, -1 = unseen
-) -> np.ndarray:  # (N,) int64
-    """Each primitive of class -1 takes the class of the nearest primitive with a class (Euclidean).
-
-    Example:
-        >>> fill_nearest_seen(np.array([[0.0, 0, 0], [1, 0, 0], [0.2, 0, 0]]), np.array([3, 5, -1])).tolist()
-        [3, 5, 3]
-    """
-    classes = np.asarray(classes, np.int64)
-    seen = classes >= 0
-    if seen.all() or not seen.any():
-        return classes.copy()
-    tree = cKDTree(np.asarray(points, np.float64)[seen])
-    _, nearest = tree.query(np.asarray(points, np.float64)[~seen], k=1)
-    out = classes.copy()
-    out[~seen] = classes[seen][nearest]
-    return out
-
-
-def radius_pairs(points: np.ndarray, radius: float) -> np.ndarray:  # (E, 2) int64, i < j
-    """Every pair of points closer than ``radius``."""
-    return cKDTree(np.asarray(points, np.float64)).query_pairs(radius, output_type="ndarray").astype(np.int64)
-
-
-def same_label_components(
-    labels: np.ndarray,  # (N,) int64, -1 = not part of any component
-    pairs: np.ndarray,  # (E, 2) int64 edges
-) -> np.ndarray:  # (N,) int64 component id, -1 where labels < 0
-    """Connected components of the edges whose two ends carry the same label >= 0."""
-    n = labels.size
-    keep = (labels[pairs[:, 0]] >= 0) & (labels[pairs[:, 0]] == labels[pairs[:, 1]])
-    e = pairs[keep]
-    graph = sparse.csr_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
-    _, comp = csgraph.connected_components(graph, directed=False)
-    return np.where(labels >= 0, comp, -1).astype(np.int64)
 
 
 def label_components(

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from panogs_core.evaluation.baselines import fill_nearest_seen, fused_argmax, label_components, radius_pairs
+from panogs_core.evaluation.baselines import fused_argmax, label_components
+from panogs_core.point_graphs import fill_nearest_seen, radius_pairs
 
 
 def test_fused_argmax_marks_unseen() -> None:

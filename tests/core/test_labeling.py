@@ -469,7 +469,7 @@ class TestIssue8Rules:
         assert out[24:].tolist() == [1] * 4  # kept: its own evidence is confident
 
     def test_unseen_propagates_along_the_surface(self) -> None:
-        from panogs_core.evaluation.baselines import fill_nearest_seen
+        from panogs_core.point_graphs import fill_nearest_seen
         from panogs_core.stages.labeling import label_unseen
         from panogs_core.stages.neighbors import build_knn
 
