@@ -55,13 +55,13 @@ __all__ = [
 ]
 
 
-def split_frames(scene: Bundle, cfg: AppearanceConfig) -> tuple[list[Frame], list[Frame], list[str]]:
+def split_frames(bundle: Bundle, cfg: AppearanceConfig) -> tuple[list[Frame], list[Frame], list[str]]:
     """(fit frames, held-out frames, ids of frames without colour); only frames with a finite pose count.
 
     Held out: the frames at positions ``i % held_out_every == 0`` among the colour frames (as 3DGS holds out
     every 8th view). The fit frames are thinned evenly to ``max_frames``.
     """
-    posed = [f for f in scene.frames if np.all(np.isfinite(f.T_world_cam))]
+    posed = [f for f in bundle.frames if np.all(np.isfinite(f.T_world_cam))]
     no_color = [f.id for f in posed if f.color is None]
     colored = [f for f in posed if f.color is not None]
     k = cfg.held_out_every
@@ -74,7 +74,7 @@ def split_frames(scene: Bundle, cfg: AppearanceConfig) -> tuple[list[Frame], lis
 
 
 def fit_appearance(
-    scene: Bundle,
+    bundle: Bundle,
     prims: Any,
     colors: np.ndarray,  # (N, 3) float32 in [0, 1], the initial colours
     cfg: AppearanceConfig,
@@ -85,7 +85,7 @@ def fit_appearance(
     """Optimise the Gaussians' appearance against the key frames' colour (module docstring).
 
     Args:
-        scene: The opened bundle (camera, poses, colour images).
+        bundle: The opened bundle (camera, poses, colour images).
         prims: The primitives (centres, log scales, opacity logits).
         colors: Initial colours (the geometry's, else fused, else grey).
         cfg: Stage settings.
@@ -97,12 +97,12 @@ def fit_appearance(
     """
     import torch
 
-    fit_frames, held, no_color = split_frames(scene, cfg)
+    fit_frames, held, no_color = split_frames(bundle, cfg)
     if not cfg.enabled:
         return initial_gaussians(prims, colors, note="appearance fitting is turned off (appearance.enabled: false)")
     if not fit_frames:
         note = (
-            f"appearance fitting skipped: none of the {len(scene.frames)} frames has a colour image"
+            f"appearance fitting skipped: none of the {len(bundle.frames)} frames has a colour image"
             if not held
             else "appearance fitting skipped: every colour frame is held out"
         )
@@ -110,14 +110,14 @@ def fit_appearance(
         return _with(initial_gaussians(prims, colors, note=note), skipped_frames=tuple(no_color))
     if no_color:
         log.info("appearance: %d frame(s) without colour skipped", len(no_color))
-    schedule = resolve_schedule(cfg, scene.camera.width, torch.cuda.is_available(), len(prims.points))
+    schedule = resolve_schedule(cfg, bundle.camera.width, torch.cuda.is_available(), len(prims.points))
     from panogs_core.gaussians.fit import Fitter
 
     threads = torch.get_num_threads()
     if cfg.cpu_threads is not None and schedule.device == "cpu":
         torch.set_num_threads(cfg.cpu_threads)
     try:
-        fitter = Fitter(scene, prims, colors, cfg, schedule)
+        fitter = Fitter(bundle, prims, colors, cfg, schedule)
         eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
         saved = snapshot.load() if snapshot is not None else None
         if saved is not None and fitter.restore(saved):

@@ -30,15 +30,15 @@ class Fitter:
     """Parameters, optimiser and target images of one appearance fit."""
 
     def __init__(
-        self, scene: Bundle, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule
+        self, bundle: Bundle, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule
     ) -> None:
-        self.scene = scene
+        self.bundle = bundle
         self.cfg = cfg
         self.schedule = schedule
         self.device = torch.device(schedule.device)
         dev = self.device
         n = prims.points.shape[0]
-        height = max(1, round(scene.camera.height * schedule.fit_width / scene.camera.width))
+        height = max(1, round(bundle.camera.height * schedule.fit_width / bundle.camera.width))
         self.size = (schedule.fit_width, height)
         self.anchor = torch.as_tensor(np.asarray(prims.points, np.float32), device=dev)
         sh = torch.zeros(n, num_coefficients(cfg.sh_degree), 3, device=dev)
@@ -62,7 +62,7 @@ class Fitter:
             {"params": [self.quats], "lr": cfg.lr_rotation * s},
         ]
         if cfg.move_centres:
-            groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _scene_extent(scene)})
+            groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _bundle_extent(bundle)})
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
         self._targets: dict[str, torch.Tensor] = {}
         self.backend: Backend = cfg.backend  # type: ignore[assignment]
@@ -117,12 +117,12 @@ class Fitter:
 
     def camera(self, frame: Frame) -> PinholeCamera:
         pose = torch.as_tensor(np.asarray(frame.T_world_cam, np.float64))
-        return PinholeCamera.from_camera(self.scene.camera.scaled(*self.size), pose)
+        return PinholeCamera.from_camera(self.bundle.camera.scaled(*self.size), pose)
 
     def target(self, frame: Frame) -> torch.Tensor:  # (H, W, 3) float32 in [0, 1]
         """The frame's colour at the fit size (area-averaged), cached as uint8."""
         if frame.id not in self._targets:
-            rgb = self.scene.read_color(frame)
+            rgb = self.bundle.read_color(frame)
             assert rgb is not None  # split_frames keeps colour frames only
             if (rgb.shape[1], rgb.shape[0]) != self.size:
                 rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
@@ -219,7 +219,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float32).numpy().copy()
 
 
-def _scene_extent(scene: Bundle) -> float:
+def _bundle_extent(bundle: Bundle) -> float:
     """3DGS ``spatial_lr_scale``: 1.1 x the largest distance of a camera centre from their mean (m)."""
-    centres = np.stack([np.asarray(f.T_world_cam)[:3, 3] for f in scene.frames])
+    centres = np.stack([np.asarray(f.T_world_cam)[:3, 3] for f in bundle.frames])
     return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) or 1.0

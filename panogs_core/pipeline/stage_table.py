@@ -134,30 +134,30 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
     return keys
 
 
-def primitives(scene: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
+def primitives(bundle: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
 
-    return build_primitives(scene, cfg.primitives, on_progress=progress)
+    return build_primitives(bundle, cfg.primitives, on_progress=progress)
 
 
 def appearance(
-    scene: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn, snapshot: StageSnapshot | None = None
+    bundle: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn, snapshot: StageSnapshot | None = None
 ) -> GaussianScene:
     """The Gaussian scene fitted to the colour frames, from the primitives' colours (grey where they have none:
     fused colours come later, and the fit learns the colour anyway)."""
     colors = prims.colors if prims.colors is not None else np.full((prims.points.shape[0], 3), 0.5, np.float32)
-    return fit_appearance(scene, prims, colors, cfg.appearance, on_progress=progress, snapshot=snapshot)
+    return fit_appearance(bundle, prims, colors, cfg.appearance, on_progress=progress, snapshot=snapshot)
 
 
-def visibility(scene: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:
+def visibility(bundle: Bundle, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn) -> Visibility:
 
-    return compute_visibility(scene, prims.points, cfg.visibility, on_progress=progress)
+    return compute_visibility(bundle, prims.points, cfg.visibility, on_progress=progress)
 
 
 def fusion(
-    scene: Bundle, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
+    bundle: Bundle, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
 ) -> FusedFeatures:
 
-    return fuse_features(scene, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
+    return fuse_features(bundle, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
 
 
 def language_field(prims: Primitives, fused: FusedFeatures, cfg: PipelineConfig, progress: ProgressFn) -> LanguageField:
@@ -174,9 +174,9 @@ def primitive_features(field: LanguageField | None, fused: FusedFeatures) -> np.
     return feats / np.maximum(norms, 1e-12)
 
 
-def masks(scene: Bundle, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
+def masks(bundle: Bundle, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
 
-    return observe_masks(scene, vis, cfg.affinity.mask_lookup(), on_progress=progress)
+    return observe_masks(bundle, vis, cfg.affinity.mask_lookup(), on_progress=progress)
 
 
 def neighbors(prims: Primitives, cfg: PipelineConfig) -> KnnGraph:

@@ -137,7 +137,7 @@ class FusedFeatures:
 
 
 def fuse_features(
-    scene: Bundle,
+    bundle: Bundle,
     visibility: Visibility,
     num_points: int,
     cfg: FusionConfig,
@@ -147,7 +147,7 @@ def fuse_features(
     """Average each primitive's unit pixel features over the feature frames that see it; weight by confidence.
 
     Args:
-        scene: The opened bundle (camera, feature maps, colour).
+        bundle: The opened bundle (camera, feature maps, colour).
         visibility: Stage 2 output; its frames without a feature map contribute colour only.
         num_points: N, the number of primitives.
         cfg: Stage settings.
@@ -161,19 +161,19 @@ def fuse_features(
         ShapeError: if the visibility indexes past ``num_points``, or a feature map or colour image has the
             wrong shape.
     """
-    frames = _frames_by_id(scene, visibility)
+    frames = _frames_by_id(bundle, visibility)
     if visibility.point_index.size and int(visibility.point_index.max()) >= num_points:
         raise ShapeError(f"visibility: point index {int(visibility.point_index.max())} >= num_points ({num_points})")
     start = time.perf_counter()
-    features = _FeatureSum(num_points, scene.feature_dim)
+    features = _FeatureSum(num_points, bundle.feature_dim)
     colors = _ColorSum(num_points) if cfg.fuse_colors and any(f.color for f in frames) else None
     for v, frame in enumerate(frames):
         point_index, row, col = visibility.frame(v)
         if frame.features is not None and point_index.size:
             pooling = cfg.mask_pooling if frame.masks is not None else 0.0
-            features.add(scene, frame, point_index, row, col, cfg.min_feature_norm, pooling)
+            features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, pooling)
         if colors is not None and frame.color is not None and point_index.size:
-            colors.add(scene, frame, point_index, row, col)
+            colors.add(bundle, frame, point_index, row, col)
         report(on_progress, v + 1, len(frames))
     feat_sum, count = features.total, features.count  # (N, D) becomes the mean in place, (N,)
     feat_sum *= (1.0 / np.maximum(count, 1)).astype(np.float32)[:, None]  # sum -> mean; unseen rows stay 0
@@ -253,8 +253,8 @@ def _range(x: np.ndarray) -> float:
     return hi if hi > 0 else 1.0
 
 
-def _frames_by_id(scene: Bundle, visibility: Visibility) -> list[Frame]:
-    by_id = {f.id: f for f in scene.frames}
+def _frames_by_id(bundle: Bundle, visibility: Visibility) -> list[Frame]:
+    by_id = {f.id: f for f in bundle.frames}
     missing = [fid for fid in visibility.frame_ids if fid not in by_id]
     if missing:
         raise InputError(f"visibility: frame ids not in the scene: {missing[:5]}")
@@ -279,7 +279,7 @@ class _FeatureSum:
 
     def add(
         self,
-        scene: Bundle,
+        bundle: Bundle,
         frame: Frame,
         point_index: np.ndarray,  # (T_v,) int32, unique within the frame
         row: np.ndarray,  # (T_v,) int32
@@ -290,14 +290,14 @@ class _FeatureSum:
         """Add one frame's unit pixel features (streamed: the map is dropped on return)."""
         import torch
 
-        fmap = scene.read_features(frame)  # (Hf, Wf, D), memory-mapped
+        fmap = bundle.read_features(frame)  # (Hf, Wf, D), memory-mapped
         d = self.total.shape[1]
         if fmap.ndim != 3 or fmap.shape[2] != d:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
-        image_hw = (scene.camera.height, scene.camera.width)
+        image_hw = (bundle.camera.height, bundle.camera.width)
         src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) row of `table` for each primitive
         if mask_pooling > 0.0:
-            masks = scene.read_masks(frame)
+            masks = bundle.read_masks(frame)
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
             table, valid, src = _cells_blended_with_masks(fmap, src, masks, mask_pixel, mask_pooling, min_norm)
         else:
@@ -463,11 +463,11 @@ class _ColorSum:
         self.total = np.zeros((num_points, 3), dtype=np.float32)  # (N, 3)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
 
-    def add(self, scene: Bundle, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
-        image = scene.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
+    def add(self, bundle: Bundle, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
+        image = bundle.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
         if image is None:
             return
-        expected = (scene.camera.height, scene.camera.width, 3)
+        expected = (bundle.camera.height, bundle.camera.width, 3)
         if image.shape != expected:
             raise ShapeError(f"colour of frame {frame.id}: expected {expected}, got {image.shape}")
         self.total[point_index] += image[row, col].astype(np.float32) / 255.0

@@ -86,7 +86,7 @@ class MaskObservations:
 
 
 def observe_masks(
-    scene: Bundle,
+    bundle: Bundle,
     visibility: Visibility,
     cfg: MaskLookupConfig | None = None,
     *,
@@ -98,7 +98,7 @@ def observe_masks(
     any size: camera pixel (u, v) reads mask cell ``(floor((v + 0.5) Hm / H), floor((u + 0.5) Wm / W))``.
 
     Args:
-        scene: The bundle; ``read_masks(frame)`` gives an ``(Hm, Wm)`` int32 id map, 0 = no mask.
+        bundle: The bundle; ``read_masks(frame)`` gives an ``(Hm, Wm)`` int32 id map, 0 = no mask.
         visibility: Stage 2 output; its ``frame_ids`` name scene frames.
         cfg: The depth filter (used when ``visibility`` has depth residuals); default
             :class:`MaskLookupConfig` (off).
@@ -112,18 +112,18 @@ def observe_masks(
         ShapeError: if a mask is not a 2D array.
     """
     cfg = cfg if cfg is not None else MaskLookupConfig()
-    by_id = {frame.id: frame for frame in scene.frames}
+    by_id = {frame.id: frame for frame in bundle.frames}
     missing = [fid for fid in visibility.frame_ids if fid not in by_id]
     if missing:
         raise InputError(f"observe_masks: visibility names frame(s) {missing[:5]} that the scene does not have")
     views = [v for v, fid in enumerate(visibility.frame_ids) if by_id[fid].masks is not None]
-    height, width = scene.camera.height, scene.camera.width
+    height, width = bundle.camera.height, bundle.camera.width
     index_parts: list[np.ndarray] = []
     label_parts: list[np.ndarray] = []
     for done, v in enumerate(views, start=1):
         frame = by_id[visibility.frame_ids[v]]
         point_index, row, col = visibility.frame(v)
-        label = _mask_lookup(np.asarray(scene.read_masks(frame)), row, col, height, width, frame.id)
+        label = _mask_lookup(np.asarray(bundle.read_masks(frame)), row, col, height, width, frame.id)
         inside = (label > 0) & _depth_consistent(visibility, v, cfg)
         index_parts.append(np.asarray(point_index, dtype=np.int32)[inside])
         label_parts.append(label[inside])

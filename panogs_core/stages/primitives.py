@@ -176,11 +176,11 @@ class Primitives:
             )
 
 
-def build_primitives(scene: Bundle, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None) -> Primitives:
+def build_primitives(bundle: Bundle, cfg: PrimitivesConfig, *, on_progress: ProgressFn | None = None) -> Primitives:
     """Build the primitives of a scene: ``geometry.ply`` vertices, or a TSDF reconstruction of the depth.
 
     Args:
-        scene: The opened bundle.
+        bundle: The opened bundle.
         cfg: Stage settings.
         on_progress: ``(done, total)`` per integrated frame (once for the geometry path).
 
@@ -190,7 +190,7 @@ def build_primitives(scene: Bundle, cfg: PrimitivesConfig, *, on_progress: Progr
     Raises:
         InputError: if the geometry has no vertices, or the TSDF extracts no surface.
     """
-    geometry = scene.read_geometry() if (cfg.use_geometry and scene.has_geometry) else None
+    geometry = bundle.read_geometry() if (cfg.use_geometry and bundle.has_geometry) else None
     if geometry is not None:
         points = np.ascontiguousarray(geometry.points, dtype=np.float32)  # (N, 3)
         if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
@@ -199,7 +199,7 @@ def build_primitives(scene: Bundle, cfg: PrimitivesConfig, *, on_progress: Progr
         source = "geometry"
         report(on_progress, 1, 1)
     else:
-        points, colors = _tsdf_points(scene, cfg, on_progress)
+        points, colors = _tsdf_points(bundle, cfg, on_progress)
         source = "tsdf"
     normals = estimate_normals(points, cfg.normal_radius, cfg.normal_max_nn)
     scales = gaussian_log_scales(points, cfg.scale_neighbors, cfg.min_sq_distance, cfg.point_size)
@@ -272,25 +272,25 @@ def _clip_colors(colors: np.ndarray) -> np.ndarray:  # (N, 3) float32 in [0, 1]
 # -------------------------------------------------------------------------------------------------- TSDF path
 
 
-def _tsdf_frames(scene: Bundle, cfg: PrimitivesConfig) -> list[Frame]:
+def _tsdf_frames(bundle: Bundle, cfg: PrimitivesConfig) -> list[Frame]:
     """Frames to integrate: every ``frame_stride``-th frame with a finite pose."""
-    frames = [f for f in scene.frames[:: cfg.frame_stride] if np.all(np.isfinite(f.T_world_cam))]
+    frames = [f for f in bundle.frames[:: cfg.frame_stride] if np.all(np.isfinite(f.T_world_cam))]
     if not frames:
         raise InputError("primitives: no frame with a finite pose to reconstruct the scene from")
     return frames
 
 
 def _tsdf_points(
-    scene: Bundle, cfg: PrimitivesConfig, on_progress: ProgressFn | None
+    bundle: Bundle, cfg: PrimitivesConfig, on_progress: ProgressFn | None
 ) -> tuple[np.ndarray, np.ndarray | None]:  # (N, 3) float32, (N, 3) float32 or None
     """Fuse the depth frames into a TSDF, extract its surface points, downsample under the cap."""
-    frames = _tsdf_frames(scene, cfg)
+    frames = _tsdf_frames(bundle, cfg)
     # Colour is all or nothing: a grid with a colour channel needs a colour image for every integration.
     with_color = all(f.color is not None for f in frames)
-    block_count = _estimate_block_count(scene, frames, cfg)
+    block_count = _estimate_block_count(bundle, frames, cfg)
     for attempt in range(_TSDF_ATTEMPTS):
         try:
-            grid = _integrate(scene, frames, cfg, with_color, block_count, on_progress)
+            grid = _integrate(bundle, frames, cfg, with_color, block_count, on_progress)
             break
         except RuntimeError as exc:  # open3d reports a full hash map as a RuntimeError
             if attempt == _TSDF_ATTEMPTS - 1:
@@ -314,7 +314,7 @@ def _tsdf_points(
     return points_ds.astype(np.float32), None if colors_ds is None else _clip_colors(colors_ds)
 
 
-def _o3d_depth(scene: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
+def _o3d_depth(bundle: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
     """The frame's depth as an open3d float image in metres, or None when no pixel is in range.
 
     Readings outside ``[depth_min, depth_max]`` or non-finite become 0 (no depth). A frame without one valid
@@ -322,7 +322,7 @@ def _o3d_depth(scene: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
     """
     import open3d as o3d
 
-    depth = np.array(scene.read_depth(frame), dtype=np.float32)  # (H, W) copy: we edit it
+    depth = np.array(bundle.read_depth(frame), dtype=np.float32)  # (H, W) copy: we edit it
     valid = np.isfinite(depth) & (depth >= cfg.depth_min) & (depth <= cfg.depth_max)
     if not valid.any():
         return None
@@ -355,7 +355,7 @@ def _new_grid(cfg: PrimitivesConfig, with_color: bool, block_count: int) -> Any:
     )
 
 
-def _estimate_block_count(scene: Bundle, frames: list[Frame], cfg: PrimitivesConfig) -> int:
+def _estimate_block_count(bundle: Bundle, frames: list[Frame], cfg: PrimitivesConfig) -> int:
     """Blocks the scene needs: union of the blocks touched by up to 16 evenly spread frames, with a margin.
 
     A sample is enough because open3d's CPU hash map grows on demand (and a refusal is retried with twice the
@@ -363,11 +363,11 @@ def _estimate_block_count(scene: Bundle, frames: list[Frame], cfg: PrimitivesCon
     scene (each block holds block_resolution^3 voxels, 80 kB at 16^3 with colour).
     """
     probe = _new_grid(cfg, False, 64)
-    intrinsic = _tensor(scene.camera.K)
+    intrinsic = _tensor(bundle.camera.K)
     picks = np.unique(np.linspace(0, len(frames) - 1, min(_SIZING_FRAMES, len(frames))).round().astype(int))
     seen: set[tuple[int, int, int]] = set()
     for i in picks:
-        depth = _o3d_depth(scene, frames[i], cfg)
+        depth = _o3d_depth(bundle, frames[i], cfg)
         if depth is None:
             continue
         coords = probe.compute_unique_block_coordinates(
@@ -378,7 +378,7 @@ def _estimate_block_count(scene: Bundle, frames: list[Frame], cfg: PrimitivesCon
 
 
 def _integrate(
-    scene: Bundle,
+    bundle: Bundle,
     frames: list[Frame],
     cfg: PrimitivesConfig,
     with_color: bool,
@@ -393,7 +393,7 @@ def _integrate(
     grid = _new_grid(cfg, with_color, block_count)
     integrated = 0
     for done, frame in enumerate(frames, start=1):
-        integrated += _integrate_frame(grid, scene, frame, cfg, with_color)
+        integrated += _integrate_frame(grid, bundle, frame, cfg, with_color)
         report(on_progress, done, len(frames))
     if integrated == 0:
         raise InputError(
@@ -403,23 +403,23 @@ def _integrate(
     return grid
 
 
-def _integrate_frame(grid: Any, scene: Bundle, frame: Frame, cfg: PrimitivesConfig, with_color: bool) -> bool:
+def _integrate_frame(grid: Any, bundle: Bundle, frame: Frame, cfg: PrimitivesConfig, with_color: bool) -> bool:
     """Integrate one frame (depth, and colour when the grid has it); False when it has no valid depth."""
     import open3d as o3d
 
-    depth = _o3d_depth(scene, frame, cfg)
+    depth = _o3d_depth(bundle, frame, cfg)
     if depth is None:
         return False
     extrinsic = _extrinsic(frame)
     coords = grid.compute_unique_block_coordinates(
-        depth, _tensor(scene.camera.K), extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels
+        depth, _tensor(bundle.camera.K), extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels
     )
     # open3d's integration truncates a voxel's projected pixel coordinates (floor, not round): with pixel
     # centres at integer coordinates (docs/conventions.md) it reads the pixel half a pixel up-left, which biases
     # the surface (measured 2-4 mm at 320 x 240, 1-2 cm at 80 x 60). Shifting the principal point by +0.5 px
     # turns the truncation into a nearest-pixel lookup (bias measured < 0.3 mm).
-    lookup = _tensor(scene.camera.K + np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))
-    color = scene.read_color(frame) if with_color else None
+    lookup = _tensor(bundle.camera.K + np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))
+    color = bundle.read_color(frame) if with_color else None
     if color is not None:
         color_img = o3d.t.geometry.Image(_tensor(np.asarray(color, dtype=np.float32) / 255.0))
         grid.integrate(coords, depth, color_img, lookup, lookup, extrinsic, 1.0, cfg.depth_max, cfg.trunc_voxels)

@@ -130,7 +130,7 @@ class Visibility:
 
 
 def compute_visibility(
-    scene: Bundle,
+    bundle: Bundle,
     points: np.ndarray,  # (N, 3) float32, world, metres
     cfg: VisibilityConfig,
     *,
@@ -140,7 +140,7 @@ def compute_visibility(
     """Project the primitives into every key frame and keep those that pass the depth test.
 
     Args:
-        scene: The opened bundle (camera, poses, depth).
+        bundle: The opened bundle (camera, poses, depth).
         points: Primitive centres. ``(N, 3)`` float32, world frame, metres.
         cfg: Stage settings.
         frames: Key frames, in the order wanted; default: the scene's frames that have features or masks,
@@ -158,7 +158,7 @@ def compute_visibility(
         raise ShapeError(f"points: expected (N, 3) with N < 2^31, got shape {points.shape}")
     points32 = np.ascontiguousarray(points, dtype=np.float32)  # (N, 3)
     if frames is None:
-        frames = tuple(f for f in scene.frames if f.features is not None or f.masks is not None)
+        frames = tuple(f for f in bundle.frames if f.features is not None or f.masks is not None)
     start = time.perf_counter()
     parts: list[tuple[np.ndarray, ...]] = []
     for done, frame in enumerate(frames, start=1):
@@ -166,8 +166,8 @@ def compute_visibility(
         if T_cam_world is None:
             parts.append(_empty_part())
         else:
-            depth = scene.read_depth(frame)  # (H, W) float32 metres
-            parts.append(frame_visibility(points32, T_cam_world, scene.camera, depth, cfg))
+            depth = bundle.read_depth(frame)  # (H, W) float32 metres
+            parts.append(frame_visibility(points32, T_cam_world, bundle.camera, depth, cfg))
         report(on_progress, done, len(frames))
     vis = _assemble(tuple(f.id for f in frames), parts)
     log.info(
