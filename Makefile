@@ -32,7 +32,8 @@ install: system-deps $(VENV)/.installed web ## create .venv and install panogs w
 # The web app (viewer + app): npm ci from the committed lock file, esbuild into service/static/app (git-ignored),
 # which FastAPI serves and the wheel carries. Rebuilt when a source under web/ changes.
 WEB_BUILT := service/static/app/index.html
-WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs $(wildcard web/src/*.js web/public/*)
+WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs \
+	$(wildcard web/src/*.js web/src/*/*.js web/src/*/*/*.js web/public/*)
 
 $(WEB_BUILT): $(WEB_SOURCES)
 	cd web && npm ci --no-audit --no-fund --loglevel=error && npm run build

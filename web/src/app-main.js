@@ -2,7 +2,8 @@
 // upload a bundle over tus with tus-js-client, watch jobs live, cancel, re-run, delete, open the viewer.
 // Routes live in the hash: #/ (uploads, jobs, scenes) and #/jobs/<id>?mode=...&sel=...&q=...&cam=... (the viewer).
 import * as tus from "tus-js-client";
-import { Viewer, paramsToState, stateToParams } from "./viewer.js";
+import { paramsToState, stateToParams } from "./viewer/url-state.js";
+import { Viewer } from "./viewer/viewer.js";
 import { fetchScene } from "./scene.js";
 
 const page = document.getElementById("page");
