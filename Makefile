@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed bench-gaussians clean web view bench-viewer deploy-check
+	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -32,12 +32,18 @@ install: system-deps $(VENV)/.installed web ## create .venv and install panogs w
 # The web app (viewer + app): npm ci from the committed lock file, esbuild into service/static/app (git-ignored),
 # which FastAPI serves and the wheel carries. Rebuilt when a source under web/ changes.
 WEB_BUILT := service/static/app/index.html
-WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs $(wildcard web/src/*.js web/public/*)
+WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs \
+	$(wildcard web/src/*.js web/src/*/*.js web/src/*/*/*.js web/public/*)
 
 $(WEB_BUILT): $(WEB_SOURCES)
 	cd web && npm ci --no-audit --no-fund --loglevel=error && npm run build
 
 web: $(WEB_BUILT) ## build the web app into service/static/app
+
+# ESLint and Prettier (web/eslint.config.js, web/.prettierrc), then node --test on the pure modules (web/test).
+# npm ci only when web/node_modules is missing.
+web-check: ## lint (ESLint, Prettier) and unit-test (node --test) the web code
+	cd web && { test -d node_modules || npm ci --no-audit --no-fund --loglevel=error; } && npm run lint && npm test
 
 view: install ## open the viewer on the demo's result (after make demo)
 	$(PANOGS) view $(DEMO)/run --open

@@ -1,8 +1,9 @@
 // The viewer on its own page: `panogs view RUN_DIR` (scene and queries from the local server) or the offline file
 // of `panogs export-html` (the scene inline as base64; class-name queries answered from the answers the file
-// carries, computed by the same query code as the API).
-import { Viewer, paramsToState, stateToParams } from "./viewer.js";
+// carries, computed by the same query code as the API). The view state lives in the URL's fragment.
 import { base64ToBuffer, fetchScene, parseScene } from "./scene.js";
+import { paramsToState, stateToParams } from "./viewer/url-state.js";
+import { Viewer } from "./viewer/viewer.js";
 
 async function localQuery(url, text) {
   const response = await fetch(url, {
@@ -19,7 +20,9 @@ function offlineQuery(header, text) {
   const answer = (header.class_queries || {})[text.trim().toLowerCase()];
   if (!answer) {
     const names = Object.keys(header.class_queries || {}).join(", ");
-    return Promise.reject(new Error(`this offline file answers class names only (${names}); free text needs \`panogs view\``));
+    return Promise.reject(
+      new Error(`this offline file answers class names only (${names}); free text needs \`panogs view\``),
+    );
   }
   return Promise.resolve(answer);
 }

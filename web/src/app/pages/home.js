@@ -1,0 +1,77 @@
+// The home page: the upload card, the job table and the scene list, polled while the page is shown (every second
+// while a job is live, else every five).
+import { h } from "../../dom.js";
+import { api } from "../api-client.js";
+import { showError } from "../messages.js";
+import { POLL_RETRY_MS, isTerminal, pollDelay, sceneText } from "../rules.js";
+import { JOB_COLUMNS, jobRow } from "./jobs.js";
+import { signInPage } from "./sign-in.js";
+import { uploadCard } from "./upload.js";
+
+function sceneItem(scene, listMessage, refresh) {
+  const remove = async () => {
+    if (!confirm(`Delete scene ${scene.name}, its jobs and their results?`)) return;
+    try {
+      await api("DELETE", `/v1/scenes/${scene.id}`);
+    } catch (err) {
+      showError(listMessage, err);
+    }
+    refresh();
+  };
+  return h(
+    "li",
+    { "data-scene-id": scene.id },
+    sceneText(scene),
+    h("button", { type: "button", "data-action": "delete-scene", onclick: remove }, "Delete"),
+  );
+}
+
+// ctx: { page, route(), onLeave(fn) } (router.js)
+export function homePage(ctx) {
+  const jobsBody = h("tbody", {});
+  const scenesList = h("ul", {});
+  const listMessage = h("div", { class: "pgs-message" });
+  let timer = null;
+  ctx.onLeave(() => clearTimeout(timer));
+  const refresh = async () => {
+    clearTimeout(timer);
+    if (!ctx.page.contains(jobsBody)) return;
+    let jobs, scenes;
+    try {
+      [jobs, scenes] = await Promise.all([api("GET", "/v1/jobs?limit=100"), api("GET", "/v1/scenes?limit=200")]);
+    } catch (err) {
+      if (err.status === 401) return signInPage(ctx);
+      showError(listMessage, err);
+      timer = setTimeout(refresh, POLL_RETRY_MS);
+      return;
+    }
+    const byId = new Map(scenes.data.map((s) => [s.id, s]));
+    // Keep an open re-run form: rebuild only the rows whose job changed.
+    jobsBody.replaceChildren(
+      ...jobs.data.map((job) => {
+        const old = jobsBody.querySelector(`[data-job-id="${job.id}"]`);
+        if (old && old.dataset.state === job.state && isTerminal(job.state)) return old;
+        return jobRow(job, byId, refresh);
+      }),
+    );
+    scenesList.replaceChildren(...scenes.data.map((s) => sceneItem(s, listMessage, refresh)));
+    timer = setTimeout(refresh, pollDelay(jobs.data));
+  };
+  ctx.page.replaceChildren(
+    uploadCard(refresh),
+    h(
+      "section",
+      { class: "pgs-card" },
+      h("h2", {}, "Jobs"),
+      listMessage,
+      h(
+        "table",
+        { class: "pgs-jobs", id: "jobs" },
+        h("thead", {}, h("tr", {}, ...JOB_COLUMNS.map((t) => h("th", {}, t)))),
+        jobsBody,
+      ),
+    ),
+    h("section", { class: "pgs-card" }, h("h2", {}, "Scenes"), scenesList),
+  );
+  refresh();
+}

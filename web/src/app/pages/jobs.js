@@ -1,0 +1,111 @@
+// The job table's rows: state, stage, progress, error, and the actions (open the viewer, cancel, re-run with other
+// settings, delete). A row's data-state is what the browser tests wait on.
+import { h } from "../../dom.js";
+import { api } from "../api-client.js";
+import { showError } from "../messages.js";
+import { isTerminal, jobProgressText, jobStateText, shortId, vocabularyBody, vocabularyText } from "../rules.js";
+
+export const JOB_COLUMNS = ["job", "scene", "state", "stage", "progress", "", ""];
+
+// scenes: Map id -> scene; refresh(): reload the table after an action
+export function jobRow(job, scenes, refresh) {
+  const sceneName = scenes.get(job.scene_id)?.name || shortId(job.scene_id);
+  const message = h("div", { class: "pgs-message" });
+  const act = (label, fn) =>
+    h(
+      "button",
+      {
+        type: "button",
+        "data-action": label.toLowerCase(),
+        onclick: async () => {
+          try {
+            await fn();
+            refresh();
+          } catch (err) {
+            showError(message, err);
+          }
+        },
+      },
+      label,
+    );
+  const actions = h("td", {});
+  if (job.state === "succeeded")
+    actions.append(h("a", { href: `#/jobs/${job.id}`, "data-action": "open" }, "Open viewer"), " ");
+  if (!isTerminal(job.state))
+    actions.append(
+      act("Cancel", () => api("POST", `/v1/jobs/${job.id}/cancel`)),
+      " ",
+    );
+  actions.append(
+    act("Re-run", async () => rerunForm(job, message, refresh)),
+    " ",
+  );
+  actions.append(
+    act("Delete", async () => {
+      if (!confirm(`Delete job ${shortId(job.id)} and its results?`)) return;
+      await api("DELETE", `/v1/jobs/${job.id}`);
+    }),
+  );
+  const terminal = isTerminal(job.state);
+  return h(
+    "tr",
+    { "data-job-id": job.id, "data-state": job.state },
+    h("td", {}, h("code", {}, shortId(job.id))),
+    h("td", {}, sceneName),
+    h("td", { class: `pgs-state-${job.state}` }, jobStateText(job)),
+    h("td", {}, job.stage || ""),
+    h("td", {}, terminal ? "" : h("progress", { max: 1, value: job.progress }), " ", jobProgressText(job)),
+    h(
+      "td",
+      {},
+      job.error ? h("span", { class: "pgs-message pgs-bad" }, `${job.error.type}: ${job.error.message}`) : "",
+      message,
+    ),
+    actions,
+  );
+}
+
+// The re-run form, shown in the row's message box: the job's settings as JSON and its vocabulary, both editable.
+function rerunForm(job, message, refresh) {
+  const config = h("textarea", { rows: 4, cols: 60, "aria-label": "settings (JSON)" });
+  config.value = JSON.stringify(job.config || {}, null, 1);
+  const vocabulary = h("input", {
+    type: "text",
+    size: 40,
+    "aria-label": "vocabulary",
+    placeholder: "vocabulary (optional): scannet20 | matterport21 | lamp, rug, ...",
+  });
+  vocabulary.value = vocabularyText(job.vocabulary);
+  const form = h(
+    "form",
+    {
+      onsubmit: async (e) => {
+        e.preventDefault();
+        let parsed;
+        try {
+          parsed = JSON.parse(config.value || "{}");
+        } catch (err) {
+          return showError(message, new Error(`settings: not valid JSON (${err.message})`));
+        }
+        try {
+          await api("POST", "/v1/jobs", {
+            scene_id: job.scene_id,
+            config: parsed,
+            vocabulary: vocabularyBody(vocabulary.value, job.vocabulary),
+          });
+          refresh();
+        } catch (err) {
+          showError(message, err);
+        }
+      },
+    },
+    h("div", {}, 'Settings (PipelineConfig overrides, e.g. {"clustering": {"thresholds": [0.9, 0.7]}}):'),
+    config,
+    h("br"),
+    vocabulary,
+    " ",
+    h("button", { type: "submit" }, "Run"),
+  );
+  message.className = "pgs-message";
+  message.replaceChildren(form);
+}

@@ -1,0 +1,98 @@
+// The upload card: a bundle sent over tus (tus-js-client; a dropped connection resumes from the server's offset),
+// then validated into a scene and queued as a job.
+import * as tus from "tus-js-client";
+import { h } from "../../dom.js";
+import { APP_HEADER, api, tusError } from "../api-client.js";
+import { showError } from "../messages.js";
+import { uploadProgressText } from "../rules.js";
+
+const CHUNK_BYTES = 8 * 1024 * 1024;
+const RETRY_DELAYS_MS = [0, 1000, 3000, 5000, 10000];
+
+// onQueued(): a job was queued (the job list refreshes)
+export function uploadCard(onQueued) {
+  const file = h("input", {
+    type: "file",
+    name: "bundle",
+    accept: ".zip,.tar.gz,.tgz,.tar",
+    "aria-label": "scene bundle",
+  });
+  const name = h("input", {
+    type: "text",
+    name: "name",
+    placeholder: "scene name (optional)",
+    "aria-label": "scene name",
+  });
+  const bar = h("progress", { max: 1, value: 0, hidden: true });
+  const message = h("div", { class: "pgs-message", id: "upload-message", "aria-live": "polite" });
+  const start = h("button", { type: "submit" }, "Upload and run");
+
+  const createJob = async (uploadId) => {
+    message.textContent = "validating the bundle ...";
+    try {
+      const scene = await api("POST", "/v1/scenes", { upload_id: uploadId, name: name.value.trim() || undefined });
+      message.textContent = `scene ${scene.name} is valid; starting a job ...`;
+      await api("POST", "/v1/jobs", { scene_id: scene.id });
+      message.textContent = `scene ${scene.name}: job queued`;
+      form.reset();
+      bar.hidden = true;
+      onQueued();
+    } catch (err) {
+      showError(message, err);
+    } finally {
+      start.disabled = false;
+    }
+  };
+
+  const send = (chosen) => {
+    const upload = new tus.Upload(chosen, {
+      endpoint: "/v1/uploads",
+      headers: APP_HEADER,
+      metadata: { filename: chosen.name },
+      chunkSize: CHUNK_BYTES,
+      retryDelays: RETRY_DELAYS_MS,
+      removeFingerprintOnSuccess: true,
+      onProgress: (sent, total) => {
+        bar.value = total ? sent / total : 0;
+        message.textContent = uploadProgressText(sent, total);
+      },
+      onError: (err) => {
+        start.disabled = false;
+        showError(message, tusError(err));
+      },
+      onSuccess: () => createJob(upload.url.split("/").pop()),
+    });
+    upload.findPreviousUploads().then((previous) => {
+      if (previous.length) upload.resumeFromPreviousUpload(previous[0]);
+      upload.start();
+    });
+  };
+
+  const form = h(
+    "form",
+    {
+      class: "pgs-card",
+      id: "upload",
+      onsubmit: (e) => {
+        e.preventDefault();
+        const chosen = file.files[0];
+        if (!chosen) return showError(message, new Error("choose a bundle: a .zip or .tar.gz of a scene folder"));
+        start.disabled = true;
+        bar.hidden = false;
+        message.className = "pgs-message";
+        message.textContent = "uploading ...";
+        send(chosen);
+      },
+    },
+    h("h2", {}, "Upload a scene bundle"),
+    file,
+    " ",
+    name,
+    " ",
+    start,
+    " ",
+    bar,
+    message,
+  );
+  return form;
+}

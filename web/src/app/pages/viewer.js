@@ -1,0 +1,45 @@
+// The viewer on a finished job: the job checked first (another tenant's job or an unfinished one shows why it
+// cannot open), then the scene streamed with progress. The view state is kept in the route's parameters.
+import { h } from "../../dom.js";
+import { fetchScene } from "../../scene.js";
+import { paramsToState, stateToParams } from "../../viewer/url-state.js";
+import { Viewer } from "../../viewer/viewer.js";
+import { APP_HEADER, api } from "../api-client.js";
+import { showError } from "../messages.js";
+import { viewerHash } from "../routes.js";
+
+// ctx: { page, onLeave(fn) } (router.js)
+export async function viewerPage(ctx, jobId, params) {
+  const root = h("div", { id: "viewer" });
+  const message = h("div", { class: "pgs-message" });
+  ctx.page.replaceChildren(message, root);
+  let job;
+  try {
+    job = await api("GET", `/v1/jobs/${jobId}`);
+  } catch (err) {
+    root.remove();
+    return showError(message, err);
+  }
+  if (job.state !== "succeeded") {
+    root.remove();
+    return showError(message, new Error(`job ${jobId} is ${job.state}; the viewer opens once it has succeeded`));
+  }
+  message.remove();
+  root.style.height = "100%"; // through the CSSOM: the page's CSP refuses style attributes
+  const viewer = new Viewer(root, {
+    state: paramsToState(params),
+    queryFn: (text) => api("POST", `/v1/jobs/${jobId}/query`, { text }),
+    onStateChange: (state) => history.replaceState(null, "", viewerHash(jobId, stateToParams(state))),
+  });
+  ctx.onLeave(() => viewer.dispose());
+  window.__panogs = { viewer, startedAt: performance.now() };
+  try {
+    const scene = await fetchScene(`/v1/jobs/${jobId}/viewer-scene`, (got, total) => viewer.showProgress(got, total), {
+      headers: APP_HEADER,
+    });
+    viewer.load(scene);
+    window.__panogs.readyAt = performance.now();
+  } catch (err) {
+    viewer.showError(`Could not open the scene: ${err.message}`);
+  }
+}

@@ -1,0 +1,58 @@
+// The app's rules and read-outs that need no DOM: which job states are final, how often to poll, what a row says,
+// and the vocabulary field of the re-run form.
+
+export const TERMINAL = new Set(["succeeded", "failed", "canceled"]);
+export const POLL_LIVE_MS = 1000; // a job is queued or running
+export const POLL_IDLE_MS = 5000;
+export const POLL_RETRY_MS = 3000; // the last refresh failed
+
+export function isTerminal(state) {
+  return TERMINAL.has(state);
+}
+
+export function pollDelay(jobs) {
+  return jobs.some((job) => !isTerminal(job.state)) ? POLL_LIVE_MS : POLL_IDLE_MS;
+}
+
+export function shortId(id) {
+  return id.slice(0, 8);
+}
+
+export function jobStateText(job) {
+  return job.state + (job.cancel_requested && !isTerminal(job.state) ? " (cancelling)" : "");
+}
+
+export function jobProgressText(job) {
+  return isTerminal(job.state) ? "" : `${Math.round(job.progress * 100)}%`;
+}
+
+export function sceneText(scene) {
+  return `${scene.name} (${(scene.size_bytes / 1e6).toFixed(1)} MB, ${scene.num_frames} frames) `;
+}
+
+export function uploadProgressText(sent, total) {
+  const mb = (bytes) => (bytes / 1e6).toFixed(1);
+  return `uploading ${Math.round((100 * sent) / (total || 1))}% (${mb(sent)} of ${mb(total)} MB)`;
+}
+
+// A job's vocabulary is a built-in label set's name or an inline list of classes, never a file of the server
+// (docs/service.md). In the form: one name (scannet20, matterport21) or class names separated by commas.
+export function vocabularyText(vocabulary) {
+  if (!vocabulary) return "";
+  return typeof vocabulary === "string" ? vocabulary : vocabulary.classes.map((c) => c.name).join(", ");
+}
+
+export function vocabularyBody(text, previous) {
+  const value = text.trim();
+  if (!value) return undefined;
+  if (!value.includes(",")) return value;
+  // Classes the job had keep their kind; new ones get the server's default (stuff for wall, floor, ceiling).
+  const kinds = new Map(
+    (previous && typeof previous === "object" ? previous.classes : []).map((c) => [c.name, c.kind]),
+  );
+  const names = value
+    .split(",")
+    .map((n) => n.trim())
+    .filter(Boolean);
+  return { classes: names.map((name) => (kinds.has(name) ? { name, kind: kinds.get(name) } : { name })) };
+}

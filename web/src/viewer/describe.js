@@ -1,0 +1,49 @@
+// What the viewer's panels say about a scene, in which order, and the scene's typical primitive size (the pick
+// radius). Pure: strings and arrays in, strings and arrays out.
+
+const mb = (bytes) => (bytes / 1e6).toFixed(1);
+
+export function progressText(received, total) {
+  return total
+    ? `Loading scene ${Math.round((100 * received) / total)}% (${mb(received)} of ${mb(total)} MB)`
+    : `Loading scene (${mb(received)} MB)`;
+}
+
+export function summaryText(header) {
+  const title = header.title ? `${header.title}: ` : "";
+  const decimated = header.total > header.count ? ` (of ${header.total.toLocaleString()}, decimated)` : "";
+  return `${title}${header.count.toLocaleString()} primitives${decimated}, ${header.instances.length} instances`;
+}
+
+export function hitsText(count, text) {
+  return `${count} hit${count === 1 ? "" : "s"} for "${text}"`;
+}
+
+// The legend: classes that have primitives, in vocabulary order, then void when some primitives are void.
+export function legendRows(header) {
+  const rows = header.classes
+    .filter((c) => c.count > 0)
+    .map((c) => ({ index: c.index, name: c.name, kind: c.kind, color: c.color, count: c.count }));
+  if (header.void.count > 0)
+    rows.push({ index: -1, name: "(void)", kind: "", color: header.void.color, count: header.void.count });
+  return rows;
+}
+
+// The instance list: by class name, then id.
+export function instanceOrder(instances) {
+  return [...instances].sort((a, b) => a.class_name.localeCompare(b.class_name) || a.id - b.id);
+}
+
+export function instanceTitle(inst) {
+  const size = inst.bbox_max.map((v, i) => (v - inst.bbox_min[i]).toFixed(2)).join("×");
+  return `${inst.num_points} primitives, box ${size} m`;
+}
+
+// The median of about 1000 evenly spaced radii (0.01 m for an empty scene).
+export function medianScale(scale) {
+  const sample = [];
+  const step = Math.max(1, Math.floor(scale.length / 1000));
+  for (let i = 0; i < scale.length; i += step) sample.push(scale[i]);
+  sample.sort((a, b) => a - b);
+  return sample.length ? sample[sample.length >> 1] : 0.01;
+}

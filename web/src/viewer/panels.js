@@ -1,0 +1,232 @@
+// The viewer's DOM around the canvas: the side panel (summary, colour modes, tools, query box, hits, legend,
+// instance list), the loading overlay and the shortcut help. It shows what it is told and reports clicks to the
+// viewer; it keeps no state of its own. The root's data-* attributes (state, mode, lit, query) are what the
+// browser tests and benchmarks wait on.
+import { h } from "../dom.js";
+import { cssRgb } from "./colours.js";
+import { hitsText, instanceOrder, instanceTitle, legendRows, progressText } from "./describe.js";
+import { SHORTCUTS } from "./keys.js";
+import { MODES } from "./state.js";
+
+function swatch(color) {
+  return h("span", { class: "pgs-swatch", style: { background: cssRgb(color) } });
+}
+
+export class Panels {
+  // on: { command(name), query(text), select(id, keepQuery), toggle(id), preview(id), classVisible(index, visible) }
+  constructor(root, on) {
+    this.root = root;
+    this.on = on;
+    root.classList.add("pgs-viewer");
+    root.dataset.state = "loading";
+    this.canvasBox = h("div", { class: "pgs-canvas" });
+    this.progress = h("div", { class: "pgs-progress", role: "status" }, "Loading scene ...");
+    this.progressBar = h("progress", { max: 1, value: 0 });
+    this.progress.append(this.progressBar);
+    this.modeButtons = MODES.map((mode, i) =>
+      h(
+        "button",
+        {
+          type: "button",
+          "data-mode": mode,
+          title: `colour by ${mode} (${i + 1})`,
+          onclick: () => on.command(`mode:${mode}`),
+        },
+        mode,
+      ),
+    );
+    this.queryInput = h("input", { type: "search", placeholder: "query: class name or text", "aria-label": "query" });
+    const queryForm = h(
+      "form",
+      {
+        class: "pgs-query",
+        onsubmit: (e) => {
+          e.preventDefault();
+          on.query(this.queryInput.value);
+        },
+      },
+      this.queryInput,
+      h("button", { type: "submit" }, "Ask"),
+    );
+    this.queryStatus = h("div", { class: "pgs-query-status", "aria-live": "polite" });
+    this.hitList = h("ol", { class: "pgs-hits" });
+    this.legend = h("ul", { class: "pgs-legend", "aria-label": "classes" });
+    this.instanceList = h("ul", { class: "pgs-instances", "aria-label": "instances" });
+    this.summary = h("div", { class: "pgs-summary" });
+    this.help = h(
+      "div",
+      { class: "pgs-help", hidden: true, role: "dialog", "aria-label": "keyboard shortcuts" },
+      h("h2", {}, "Keyboard shortcuts"),
+      h("table", {}, ...SHORTCUTS.map(([key, what]) => h("tr", {}, h("th", {}, key), h("td", {}, what)))),
+      h(
+        "p",
+        {},
+        "Drag to orbit, right-drag or shift-drag to pan, wheel to zoom, click a point to select its instance.",
+      ),
+    );
+    const tool = (label, title, command, attrs = {}) =>
+      h("button", { type: "button", title, ...attrs, onclick: () => on.command(command) }, label);
+    const side = h(
+      "aside",
+      { class: "pgs-side" },
+      this.summary,
+      h("div", { class: "pgs-modes", role: "group", "aria-label": "colour mode" }, ...this.modeButtons),
+      h(
+        "div",
+        { class: "pgs-tools" },
+        tool("Fit", "fit the scene (f)", "fit", { "data-action": "fit" }),
+        tool("−", "smaller points ([)", "smaller"),
+        tool("+", "larger points (])", "larger"),
+        tool("?", "keyboard shortcuts (?)", "help"),
+      ),
+      queryForm,
+      this.queryStatus,
+      this.hitList,
+      h("h3", {}, "Classes"),
+      this.legend,
+      h("h3", {}, "Instances"),
+      this.instanceList,
+    );
+    root.append(this.canvasBox, side, this.progress, this.help);
+  }
+
+  showProgress(received, total) {
+    this.progressBar.value = total ? received / total : 0;
+    this.progress.firstChild.textContent = progressText(received, total);
+  }
+
+  showError(message) {
+    this.root.dataset.state = "error";
+    this.progress.classList.add("pgs-error");
+    this.progress.textContent = message;
+  }
+
+  showReady() {
+    this.progress.hidden = true;
+    this.root.dataset.state = "ready";
+  }
+
+  showMode(mode) {
+    for (const button of this.modeButtons) button.setAttribute("aria-pressed", String(button.dataset.mode === mode));
+    this.root.dataset.mode = mode;
+  }
+
+  showSummary(text) {
+    this.summary.textContent = text;
+  }
+
+  // isHidden(index): whether the class starts unticked
+  fillLegend(header, isHidden) {
+    const rows = legendRows(header).map(({ index, name, kind, color, count }) => {
+      const box = h("input", { type: "checkbox", "aria-label": `show ${name}` });
+      box.checked = !isHidden(index);
+      box.addEventListener("change", () => this.on.classVisible(index, box.checked));
+      return h(
+        "li",
+        { "data-class-index": index },
+        h("label", {}, box, swatch(color), ` ${name} `),
+        h("span", { class: "pgs-kind" }, kind),
+        h("span", { class: "pgs-count" }, count.toLocaleString()),
+      );
+    });
+    this.legend.replaceChildren(...rows);
+  }
+
+  fillInstances(instances) {
+    const rows = instanceOrder(instances).map((inst) =>
+      h(
+        "li",
+        {
+          "data-instance-id": inst.id,
+          tabindex: "0",
+          title: instanceTitle(inst),
+          onclick: () => this.on.toggle(inst.id),
+          onkeydown: (e) => {
+            if (e.key === "Enter") this.on.select(inst.id, false);
+          },
+          onmouseenter: () => this.on.preview(inst.id),
+          onmouseleave: () => this.on.preview(null),
+        },
+        swatch(inst.color),
+        ` #${inst.id} ${inst.class_name} `,
+        h("span", { class: "pgs-kind" }, inst.kind),
+        h("span", { class: "pgs-score" }, inst.score.toFixed(2)),
+        h("span", { class: "pgs-count" }, `${inst.num_points}`),
+      ),
+    );
+    this.instanceList.replaceChildren(...rows);
+  }
+
+  // The selection's or the hits' rows marked in the instance list.
+  markInstances(ids) {
+    for (const row of this.instanceList.children) {
+      row.classList.toggle("pgs-lit", ids.has(Number(row.dataset.instanceId)));
+    }
+  }
+
+  scrollToInstance(id) {
+    const row = this.instanceList.querySelector(`[data-instance-id="${id}"]`);
+    if (row) row.scrollIntoView({ block: "nearest" });
+  }
+
+  // The instances drawn lit, sorted, on the root (data-lit).
+  showLit(ids) {
+    this.root.dataset.lit = [...ids].sort((a, b) => a - b).join(",");
+  }
+
+  setQueryText(text) {
+    this.queryInput.value = text;
+  }
+
+  focusQuery() {
+    this.queryInput.focus();
+  }
+
+  clearHits() {
+    this.hitList.replaceChildren();
+    this.queryStatus.textContent = "";
+  }
+
+  showAsking(text) {
+    this.queryStatus.textContent = `asking "${text}" ...`;
+    this.root.dataset.query = "running";
+  }
+
+  showQueryError(message) {
+    this.queryStatus.textContent = message;
+    this.root.dataset.query = "error";
+  }
+
+  // hits: the server's ranking, kept; colourOf(id): an instance's colour
+  showHits(text, hits, colourOf) {
+    this.hitList.replaceChildren(
+      ...hits.map((hit) =>
+        h(
+          "li",
+          {
+            "data-hit-id": hit.instance_id,
+            onclick: () => this.on.select(hit.instance_id, true),
+            onmouseenter: () => this.on.preview(hit.instance_id),
+            onmouseleave: () => this.on.preview(null),
+          },
+          swatch(colourOf(hit.instance_id)),
+          `#${hit.instance_id} ${hit.class_name} `,
+          h("span", { class: "pgs-score" }, hit.score.toFixed(3)),
+        ),
+      ),
+    );
+    this.queryStatus.textContent = hitsText(hits.length, text);
+  }
+
+  showQueryDone() {
+    this.root.dataset.query = "done";
+  }
+
+  toggleHelp(show) {
+    this.help.hidden = show === undefined ? !this.help.hidden : !show;
+  }
+
+  clear() {
+    this.root.replaceChildren();
+  }
+}

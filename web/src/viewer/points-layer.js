@@ -1,0 +1,195 @@
+// The three.js side of the viewer: the primitives as round points sized by their radius, the camera and its orbit
+// controls, instance boxes, picking. Colours and flags come from colours.js; this module only uploads them.
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { FLAG, flagPoints, paintPoints } from "./colours.js";
+import { medianScale } from "./describe.js";
+
+// flag (colours.js FLAG): 2 hidden (moved off screen), 1 dimmed towards grey, 0 and 3 their own colour.
+const VERTEX_SHADER = `
+attribute vec3 rgb;
+attribute float scale;
+attribute float flag;
+uniform float sizeFactor;
+uniform float projScale;
+varying vec3 vColor;
+void main() {
+  if (flag > 1.5 && flag < 2.5) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 0.0; return; }
+  vec4 mv = modelViewMatrix * vec4(position, 1.0);
+  gl_Position = projectionMatrix * mv;
+  float size = sizeFactor * scale * 2.0 * projScale / max(-mv.z, 1e-3);
+  gl_PointSize = clamp(size, 1.5, 64.0);
+  vColor = flag > 0.5 && flag < 1.5 ? mix(rgb, vec3(0.16), 0.82) : rgb;
+}`;
+
+const FRAGMENT_SHADER = `
+varying vec3 vColor;
+void main() {
+  vec2 d = gl_PointCoord - vec2(0.5);
+  if (dot(d, d) > 0.25) discard;
+  gl_FragColor = vec4(vColor, 1.0);
+}`;
+
+const BACKGROUND = 0x101418;
+const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize(); // from above, front left
+
+export class PointsLayer {
+  // container: the element the canvas fills; scene: the parsed binary scene (scene.js); size: the size factor;
+  // onCameraEnd(): an orbit, pan or zoom has ended
+  constructor(container, scene, size, onCameraEnd) {
+    this.container = container;
+    this.scene = scene;
+    const n = scene.header.count;
+    this.rgb = new Uint8Array(n * 3);
+    this.flags = new Uint8Array(n);
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(scene.position, 3));
+    geometry.setAttribute("rgb", new THREE.BufferAttribute(this.rgb, 3, true));
+    geometry.setAttribute("scale", new THREE.BufferAttribute(scene.scale, 1));
+    geometry.setAttribute("flag", new THREE.BufferAttribute(this.flags, 1));
+    geometry.computeBoundingSphere();
+    this.geometry = geometry;
+    this.material = new THREE.ShaderMaterial({
+      uniforms: { sizeFactor: { value: size }, projScale: { value: 1 } },
+      vertexShader: VERTEX_SHADER,
+      fragmentShader: FRAGMENT_SHADER,
+    });
+    this.points = new THREE.Points(geometry, this.material);
+
+    this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.setClearColor(BACKGROUND);
+    container.append(this.renderer.domElement);
+    this.three = new THREE.Scene();
+    this.three.add(this.points);
+    this.camera = new THREE.PerspectiveCamera(50, 1, 0.01, 1000);
+    this.camera.up.set(0, 0, 1); // captures are z-up
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.controls.addEventListener("change", () => this.render());
+    this.controls.addEventListener("end", onCameraEnd);
+    this.raycaster = new THREE.Raycaster();
+    this.pickRadius = medianScale(scene.scale) * 2;
+    this.boxes = [];
+    this.frame = null;
+    this.resizeObserver = new ResizeObserver(() => this.resize());
+    this.resizeObserver.observe(container);
+    this.resize();
+  }
+
+  get canvas() {
+    return this.renderer.domElement;
+  }
+
+  resize() {
+    const w = this.container.clientWidth || 1;
+    const h = this.container.clientHeight || 1;
+    this.renderer.setSize(w, h);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+    // Pixels per unit of size at distance 1: points keep their size in metres whatever the canvas height.
+    const pixelHeight = h * this.renderer.getPixelRatio();
+    this.material.uniforms.projScale.value = pixelHeight / (2 * Math.tan((this.camera.fov * Math.PI) / 360));
+    this.render();
+  }
+
+  // Draw on the next animation frame, once however many changes come before it.
+  render() {
+    if (!this.frame) {
+      this.frame = requestAnimationFrame(() => {
+        this.frame = null;
+        this.renderer.render(this.three, this.camera);
+      });
+    }
+  }
+
+  renderNow() {
+    this.renderer.render(this.three, this.camera);
+  }
+
+  // The whole scene in view from above, front left; near and far planes from its size.
+  fit() {
+    const { min, max } = this.scene.header.bounds;
+    const center = new THREE.Vector3((min[0] + max[0]) / 2, (min[1] + max[1]) / 2, (min[2] + max[2]) / 2);
+    const radius = Math.max(0.1, new THREE.Vector3(...max).distanceTo(new THREE.Vector3(...min)) / 2);
+    const distance = radius / Math.sin((this.camera.fov * Math.PI) / 360);
+    this.camera.position.copy(center).addScaledVector(FIT_DIRECTION, distance);
+    this.camera.near = distance / 100;
+    this.camera.far = distance * 10;
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(center);
+    this.controls.update();
+    this.render();
+  }
+
+  // [position x, y, z, target x, y, z]
+  cameraPose() {
+    const p = this.camera.position;
+    const t = this.controls.target;
+    return [p.x, p.y, p.z, t.x, t.y, t.z];
+  }
+
+  setCameraPose(cam) {
+    this.fit(); // near and far from the scene's size
+    this.camera.position.set(cam[0], cam[1], cam[2]);
+    this.controls.target.set(cam[3], cam[4], cam[5]);
+    this.controls.update();
+  }
+
+  setSize(size) {
+    this.material.uniforms.sizeFactor.value = size;
+    this.render();
+  }
+
+  paint(mode) {
+    paintPoints(mode, this.scene, this.rgb);
+    this.geometry.attributes.rgb.needsUpdate = true;
+    this.render();
+  }
+
+  // hidden: class indices; lit: instance ids drawn lit (the others dim); boxed: instance ids whose boxes show
+  setFlags(hidden, lit, boxed, instanceById) {
+    const { semantic, instance, header } = this.scene;
+    flagPoints(semantic, instance, header.classes.length, hidden, lit, this.flags);
+    this.geometry.attributes.flag.needsUpdate = true;
+    this.drawBoxes(boxed, instanceById);
+    this.render();
+  }
+
+  drawBoxes(ids, instanceById) {
+    for (const box of this.boxes) this.three.remove(box);
+    this.boxes = [];
+    for (const id of ids) {
+      const inst = instanceById.get(id);
+      if (!inst) continue;
+      const box = new THREE.Box3(new THREE.Vector3(...inst.bbox_min), new THREE.Vector3(...inst.bbox_max));
+      const helper = new THREE.Box3Helper(box, new THREE.Color(...inst.color.map((v) => v / 255)));
+      this.boxes.push(helper);
+      this.three.add(helper);
+    }
+  }
+
+  // The instance of the nearest visible, labelled primitive under a client pixel, or null.
+  pick(clientX, clientY) {
+    const rect = this.canvas.getBoundingClientRect();
+    const ndc = new THREE.Vector2(
+      ((clientX - rect.left) / rect.width) * 2 - 1,
+      -((clientY - rect.top) / rect.height) * 2 + 1,
+    );
+    this.raycaster.setFromCamera(ndc, this.camera);
+    this.raycaster.params.Points.threshold = this.pickRadius;
+    const { instance } = this.scene;
+    const hit = this.raycaster
+      .intersectObject(this.points)
+      .find((h) => this.flags[h.index] !== FLAG.HIDDEN && instance[h.index] >= 0);
+    return hit ? instance[hit.index] : null;
+  }
+
+  dispose() {
+    this.resizeObserver.disconnect();
+    if (this.frame) cancelAnimationFrame(this.frame);
+    this.controls.dispose();
+    this.renderer.dispose();
+    this.geometry.dispose();
+    this.material.dispose();
+  }
+}

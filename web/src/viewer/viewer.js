@@ -1,0 +1,198 @@
+// The 3D viewer: primitives as round points sized by their scale, three colour modes, the instance list, class
+// visibility, picking, boxes and the query box. The host (app, `panogs view`, offline file) gives it the scene, a
+// query function and the state to start from, and is told of every state change (it keeps the URL in step).
+//
+// This class wires the parts: ViewState owns the state, Panels the DOM around the canvas, PointsLayer the
+// three.js scene, input.js the pointer and keys. Every change goes state first, then what shows it.
+import { bindClicks, bindKeys } from "./input.js";
+import { Panels } from "./panels.js";
+import { PointsLayer } from "./points-layer.js";
+import { summaryText } from "./describe.js";
+import { SIZE_STEP, ViewState, nextMode } from "./state.js";
+
+export class Viewer {
+  // root: an empty element; options: { queryFn(text) -> Promise<{hits}>, state, onStateChange(state) }
+  constructor(root, options) {
+    this.root = root;
+    this.options = options;
+    this.store = new ViewState(options.state || {}, options.onStateChange);
+    this.panels = new Panels(root, {
+      command: (name) => this.command(name),
+      query: (text) => this.runQuery(text),
+      select: (id, keepQuery) => this.select(id, true, keepQuery),
+      toggle: (id) => this.select(this.state.sel === id ? null : id),
+      preview: (id) => this.preview(id),
+      classVisible: (index, visible) => this.toggleClass(index, visible),
+    });
+    this.layer = null; // once a scene is loaded
+    this.ready = false;
+    this.unbind = [];
+  }
+
+  // What the host, the tests and the benchmarks read.
+  get state() {
+    return this.store.value;
+  }
+  get renderer() {
+    return this.layer?.renderer;
+  }
+  get camera() {
+    return this.layer?.camera;
+  }
+  get boxes() {
+    return this.layer ? this.layer.boxes : [];
+  }
+
+  showProgress(received, total) {
+    this.panels.showProgress(received, total);
+  }
+
+  showError(message) {
+    this.panels.showError(message);
+  }
+
+  // scene: the parsed binary scene (scene.js)
+  load(scene) {
+    this.scene = scene;
+    const { header } = scene;
+    this.instanceById = new Map(header.instances.map((inst) => [inst.id, inst]));
+    this.layer = new PointsLayer(this.panels.canvasBox, scene, this.state.size, () => this.saveCamera());
+    this.panels.fillLegend(header, (index) => this.store.isClassHidden(index));
+    this.panels.fillInstances(header.instances);
+    this.panels.showSummary(summaryText(header));
+    this.unbind.push(
+      bindClicks(this.layer.canvas, (x, y) => this.pickAt(x, y)),
+      bindKeys(
+        window,
+        () => this.ready && this.root.isConnected,
+        (name) => this.command(name),
+      ),
+    );
+    if (this.state.cam) this.layer.setCameraPose(this.state.cam);
+    else this.layer.fit();
+    this.setMode(this.state.mode, false);
+    if (this.state.sel !== null && this.instanceById.has(this.state.sel)) this.select(this.state.sel, false);
+    this.panels.showReady();
+    this.ready = true;
+    if (this.state.q) this.runQuery(this.state.q);
+    this.render();
+  }
+
+  // A button's or a key's command (keys.js).
+  command(name) {
+    if (name.startsWith("mode:")) {
+      const mode = name.slice("mode:".length);
+      this.setMode(mode === "next" ? nextMode(this.state.mode) : mode);
+    } else if (name === "fit") this.fit();
+    else if (name === "smaller") this.setSize(this.state.size / SIZE_STEP);
+    else if (name === "larger") this.setSize(this.state.size * SIZE_STEP);
+    else if (name === "query") this.panels.focusQuery();
+    else if (name === "help") this.toggleHelp();
+    else if (name === "escape") {
+      this.toggleHelp(false);
+      this.clear();
+    }
+  }
+
+  render() {
+    if (this.layer) this.layer.render();
+  }
+
+  // Draw now (tests and benchmarks read pixels right after).
+  renderNow() {
+    this.layer.renderNow();
+  }
+
+  fit(save = true) {
+    this.layer.fit();
+    if (save) this.saveCamera();
+  }
+
+  saveCamera() {
+    this.store.setCamera(this.layer.cameraPose());
+    this.store.changed();
+  }
+
+  setMode(mode, notify = true) {
+    mode = this.store.setMode(mode);
+    this.panels.showMode(mode);
+    if (this.layer) this.layer.paint(mode);
+    if (notify) this.store.changed();
+  }
+
+  setSize(size) {
+    size = this.store.setSize(size);
+    if (this.layer) this.layer.setSize(size);
+    this.store.changed();
+  }
+
+  // Flags and boxes from the hidden classes and the lit instances (lit: the preview's, else the state's).
+  reflag(lit = this.store.lit) {
+    if (this.layer) this.layer.setFlags(this.state.hidden, lit, this.store.boxed(), this.instanceById);
+    this.panels.showLit(lit);
+  }
+
+  // Select one instance (click in the list, a hit or the scene); null clears. A hit keeps the query's ranking.
+  select(id, notify = true, keepHits = false) {
+    this.store.select(id, keepHits);
+    if (!keepHits) this.panels.clearHits();
+    this.panels.markInstances(this.store.lit);
+    this.reflag();
+    if (id !== null) this.panels.scrollToInstance(id);
+    if (notify) this.store.changed();
+  }
+
+  // Show one instance lit while the pointer is on its row (null: back to the state's).
+  preview(id) {
+    this.store.setHover(id);
+    this.reflag(id === null ? this.store.lit : new Set([id]));
+  }
+
+  toggleClass(index, visible) {
+    this.store.setClassVisible(index, visible);
+    this.reflag();
+    this.store.changed();
+  }
+
+  async runQuery(text) {
+    text = (text || "").trim();
+    this.panels.setQueryText(text);
+    if (!text) return this.clear();
+    this.panels.showAsking(text);
+    let answer;
+    try {
+      answer = await this.options.queryFn(text);
+    } catch (err) {
+      this.panels.showQueryError(err.message);
+      return;
+    }
+    this.store.answer(text, answer.hits);
+    this.panels.showHits(text, answer.hits, (id) => this.instanceById.get(id)?.color || [0, 0, 0]);
+    this.panels.markInstances(this.store.lit);
+    this.reflag();
+    this.panels.showQueryDone();
+    this.store.changed();
+  }
+
+  clear() {
+    this.panels.setQueryText("");
+    this.select(null);
+  }
+
+  // Select the instance of the nearest visible primitive under the pointer (client pixel coordinates).
+  pickAt(clientX, clientY) {
+    this.select(this.layer.pick(clientX, clientY));
+    return this.state.sel;
+  }
+
+  toggleHelp(show) {
+    this.panels.toggleHelp(show);
+  }
+
+  dispose() {
+    for (const unbind of this.unbind) unbind();
+    this.unbind = [];
+    if (this.layer) this.layer.dispose();
+    this.panels.clear();
+  }
+}

@@ -1,0 +1,137 @@
+// The app's rules (routes, polling, job rows, the re-run form's vocabulary) and its API client's error handling.
+import assert from "node:assert/strict";
+import { afterEach, describe, it } from "node:test";
+import { ApiError, api, currentSession, tusError } from "../src/app/api-client.js";
+import { parseRoute, routePath, viewerHash } from "../src/app/routes.js";
+import {
+  POLL_IDLE_MS,
+  POLL_LIVE_MS,
+  jobProgressText,
+  jobStateText,
+  pollDelay,
+  vocabularyBody,
+  vocabularyText,
+} from "../src/app/rules.js";
+
+const JOB = "0b9a3c1e-2f4d-4e5a-8b6c-7d8e9f0a1b2c";
+
+describe("routes", () => {
+  it("opens the viewer on a job id with its view parameters", () => {
+    const where = parseRoute(`#/jobs/${JOB}?mode=instance&sel=3`);
+    assert.equal(where.page, "viewer");
+    assert.equal(where.jobId, JOB);
+    assert.equal(where.params.get("sel"), "3");
+    assert.equal(viewerHash(JOB, where.params), `#/jobs/${JOB}?mode=instance&sel=3`);
+  });
+
+  it("sends anything else home", () => {
+    for (const hash of ["", "#", "#/", "#/jobs/", "#/jobs/not-a-job-id", `#/jobs/${JOB}/more`, `#/scenes/${JOB}`]) {
+      assert.deepEqual(parseRoute(hash), { page: "home" }, hash);
+    }
+  });
+
+  it("treats a change of view parameters as the same page", () => {
+    assert.equal(routePath(`#/jobs/${JOB}?mode=camera`), routePath(`#/jobs/${JOB}?mode=instance&cam=1,2,3,4,5,6`));
+    assert.notEqual(routePath(`#/jobs/${JOB}`), routePath("#/"));
+  });
+});
+
+describe("job rows and polling", () => {
+  it("polls fast only while a job is live", () => {
+    assert.equal(pollDelay([{ state: "succeeded" }, { state: "running" }]), POLL_LIVE_MS);
+    assert.equal(pollDelay([{ state: "succeeded" }, { state: "failed" }, { state: "canceled" }]), POLL_IDLE_MS);
+    assert.equal(pollDelay([]), POLL_IDLE_MS);
+  });
+
+  it("shows a cancel in flight and progress only while live", () => {
+    assert.equal(jobStateText({ state: "running", cancel_requested: true }), "running (cancelling)");
+    assert.equal(jobStateText({ state: "canceled", cancel_requested: true }), "canceled");
+    assert.equal(jobProgressText({ state: "running", progress: 0.426 }), "43%");
+    assert.equal(jobProgressText({ state: "succeeded", progress: 1 }), "");
+  });
+});
+
+describe("the re-run form's vocabulary", () => {
+  const previous = {
+    classes: [
+      { name: "lamp", kind: "thing" },
+      { name: "shelf", kind: "stuff" },
+    ],
+  };
+
+  it("shows a built-in name or the class names", () => {
+    assert.equal(vocabularyText("scannet20"), "scannet20");
+    assert.equal(vocabularyText(previous), "lamp, shelf");
+    assert.equal(vocabularyText(null), "");
+  });
+
+  it("sends a built-in name as is, a list as classes that keep their kinds", () => {
+    assert.equal(vocabularyBody("  matterport21 ", previous), "matterport21");
+    assert.equal(vocabularyBody("   ", previous), undefined);
+    assert.deepEqual(vocabularyBody("shelf, rug,, lamp,", previous), {
+      classes: [{ name: "shelf", kind: "stuff" }, { name: "rug" }, { name: "lamp", kind: "thing" }],
+    });
+    assert.deepEqual(vocabularyBody("lamp, rug", "scannet20"), { classes: [{ name: "lamp" }, { name: "rug" }] });
+  });
+});
+
+describe("api client", () => {
+  const realFetch = globalThis.fetch;
+  afterEach(() => {
+    globalThis.fetch = realFetch;
+  });
+  const answer = (status, body) => {
+    const calls = [];
+    globalThis.fetch = async (path, init) => {
+      calls.push([path, init]);
+      return new Response(body, { status });
+    };
+    return calls;
+  };
+
+  it("sends JSON with the app header and reads JSON back", async () => {
+    const calls = answer(200, '{"id": "s1"}');
+    assert.deepEqual(await api("POST", "/v1/scenes", { upload_id: "u1" }), { id: "s1" });
+    const [path, init] = calls[0];
+    assert.equal(path, "/v1/scenes");
+    assert.deepEqual(init.headers, { "X-Panogs-App": "1", "Content-Type": "application/json" });
+    assert.equal(init.body, '{"upload_id":"u1"}');
+    assert.equal(init.credentials, "same-origin");
+  });
+
+  it("answers null for 204", async () => {
+    answer(204, null);
+    assert.equal(await api("DELETE", "/v1/jobs/1"), null);
+  });
+
+  it("raises the service's message and problems", async () => {
+    answer(422, '{"message": "invalid bundle", "problems": ["a", "b"]}');
+    await assert.rejects(api("POST", "/v1/scenes", {}), (err) => {
+      assert.ok(err instanceof ApiError);
+      assert.deepEqual([err.status, err.message, err.problems], [422, "invalid bundle", ["a", "b"]]);
+      return true;
+    });
+    answer(502, "<html>bad gateway</html>");
+    await assert.rejects(api("GET", "/v1/jobs"), { status: 502, message: "<html>bad gateway</html>" });
+  });
+
+  it("reads a 401 session as signed out, other failures as errors", async () => {
+    answer(401, '{"message": "sign in"}');
+    assert.equal(await currentSession(), null);
+    answer(500, "{}");
+    await assert.rejects(currentSession(), { status: 500, message: "HTTP 500" });
+  });
+
+  it("turns a refused tus upload into the service's problems", () => {
+    const refused = {
+      message: "tus: unexpected response",
+      originalResponse: { getStatus: () => 413, getBody: () => '{"message": "too large", "problems": ["x"]}' },
+    };
+    assert.deepEqual(
+      [tusError(refused).status, tusError(refused).message, tusError(refused).problems],
+      [413, "too large", ["x"]],
+    );
+    const offline = tusError(new Error("network down"));
+    assert.deepEqual([offline.status, offline.message, offline.problems], [0, "network down", []]);
+  });
+});
