@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check
+	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check migrations-check
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -35,7 +35,10 @@ WEB_BUILT := service/static/app/index.html
 WEB_SOURCES := web/package.json web/package-lock.json web/build.mjs \
 	$(wildcard web/src/*.js web/src/*/*.js web/src/*/*/*.js web/public/*)
 
+# node and npm are checked (and installed as root) only here: once the build exists and is newer than its sources,
+# the Python targets (lint, test, demo) need no node.
 $(WEB_BUILT): $(WEB_SOURCES)
+	@tools/check-system-deps --web
 	cd web && npm ci --no-audit --no-fund --loglevel=error && npm run build
 
 web: $(WEB_BUILT) ## build the web app into service/static/app
@@ -64,19 +67,24 @@ readme: install ## run the demo afresh and write its output into README.md (betw
 readme-check: install ## run the demo afresh and fail when README.md shows other results
 	$(PY) tools/readme_demo.py --check
 
-test: install ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
+test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q
 
 test-fast: install ## core tests only
 	$(VENV)/bin/pytest -q tests/core
 
-lint: install ## ruff (lint + format check) and mypy on panogs_core, service and worker
+lint: $(VENV)/.installed ## ruff (lint + format check) over every Python folder, mypy (strict on service and worker)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/ruff format --check panogs_core
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
-fmt: install ## format the code
-	$(VENV)/bin/ruff format panogs_core service worker tests bench tools
+# The migrations upgraded to head, checked against the models, downgraded to base and upgraded again, on SQLite and
+# PostgreSQL (tests/migrations; also part of `make test`).
+migrations-check: $(VENV)/.installed ## the migration round trip on both databases
+	$(VENV)/bin/pytest -q tests/migrations
+
+fmt: $(VENV)/.installed ## format the code
+	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
 bench: bench-quality bench-speed bench-gaussians ## every benchmark

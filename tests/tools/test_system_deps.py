@@ -43,10 +43,10 @@ class FakeSystem:
         path.write_text(f"#!/bin/sh\n{body}\n")
         path.chmod(0o755)
 
-    def run(self) -> subprocess.CompletedProcess[str]:
+    def run(self, *args: str) -> subprocess.CompletedProcess[str]:
         env = {**os.environ, "PATH": f"{self.bin}{os.pathsep}{os.environ['PATH']}", "PYTHON": sys.executable,
                "CHROMIUM": str(self.chromium)}  # fmt: skip
-        return subprocess.run([str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+        return subprocess.run([str(SCRIPT), *args], env=env, capture_output=True, text=True, timeout=60)
 
     def apt_calls(self) -> list[str]:
         return self.apt_log.read_text().splitlines() if self.apt_log.exists() else []
@@ -100,9 +100,20 @@ def test_missing_chromium_is_installed_as_root(tmp_path: Path) -> None:
 def test_old_node_is_refused(tmp_path: Path) -> None:
     system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
     system._command("node", 'if [ "$1" = -v ]; then echo v16.0.0; else echo 16; fi')
-    done = system.run()
+    done = system.run("--web")
     assert done.returncode == 1
     assert "needs node 18 or later" in done.stderr
+
+
+def test_only_the_web_build_needs_node(tmp_path: Path) -> None:
+    """The Python checks never look at node: with an unusable one they pass untouched; the web build's refuses it."""
+    system = FakeSystem(tmp_path, uid=0, libraries=LIBRARIES)
+    system._command("node", 'if [ "$1" = -v ]; then echo v16.0.0; else echo 16; fi')
+    system._command("npm", "exit 1")
+    done = system.run()
+    assert done.returncode == 0, done.stderr
+    assert system.apt_calls() == []
+    assert system.run("--web").returncode == 1
 
 
 def test_the_readme_session_tools_are_installed_as_root(tmp_path: Path) -> None:
