@@ -144,7 +144,7 @@ def _optimizer(model: _TriplaneDecoder, cfg: LanguageFieldConfig) -> torch.optim
     CPU torch otherwise picks the per-tensor loop, whose dozen element-wise passes over the planes (every
     plane cell, every step) were half of the whole field's time (cProfile of `panogs run` on the large preset).
     The update rule is the same; the rounding differs, so the decoded features move by a mean cosine of 2e-4.
-    Timings before and after: docs/benchmarks.md, "Speed of issue 8".
+    Timings before and after: docs/benchmarks.md, "Speed of the mask pooling, the labelling rules and the fused Adam".
     """
     groups = [
         {"params": list(model.planes), "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},
