@@ -13,12 +13,8 @@ beats it). A query that names a vocabulary class (case-insensitive) uses that cl
 with every other class, so no encoder is needed. Temperatures: ``labelsets.SPACE_TEMPERATURES`` (measured
 there).
 
-DEPARTURE (from dropping near-synonyms only): for free text and vectors the near-synonym classes ("sofa" for
-"couch") are added to the query's side of the softmax instead of being dropped. A sofa's feature is closer to
-the "sofa" text than to "couch" (MiniLM cos 0.86). Measured with MiniLM on Matterport-21 (features with
-0.3-scaled class cosines, T = 0.05), score on the right instance, dropped -> added: couch 0.35 -> 0.71,
-chairs 0.49 -> 0.73, tub 0.45 -> 0.77, office chair 0.34 -> 0.70, curtains 0.11 -> 0.56; wrong instances
-stay <= 0.10.
+DEPARTURE (docs/method.md §7.5): for free text and vectors the near-synonym classes ("sofa" for "couch") join
+the query's side of the softmax instead of being dropped.
 
 Needs only numpy (the service answers queries without torch, unless a text must be encoded).
 """
