@@ -10,7 +10,7 @@ that instance:
 where the competitors are the vocabulary classes that are not near-synonyms of the query. A chair instance
 is closer to "chair" than to "table", so "chair" wins there (p high) and loses on a table (p < 0.5, "table"
 beats it). A query that names a vocabulary class (case-insensitive) uses that class's embedding and competes
-with every other class, so no encoder is needed. Temperatures: ``labelsets.SPACE_TEMPERATURES`` (measured
+with every other class, so no encoder is needed. Temperatures: ``label_sets.SPACE_TEMPERATURES`` (measured
 there).
 
 DEPARTURE (docs/method.md §7.5): for free text and vectors the near-synonym classes ("sofa" for "couch") join
@@ -89,7 +89,7 @@ def query_instances(
         encoder: Text encoder for free text; default ``get_text_encoder(feature_space)``.
         top_k: At most this many hits.
         min_score: Hits score at least this (0.5: the query beats the competing classes together).
-        temperature: Softmax temperature in cosine units; default ``labelsets.default_temperature``.
+        temperature: Softmax temperature in cosine units; default ``label_sets.default_temperature``.
         synonym_cos: Near-synonym cut for free text and vectors; default ``SYNONYM_COS`` of the space.
 
     Returns:
