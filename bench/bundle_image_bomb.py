@@ -1,4 +1,4 @@
-"""Memory and time of validating a bundle that holds one huge image (issue 14 item 5).
+"""Memory and time of validating a bundle that holds one huge image (an image bomb).
 
 Usage:
     python bench/bundle_image_bomb.py [--size 20000] [--work bench/results/image_bomb] [--code CHECKOUT]

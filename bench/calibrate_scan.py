@@ -1,4 +1,4 @@
-"""Calibrate the realistic ``scan`` preset against the held-out real capture (issue 8).
+"""Calibrate the realistic ``scan`` preset against the held-out real ScanNet capture.
 
 Usage:
     python bench/calibrate_scan.py [--difficulties easy default hard] [--seeds 0 1]
@@ -43,7 +43,7 @@ from panogs_core.pipeline.config import PipelineConfig  # noqa: E402
 from panogs_core.pipeline.run import resolve_scene_vocabulary  # noqa: E402
 from panogs_core.synthetic import make_scene  # noqa: E402
 
-# Issue 8, measured on the held-out real capture (ScanNet-style mesh and key frames every 20th frame).
+# Measured on the held-out real capture (ScanNet-style mesh and key frames every 20th frame).
 REAL_STATS = {"primitives": 81_369, "unseen": 0.122, "views": 5.2, "cabinets": 7}
 REAL_SHARES = {
     "wall": 0.171, "floor": 0.126, "cabinet": 0.121, "curtain": 0.068, "sofa": 0.063, "table": 0.055,

@@ -1,5 +1,5 @@
 """Contention benchmark: one pipeline run per policy, on a quiet host and with a competing CPU load on every core,
-stage times side by side (issue 14 item 10).
+stage times side by side.
 
 Usage:
     python bench/contention.py [--preset small] [--load N] [--threads N] [--repeats 1]

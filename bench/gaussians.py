@@ -1,4 +1,4 @@
-"""The Gaussian scene (issue 10): fit quality on held-out frames, and the cost of the CPU rasteriser and fit.
+"""The Gaussian scene: fit quality on held-out frames, and the cost of the CPU rasteriser and fit.
 
 Usage:
     python bench/gaussians.py quality [--work bench/results/gaussians] [--threads 1] [--json FILE]
@@ -209,7 +209,7 @@ def cost(work: Path, threads: int, iterations: int) -> list[dict[str, Any]]:
     for copies, width in cases:
         argv = [sys.executable, __file__, "_cost-case", "--copies", str(copies), "--width", str(width)]
         argv += ["--iterations", str(iterations), "--threads", str(threads), "--work", str(work)]
-        argv += ["--render-only"] if width == 640 else []  # the render the issue asks for; a 640 fit is the GPU's
+        argv += ["--render-only"] if width == 640 else []  # a 640 x 480 render is measured; a 640 fit is the GPU's
         done = subprocess.run(argv, check=True, capture_output=True, text=True, cwd=ROOT)
         row = json.loads(done.stdout.strip().splitlines()[-1])
         rows.append(row)

@@ -8,20 +8,20 @@ Prints markdown tables (mean and standard deviation over seeds, standard-mode me
 PRQ(S), and mIoU on the primitives some key frame sees (``miou_seen``) and on those none sees
 (``miou_unseen``). With ``--per-class``, a per-class IoU table of ``full`` against the fused-argmax baseline.
 For each scene it prints the realised capture statistics (share of primitives no key frame sees, key views
-per seen primitive, class shares) next to those of the held-out real ScanNet room of issue 8.
+per seen primitive, class shares) next to those of the held-out real ScanNet room.
 
 Baselines (computed from the run's own fusion checkpoint, no segments, no field):
 
 - fused-argmax: argmax of the fused multi-view feature per primitive; unseen primitives wrong (void)
 - fused-argmax-fill: the same, unseen primitives take the class of the nearest seen primitive
 - argmax-components: fused-argmax-fill classes; thing instances are connected components of one class within
-  10 cm, components under 100 primitives dropped (issue 8's instance baseline)
+  10 cm, components under 100 primitives dropped (the instance baseline, docs/method.md §7.5)
 
 Method variants (a labelling-only variant reuses every earlier stage's checkpoint):
 
 - full: the method as configured by default
-- previous: the method before issue 8 (no mask pooling in the fusion; field classes everywhere, the
-  reference vote, clusters as instances)
+- previous: the method before the labelling rules of docs/method.md §7.5 (no mask pooling in the fusion; field
+  classes everywhere, the reference vote, clusters as instances)
 - vote-purity-0.8: the island vote only in segments whose majority holds 80 % (instead of 50 %)
 - vote-any-island / vote-small-islands: islands flip whatever their own evidence (no close-second test),
   islands under 150 or under 50 primitives
@@ -34,7 +34,7 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
-  reference-grouping: the grouping ablations of issue 2 (they recompute the graph cut or the clustering)
+  reference-grouping: the grouping ablations (they recompute the graph cut or the clustering)
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ DEFAULT_VARIANTS = ["full", "vote-none", "vote-reference", "vote-any-island", "v
                     "previous", "no-pool", "spacing-as-given"]  # fmt: skip
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff", "miou_seen", "miou_unseen")
 
-# The held-out real ScanNet room of issue 8 (81,369 mesh vertices, 100 key frames).
+# The held-out real ScanNet room (81,369 mesh vertices, 100 key frames).
 REAL = {
     "unseen": 0.122,
     "views_per_seen": 5.2,

@@ -3,8 +3,8 @@
 torch (OpenMP: the libgomp it ships), MKL, OpenBLAS and OpenCV size their pools from the machine's cores and let idle
 threads spin before they sleep. On a host whose cores other processes use, those pools fight the other processes
 and each other for the cores: the language-field stage took 25x longer on a busy host, where its share of the
-cores called for 2-3x (issue 14). So each process gets as many threads as the cores it is given, and idle threads
-sleep at once (a passive wait policy).
+cores called for 2-3x (docs/benchmarks.md, "Contention"). So each process gets as many threads as the cores it is
+given, and idle threads sleep at once (a passive wait policy).
 
 The pools read their environment variables once, when the library loads: :func:`apply_thread_environment` must
 run before numpy or torch is imported (:func:`loaded_too_early` says when it did not), and torch's own count is

@@ -92,7 +92,7 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.include_router(health.router)
     for router in (uploads.router, scenes.router, jobs.router, results.router):
         app.include_router(router, prefix=API_PREFIX)
-    app.include_router(render_routes.router, prefix=API_PREFIX)  # issue 10: renders of a finished job
+    app.include_router(render_routes.router, prefix=API_PREFIX)  # renders of a finished job
     app.include_router(app_routes.router)
     app.add_middleware(BoundedJsonBody, limits=body_limits(settings))  # inside BodyLimit: it sees capped bodies only
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)

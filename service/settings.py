@@ -67,7 +67,7 @@ class Settings(BaseSettings):
     max_json_body_bytes: int = Field(default=1024 * 1024, gt=0)  # JSON bodies (not uploads) above this: 413
     max_validation_problems: int = Field(default=5, ge=1)  # a 422 lists this many problems and counts the rest
 
-    # Hostile-input limits (issue 14): every JSON document from a user (request bodies, a bundle's JSON files)
+    # Hostile-input limits: every JSON document from a user (request bodies, a bundle's JSON files)
     # and every image of a bundle. Each may be lowered; the ceiling (le) is the core's own limit, with which the
     # worker validates the bundle again (panogs_core.io.bundle.reader.BundleLimits), so a higher value could not
     # hold there.
@@ -76,7 +76,7 @@ class Settings(BaseSettings):
     bundle_max_json_bytes: int = Field(default=16 * 1024**2, gt=0, le=64 * 1024**2)  # scene.json, vocabulary.json
     max_image_pixels: int = Field(default=40_000_000, gt=0, le=100_000_000)  # per image (and feature map) of a bundle
 
-    # The app and the data lifecycle (issue 9).
+    # The app and the data lifecycle.
     session_ttl_s: int = Field(default=8 * 3600, gt=0)  # an app sign-in (HttpOnly cookie) lasts this long
     quota_bytes: int | None = Field(default=100 * GIB, gt=0)  # per tenant: uploads + scenes + results; None: none
     quota_concurrent_jobs: int | None = Field(default=4, gt=0)  # per tenant: queued + running jobs; None: none

@@ -55,7 +55,7 @@ ARTIFACTS = {
     "report.json": "application/json",
     "metrics.json": "application/json",
     "vocabulary.json": "application/json",
-    "cameras.json": "application/json",  # the camera and key-frame poses, for renders (issue 10)
+    "cameras.json": "application/json",  # the camera and key-frame poses, for renders
 }
 
 

@@ -6,8 +6,9 @@ Usage:
 
 Runs the service as real processes with the docker-compose commands: ``scaled`` is uvicorn + a Celery worker
 on the PostgreSQL and Redis of this machine (a throwaway database and Redis key prefix), ``embedded`` is
-``panogs serve`` on SQLite and the filesystem broker. Prints one table; the targets of issue #3 are beside
-each number. Numbers depend on the machine: the client, the API and the worker share its cores.
+``panogs serve`` on SQLite and the filesystem broker. Prints one table, with the service's targets
+(docs/service.md) beside each number. Numbers depend on the machine: the client, the API and the worker share
+its cores.
 """
 
 from __future__ import annotations

@@ -15,10 +15,8 @@ the L1 + D-SSIM loss, centres fixed. Here:
 * given a :class:`~panogs_core.pipeline.snapshots.StageSnapshot`, the fit saves its state periodically and when
   cancelled, and a fit that finds a snapshot continues from it to the same result.
 
-DEPARTURE (schedule): 3DGS trains 30k iterations at full resolution on a GPU. The default schedule is per device
-(``iterations`` / ``fit_width`` None): on the CPU a short one at a low resolution with larger learning rates, sized
-to a time budget measured on the small demo room (docs/benchmarks.md, ``bench/gaussians.py``); on a GPU a longer
-one at the camera's resolution.
+DEPARTURE (schedule, docs/method.md §2 and docs/gaussians.md): per device and far shorter than 3DGS's: on the CPU
+a few iterations at a low resolution with larger learning rates, on a GPU more at the camera's resolution.
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ class AppearanceConfig:
     # against 244 s with two (bench/gaussians.py stage --threads 1 / 2; docs/benchmarks.md).
     cpu_threads: int | None = 1
     device: str = "auto"  # auto: CUDA when torch sees it (decided when the stage runs), else cpu
-    backend: str = "auto"  # auto | torch | gsplat (splat_backends.resolve_backend)
+    backend: str = "auto"  # auto | torch | gsplat (backends.resolve_backend)
     seed: int = 0  # frame order
 
     def __post_init__(self) -> None:

@@ -15,7 +15,7 @@ The image formation of 3D Gaussian splatting (Kerbl et al. 2023, see docs/gaussi
    camera z over the accumulated alpha.
 
 Pixel centres are at integer coordinates (docs/conventions.md): pixel (u, v) is evaluated at (u, v). The CUDA path
-(:mod:`panogs_core.gsplat_backend`) puts them at +0.5 and is given a shifted principal point to match.
+(:mod:`panogs_core.gaussians.backends`) puts them at +0.5 and is given a shifted principal point to match.
 
 Speed on the CPU comes from vectorising over a batch of tiles at once and over chunks of each tile's depth-sorted
 list; a batch stops when every pixel of it has terminated. Gradients come from torch's autograd through these ops,

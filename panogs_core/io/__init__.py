@@ -1,7 +1,9 @@
-"""Files in and out: the only part of the core that reads or writes paths.
+"""File formats and dataset layouts: the readers and writers that several parts of the core share.
 
 ``bundle/`` is the scene-bundle format (reader, validation, writer, archives), ``importers/`` turn dataset layouts
-(ScanNet, Replica) into bundles, ``run_folder`` owns the files of a finished run, ``ground_truth`` reads evaluation
-labels, and ``ply``, ``bounded_json``, ``image_header``, ``npy_header``, ``run_json`` are the bounded readers and
-writers of single file types that the others share.
+(ScanNet, Replica) into bundles, ``run_folder`` reads a finished run's folder back (``stages/export.py`` writes it),
+``ground_truth`` reads evaluation labels, and ``ply``, ``bounded_json``, ``image_header``, ``npy_header`` and
+``run_json`` read (``ply`` also writes) one file type each, with errors that name the file. Files that belong to
+one module stay with it: each stage output's checkpoint (``save`` / ``load``), the exports, the appearance fit's
+snapshots, the renders and the synthetic scenes.
 """

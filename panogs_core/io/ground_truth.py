@@ -8,7 +8,7 @@ Two sources are understood (``load_ground_truth`` picks by file name):
 - ScanNet v2's own annotations: ``<scene>_vh_clean_2.labels.ply`` (vertex property ``label`` = NYU40 id) and,
   beside it, ``<scene>.aggregation.json`` (``segGroups``: ``objectId``, ``label``, ``segments``) with
   ``<scene>_vh_clean_2.0.010000.segs.json`` (``segIndices``: one over-segment id per vertex). Semantics map
-  NYU40 ids to the ScanNet-20 order of ``labelsets`` (other ids: -1, unannotated); every segGroup is one instance
+  NYU40 ids to the ScanNet-20 order of ``label_sets`` (other ids: -1, unannotated); every segGroup is one instance
   (its ``objectId``); vertices in no group, and stuff (wall, floor), get instance -1. That is the reference's
   coding (docs/method.md §1.7: wall and floor share instance 0, which is our -1), so both evaluation modes score the
   same as the reference's ground-truth files. Points are the mesh vertices.
@@ -35,7 +35,7 @@ from panogs_core.types import GroundTruth, Vocabulary
 
 logger = logging.getLogger(__name__)
 
-# NYU40 ids of the ScanNet-20 classes, in the order of ``labelsets`` "scannet20" (wall ... otherfurniture).
+# NYU40 ids of the ScanNet-20 classes, in the order of ``label_sets`` "scannet20" (wall ... otherfurniture).
 SCANNET20_NYU40_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 24, 28, 33, 34, 36, 39)
 LABELS_PLY_SUFFIX = "_vh_clean_2.labels.ply"
 SEGS_SUFFIX = "_vh_clean_2.0.010000.segs.json"

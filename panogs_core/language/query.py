@@ -10,15 +10,11 @@ that instance:
 where the competitors are the vocabulary classes that are not near-synonyms of the query. A chair instance
 is closer to "chair" than to "table", so "chair" wins there (p high) and loses on a table (p < 0.5, "table"
 beats it). A query that names a vocabulary class (case-insensitive) uses that class's embedding and competes
-with every other class, so no encoder is needed. Temperatures: ``labelsets.SPACE_TEMPERATURES`` (measured
+with every other class, so no encoder is needed. Temperatures: ``label_sets.SPACE_TEMPERATURES`` (measured
 there).
 
-DEPARTURE (from dropping near-synonyms only): for free text and vectors the near-synonym classes ("sofa" for
-"couch") are added to the query's side of the softmax instead of being dropped. A sofa's feature is closer to
-the "sofa" text than to "couch" (MiniLM cos 0.86). Measured with MiniLM on Matterport-21 (features with
-0.3-scaled class cosines, T = 0.05), score on the right instance, dropped -> added: couch 0.35 -> 0.71,
-chairs 0.49 -> 0.73, tub 0.45 -> 0.77, office chair 0.34 -> 0.70, curtains 0.11 -> 0.56; wrong instances
-stay <= 0.10.
+DEPARTURE (docs/method.md §7.5): for free text and vectors the near-synonym classes ("sofa" for "couch") join
+the query's side of the softmax instead of being dropped.
 
 Needs only numpy (the service answers queries without torch, unless a text must be encoded).
 """
@@ -93,7 +89,7 @@ def query_instances(
         encoder: Text encoder for free text; default ``get_text_encoder(feature_space)``.
         top_k: At most this many hits.
         min_score: Hits score at least this (0.5: the query beats the competing classes together).
-        temperature: Softmax temperature in cosine units; default ``labelsets.default_temperature``.
+        temperature: Softmax temperature in cosine units; default ``label_sets.default_temperature``.
         synonym_cos: Near-synonym cut for free text and vectors; default ``SYNONYM_COS`` of the space.
 
     Returns:

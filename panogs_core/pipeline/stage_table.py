@@ -1,6 +1,6 @@
 """Glue between :mod:`panogs_core.pipeline.run` and the stage modules: the stage table, one call per stage, and keys.
 
-Kept apart from ``pipeline.py`` so the orchestration reads as the list of stages. Importing this module imports
+Kept apart from ``pipeline/run.py`` so the orchestration reads as the list of stages. Importing this module imports
 the stage modules, which are light (numpy, scipy): each imports torch or open3d only inside the function that
 needs it, so a stage's heavy imports still happen only when that stage runs.
 

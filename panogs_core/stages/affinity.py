@@ -75,11 +75,8 @@ class AffinityConfig:
     # "depth-filter"), so it stays off.
     mask_depth_mad: float = 0.0
     mask_depth_floor: float = 0.01
-    # DEPARTURE (aggregate, docs/method.md §5.4; the reference averages): SAM's mistakes are per-frame outliers, an
-    # occasional merge of two touching objects (similarity 1 in that frame) or split of one object into parts (1 - ln
-    # 2). A weighted mean lets one merged frame in five lift two touching bookshelves from 0.31 to 0.45 and, with a few
-    # straddling primitives, past the last threshold (0.6); the weighted median follows the majority of views. Measured
-    # in docs/benchmarks.md ("mean-affinity").
+    # DEPARTURE (docs/method.md §5.4): "median" is the weighted median over views, where the reference averages; it
+    # follows the majority of views past SAM's per-frame merges and splits.
     aggregate: Literal["mean", "median"] = "median"
 
     def __post_init__(self) -> None:
@@ -374,9 +371,8 @@ class MaskHistograms:
 
     def affinity(self, pairs: np.ndarray, cfg: AffinityConfig) -> np.ndarray:  # (E,) float32
         """JSD affinity of segment ``pairs`` (``(E, 2)`` int64, any order in a row); see the module doc."""
-        # DEPARTURE (pairs): the reference fills a dense S x S matrix over 200-id blocks and then symmetrises
-        # it by max (docs/method.md §5.4, pitfall 16); here only the requested pairs are computed, and the value is
-        # symmetric by construction (JSD and r_i r_j are), so no symmetrisation is needed.
+        # DEPARTURE (pairs, docs/method.md §5.4, pitfall 16): only the requested pairs, symmetric by construction;
+        # the reference fills dense blocks of 200 ids and symmetrises them by max.
         pairs = _check_pairs(pairs, self.num_segments)
         groups = np.diff(self.segment_start)
         # Expand each pair over the frames of whichever segment is seen in fewer: fewer rows, same answer.
@@ -421,11 +417,8 @@ class MaskHistograms:
         1/2 ln 2 [(1 - sum_common p) + (1 - sum_common q)], and only the common labels need a join:
         JSD = 1/2 sum_common [p ln(2p / (p + q)) + q ln(2q / (p + q))] + 1/2 ln 2 (2 - P_c - Q_c).
         """
-        # DEPARTURE (distributions): the reference compares L2-normalised counts with eps 1e-10 (reference
-        # 5.3), which are not distributions, so its "1 - JSD" can go negative and a 50/50 split looks like a
-        # one-hot. Here p and q are true distributions as in the paper, and the divergence stays in nats as in
-        # the code, so 1 - JSD keeps the code's scale (identical -> 1, disjoint -> 1 - ln 2) and thresholds
-        # 0.9..0.6 mean the same. Exact over the supports: no eps, never a negative similarity.
+        # DEPARTURE (distributions, docs/method.md §5.3): true distributions in nats, not the reference's
+        # L2-normalised counts: 1 - JSD lies in [1 - ln 2, 1], exact over the supports, with no eps.
         size = self.group_start[1:] - self.group_start[:-1]
         # Most (segment, frame) histograms hold a single mask id; two of them need no join: 0 or ln 2.
         single = (size[group_a] == 1) & (size[group_b] == 1)

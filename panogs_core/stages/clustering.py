@@ -177,9 +177,8 @@ def _round_graph(
     num_nodes = int(segment_of_sp.max()) + 1
     direct, edges = _coarsen_pairs(sp_pairs, sp_edges, segment_of_sp, num_nodes)
     pool = _pool_pairs(direct, num_nodes)
-    # DEPARTURE (pool only): the reference also fills affinities for non-pool pairs that share a 200-id block
-    # (docs/method.md pitfall 16), which only its small-cluster merge can see. Here affinities exist exactly on the
-    # pool.
+    # DEPARTURE (pool only, docs/method.md §6.2, pitfall 16): affinities exist on the pool only, not on the
+    # reference's extra pairs of a 200-id block.
     affinity = affinity_of(segment_of_sp, pool).astype(np.float64)
     # Which pool pairs are direct, and their kNN edge count: both key lists are ascending, so one lookup.
     direct_keys = direct[:, 0] * num_nodes + direct[:, 1]
@@ -297,10 +296,8 @@ def _merge_small(
     pending = np.isin(cluster, small)  # the reference's "unmerged" primitives
     _absorb(graph, groups, label, pending, graph.affinity)
     if cfg.unmerged_small == "adjacent":
-        # DEPARTURE (unmerged small clusters): the reference labels them 0, which its evaluation then scores
-        # as one more predicted instance. A small cluster that no mask relates to anything is most often a
-        # fragment of what it touches, so it joins the cluster it shares the most kNN edges with. "void" gives
-        # -1 (the reference's intent, without the evaluation quirk); "keep" leaves it alone.
+        # DEPARTURE (docs/method.md §6.2): an unmerged small cluster joins the cluster it shares the most kNN
+        # edges with, where the reference labels it 0 ("void": -1, "keep": left alone).
         _absorb(graph, groups, label, pending, graph.knn_edges)
     elif cfg.unmerged_small == "void":
         label[pending] = -1

@@ -25,8 +25,7 @@ The frames are streamed: one feature map is read (memory-mapped), the cells the 
 gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. Peak memory is the (N, D)
 sum plus one frame's gathered cells; nothing is ever N x V x D.
 
-DEPARTURE (docs/method.md §13, memory): the reference holds every key frame's feature map (and N x M x 512
-batches) at once, 11 GB for 100 frames of a real scan; streaming removes that cost.
+DEPARTURE (memory, docs/method.md §3.1): frames streamed, never every key frame's feature map at once.
 
 Colours are fused the same way when the key frames have colour: mean RGB in [0, 1] over the seeing frames.
 """
@@ -70,11 +69,8 @@ class FusionConfig:
     paper_variance_eps: float = 1e-2  # added to sum of variances in the paper form (V = 0 when seen once)
     min_feature_norm: float = 1e-6  # pixel features with a smaller L2 norm are "no feature" (not counted)
     fuse_colors: bool = True  # also average the key frames' RGB onto the primitives (for exports)
-    # DEPARTURE (docs/method.md §3.1; the reference reads each primitive's own feature cell): with
-    # ``mask_pooling`` = a > 0 a primitive that falls in a 2D mask of its frame reads ``(1 - a) f_cell + a f_mask``,
-    # where f_mask is the mean feature of the mask's cells, weighted by how much of each cell the mask covers
-    # (``mask_pooled_features``). Feature maps are a quarter of the depth resolution on real captures, so
-    # a cell on an object's border mixes both sides; the masks are sharp there. 0 = off (the reference).
+    # DEPARTURE (mask pooling, docs/method.md §3.1): a primitive inside a 2D mask reads (1 - a) f_cell + a f_mask,
+    # f_mask the mask's pooled feature (``mask_pooled_features``); 0 = the reference's own cell.
     mask_pooling: float = 0.5
 
     def __post_init__(self) -> None:
@@ -244,8 +240,8 @@ def confidence_weights(
 def _range(x: np.ndarray) -> float:
     """``max - min`` of x, the reference's divisor.
 
-    DEPARTURE (docs/method.md §3.1): when every value is equal the reference divides by zero (inf / NaN weights);
-    then the maximum is used instead (1 when that is 0 too), so S' = 1 and V' = 1 (or 0) for everyone.
+    DEPARTURE (docs/method.md §3.1): where every value is equal the reference divides by zero; the maximum (1 when
+    that is 0 too) is used instead.
     """
     lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 0.0)
     if hi - lo > 0:

@@ -77,11 +77,8 @@ class PrimitivesConfig:
     # synthetic scene, 12 frames: no ceiling, 29 % of the true surface > 5 cm from any primitive, mIoU 0.49);
     # 0.5 keeps every observed surface (0.4 % > 5 cm; mIoU 0.83, PRQ(S) 0.83 after ground-truth transfer).
     min_weight: float = 0.5
-    # m, voxel-downsampling cell of the extracted cloud. The method's point-count constants (min_size 20,
-    # small clusters < 200 points, instances >= 50) were set on ScanNet vh_clean_2 meshes, about 81k
-    # vertices for a whole room (docs/method.md §13): several centimetres apart. At 0.02 the TSDF cloud is 4-5x
-    # denser, those constants shrink to slivers and fragments survive as instances: tiny synthetic room
-    # without geometry, PRQ(T) 0.60 at 0.02 (147k primitives), 0.75 at 0.03, 0.76 at 0.04 (37k).
+    # m, voxel-downsampling cell of the extracted cloud. DEPARTURE (TSDF spacing, docs/method.md §2): 4 cm, as
+    # sparse as the ScanNet meshes the method's point-count constants were set on; at 2 cm slivers survive.
     target_spacing: float = 0.04
     # cap on N for the TSDF path (the geometry path is never capped: docs/method.md pitfall 1)
     max_primitives: int = 200_000

@@ -44,26 +44,13 @@ class SuperPrimitiveConfig:
     merge_cosine: float = 0.9  # a merge needs cos(root features) strictly above this (docs/method.md §4.5)
     min_size: int = 20  # points; smaller segments are merged into a neighbour (reference seg_min_verts)
     use_language: bool = True  # False: geometry-only graph cut (the "without language" ablation)
-    # DEPARTURE candidate (default off = reference): normals are unoriented, so 1 - n_a . n_b reaches 2 on a
-    # flat surface where signs flip; True uses 1 - |n_a . n_b| instead.
+    # DEPARTURE candidate, off (docs/method.md §4.4): True uses 1 - |n_a . n_b|, blind to the unoriented normals' signs.
     orient_invariant: bool = False
-    # DEPARTURE (docs/method.md §4.6; the reference merges a segment under min_size into whichever neighbour comes first
-    # in edge construction order): "language" makes it join the adjacent segment of closest mean language feature. At
-    # 3.7 cm spacing ~46 % of chair normals are off by > 25 deg (legs, thin parts), the FH pass leaves them in 1-13
-    # point pieces, and the reference merge glued them to the floor: super-primitive purity 0.92 -> 0.98, mIoU / PRQ(T)
-    # easy 0.85 / 0.83 -> 0.93 / 0.91 (small preset, seeds 0-1, measured with labeling.split_classes off). "weight"
-    # (FH-style, ascending edge weight) reaches purity 0.95; "construction" is the reference. Without language features
-    # "language" falls back to "weight".
+    # DEPARTURE (docs/method.md §4.6): "language" joins a segment under min_size to the adjacent one of closest mean
+    # language feature; "construction" (the reference) to the first in edge order, "weight" by ascending edge weight.
     small_merge_order: Literal["construction", "weight", "language"] = "language"
-    # DEPARTURE (mask split; the reference's graph cut sees only normals and language): touching objects of one
-    # class (coplanar desk tops, the aligned boards of a run of bookshelves) are one smooth surface of one
-    # language to the FH pass, whose super-primitives then straddle both, and nothing later splits a
-    # super-primitive. A segment whose members the 2D masks keep dividing (the largest mask of a frame holds,
-    # over the frames, less than ``split_purity`` of its members seen inside masks) is cut in two along the
-    # frame that shows the split best; unobserved members follow their nearest observed member. Over-cutting
-    # is cheap (the clustering re-joins what the masks join). 0 turns it off. Measured in docs/benchmarks.md
-    # ("no-mask-split"). Blocking single kNN edges the masks disagree on was tried first: most edges between
-    # touching objects are seen by no mask (inside a shelf, under a seat), so it moved PRQ(T) by < 0.5 point.
+    # DEPARTURE (mask split, docs/method.md §4.7): a segment whose largest 2D mask holds under split_purity of its
+    # members seen inside masks is cut in two along the frame that shows the split best; 0 turns it off.
     split_purity: float = 0.75
 
     def __post_init__(self) -> None:

@@ -11,11 +11,10 @@ view m when its projection lands inside the depth image and its camera depth agr
   reference's ``np.isclose(z, D, rtol=0.07)``); ``D == 0`` (no depth) is never seen;
 * a frame whose pose is not finite (ScanNet has ``-inf`` poses, docs/method.md pitfall 23) sees nothing.
 
-The result is computed once and shared by fusion (stage 3) and mask observation (stage 6).
+The result is computed once and shared by fusion (stage 3) and the mask look-ups (``masks``).
 
-DEPARTURE (docs/method.md §9, memory): the reference builds dense N x M arrays of camera coordinates, pixels and
-flags (about 2.7 GB for 423k points x 200 views). Here the frames are streamed one at a time and only the seen
-(point, pixel) pairs are kept, in CSR form: memory is O(N + seen pairs), never O(N x M).
+DEPARTURE (memory, docs/method.md §3.1): frames streamed, only the seen (point, pixel) pairs kept in CSR form:
+O(N + seen pairs), never the reference's dense N x M arrays.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Procedural indoor scenes with known answers, written as scene bundles (issue #2 §3).
+"""Procedural indoor scenes with known answers, written as scene bundles.
 
 ``make_scene(out_dir, preset=..., difficulty=..., seed=...)`` builds a furnished room (walls, floor, ceiling
 and box-modelled furniture of the Matterport-21 classes), samples its surfaces into ``geometry.ply`` with

@@ -219,7 +219,7 @@ PRESETS: dict[str, SyntheticSpec] = {
         name="large", num_frames=120, num_points=152_000, room_length=(10.0, 12.0), room_width=(7.0, 8.5),
         room_height=(2.7, 3.0), zone_length=3.6, feature_space="clip-vit-b32",
     ),
-    # Like the held-out ScanNet capture of issue 8 (docs/synthetic.md, "The scan preset"): 58 degree depth
+    # Like the held-out real ScanNet capture (docs/synthetic.md, "The scan preset"): 58 degree depth
     # camera at half its 640x480, feature maps a quarter of that, 1400 dense poses of which 140 are written
     # and 70 (every 20th pose, as the real key frames) are key frames, CLIP features; 80k surface samples of
     # which 45-51k are observed; 22 % of the wall and floor unannotated.

@@ -1,4 +1,4 @@
-"""The baselines of issue 8 (baselines.py): fused argmax, nearest-seen fill, class components."""
+"""The baselines (evaluation/baselines.py, docs/method.md §7.5): fused argmax, nearest-seen fill, class components."""
 
 from __future__ import annotations
 

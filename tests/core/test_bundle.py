@@ -711,7 +711,7 @@ class TestArchives:
         assert FORMAT_ID == "panogs-scene/1"
 
 
-# -- limits (issue 14) ---------------------------------------------------------------------------------------
+# -- limits (hostile input) ----------------------------------------------------------------------------------
 
 
 def test_images_over_a_limit_are_refused_without_being_decoded(
@@ -790,7 +790,7 @@ def test_synthetic_bundle_fits_the_default_limits(bundle_dir: Path) -> None:
     assert len(scene.frames) == 3
 
 
-# -- binary headers: .npy shapes and .npz members are bounded before anything is allocated (issue 14) ---------
+# -- binary headers: .npy shapes and .npz members are bounded before anything is allocated ----------------------
 
 
 def _raw_npy(shape: str, descr: str = "<f4", data: bytes = b"") -> bytes:

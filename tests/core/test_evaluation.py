@@ -1,4 +1,4 @@
-"""Evaluation (evaluation.py): hand-computed cases for both modes, and the reference loop as an oracle."""
+"""Evaluation (evaluation/metrics.py): hand-computed cases for both modes, and the reference loop as an oracle."""
 
 from __future__ import annotations
 

@@ -324,7 +324,7 @@ class MaskedScene(FakeScene):
 
 
 class TestMaskPooling:
-    """Issue 8: a feature cell on an object border bleeds; the object's mask pools its pure cells."""
+    """docs/method.md §3.1: a feature cell on an object border bleeds; the object's mask pools its pure cells."""
 
     def _scene(self) -> tuple[MaskedScene, Visibility]:
         bleed = 0.4 * E0 + 0.6 * E1

@@ -1,4 +1,4 @@
-"""Stage 8 (labeling.py) and the label sets (labelsets.py)."""
+"""Stage 8 (stages/labeling/) and the label sets (language/label_sets.py)."""
 
 from __future__ import annotations
 
@@ -119,8 +119,8 @@ class TestVoteInSegments:
 
 
 class TestAssignPanoptic:
-    # The cluster-based assembly these tests were written for (issue 2); the class-component assembly of
-    # issue 8 is tested in TestComponentInstances.
+    # The cluster-based assembly these tests were written for (the reference's instances); the class-component
+    # assembly of docs/method.md §7.5 is tested in TestComponentInstances.
     # Point counts as given: these cases test the rules, not the rescaling to the point spacing.
     cfg = LabelingConfig(
         vote="none", min_instance_points=20, score_temperature=0.5, instances="clusters", reference_spacing=None
@@ -428,8 +428,8 @@ class TestLabelSets:
         assert default_temperature("other-space", np.eye(3)) == pytest.approx(0.06)
 
 
-class TestIssue8Rules:
-    """The labelling rules of issue 8: fused evidence, island vote, unseen fill, class-component instances."""
+class TestLabellingRules:
+    """The labelling rules of docs/method.md §7.5: fused evidence, island vote, unseen fill, class components."""
 
     def test_fused_evidence_beats_a_smoothed_field(self) -> None:
         from panogs_core.stages.labeling import primitive_classes

@@ -14,7 +14,7 @@ from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
 
 CLIP = "clip-vit-b32"
-COS_SCALE = 0.3  # cosine of fused LSeg features to their CLIP class text (labelsets.SPACE_TEMPERATURES)
+COS_SCALE = 0.3  # cosine of fused LSeg features to their CLIP class text (label_sets.SPACE_TEMPERATURES)
 
 
 def _feature_like(emb: np.ndarray, cls: int, scale: float = COS_SCALE) -> np.ndarray:  # (D,) unit
@@ -141,7 +141,7 @@ class TestQueryInstances:
         assert [h.instance_id for h in strict] == [0]
 
     def test_temperature_measurement(self) -> None:
-        # The calibration of labelsets.SPACE_TEMPERATURES: at T = 0.01 every Matterport-21 class, queried by
+        # The calibration of label_sets.SPACE_TEMPERATURES: at T = 0.01 every Matterport-21 class, queried by
         # its name on a feature with 0.3-scaled cosines, scores >= 0.5; at 0.015 some do not.
         vocab = builtin_vocabulary("matterport21")
         assert vocab.embeddings is not None

@@ -1,4 +1,4 @@
-"""Hostile JSON and images at the API (issue 14, items 2, 4 and 5): each is a 422 naming the file or field, the
+"""Hostile JSON and images at the API: each is a 422 naming the file or field, the
 limit and its setting, never a 500, and a refused bundle leaves nothing on disk."""
 
 from __future__ import annotations
@@ -154,7 +154,7 @@ def _gt_with_huge_member(root: Path) -> None:
 
 
 class TestBinaryHeaders:
-    """Numbers in .npy, .npz and PLY headers (issue 14): each was a 500, or an accepted scene, before."""
+    """Numbers in .npy, .npz and PLY headers: each was a 500, or an accepted scene, before."""
 
     @pytest.mark.parametrize(
         ("mutate", "expected"),

@@ -1,4 +1,4 @@
-"""No response body carries a traceback or a host path (issue 14, item 3): the error handlers cut every path under
+"""No response body carries a traceback or a host path: the error handlers cut every path under
 the storage folder to its part below it, write ``<path>`` for any other absolute path, and replace a message that
 holds a traceback by one naming a request id, whichever route and handler answered."""
 
@@ -78,7 +78,7 @@ def test_a_route_error_naming_host_paths_names_them_relative(tmp_path: Path) -> 
 
 def test_a_bundle_refusal_names_no_host_path(client: TestClient, auth: dict[str, str], settings: Settings,
                                              tmp_path: Path) -> None:  # fmt: skip
-    """A real route: an archive member with a name too long for the disk (issue 14, item 4's case)."""
+    """A real route: an archive member with a name too long for the disk (its 422 once showed the storage path)."""
     folder = write_tiny_bundle(tmp_path / "bundle")
     data = io.BytesIO()
     with zipfile.ZipFile(data, "w") as zf:

@@ -1,8 +1,8 @@
-"""The service's boundary against hostile input (issue 14, the standing defence).
+"""The service's boundary against hostile input (the standing defence).
 
 Every route that takes user data is fed generated bad input (hypothesis, derandomized and bounded: a fixed
 number of examples per route, no shrinking, so that a run takes the same time and finds the same things on
-every machine) and the issue's reported cases by name. Each answer must be:
+every machine) and the known attacks by name. Each answer must be:
 
 - a 4xx with a JSON ``{"type", "message"}`` body, never a 5xx (a request that is valid may succeed);
 - free of tracebacks and of absolute host paths (the storage root, the test's folders, ``/etc``, ``/tmp`` ...;
@@ -12,13 +12,12 @@ every machine) and the issue's reported cases by name. Each answer must be:
 - clean: after a refusal the storage holds exactly what it held before (and the database no new row).
 
 The world (two tenants, each with a scene and a finished job) is built once per module on the embedded SQLite
-database, what a new user runs; the issue's cases about job requests run on PostgreSQL as well.
+database, what a new user runs; the named cases about job requests run on PostgreSQL as well.
 
-On the code before issue 14 these fail (the test ids say which item each case guards; ``new-`` cases found a
-class the issue does not list): item 1 (a vocabulary that is a path is accepted), 2 (deep / huge JSON: 500s),
-3 (render numbers: a traceback in a 503), 4 (the storage path in a 422), 5 (images decoded before their
-header is read; cv2 raising on huge declared sizes: 500), 7 (no free-disk check on uploads) and 8 (no
-security headers); and three classes the issue does not list: a NUL character in a stored text (job vocabulary,
+On the code before the hostile-input hardening these fail: a vocabulary that is a path was accepted, deep or
+huge JSON was a 500, render numbers gave a traceback in a 503, a 422 showed the storage path, images were decoded
+before their header was read (cv2 raising on huge declared sizes: 500), uploads had no free-disk check and answers
+had no security headers. The suite found three more classes: a NUL character in a stored text (job vocabulary,
 scene name, upload filename) is a 500 on PostgreSQL, a .npy header whose shape overflows int64 is accepted or a
 500, and a PLY vertex count of thousands of digits is a 500.
 """
@@ -221,7 +220,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
 
 @pytest.fixture(scope="module", params=["sqlite", "postgres"])
 def any_world(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
-    """The module's world, and one on PostgreSQL (for the issue's named cases)."""
+    """The module's world, and one on PostgreSQL (for the named cases)."""
     if request.param == "sqlite":
         yield request.getfixturevalue("world")
         return
@@ -334,7 +333,7 @@ def _path_like(world_paths: list[str]) -> st.SearchStrategy[str]:
 @given(data=st.data())
 def test_a_job_never_names_a_file_of_the_host(world: World, data: st.DataObject) -> None:
     """A vocabulary that is a path (of the host, or of another tenant's vocabulary.json) is refused by the API
-    (422): no job exists that a worker would open it for (issue 14 item 1)."""
+    (422): no job exists that a worker would open it for."""
     path = data.draw(_path_like(world.alice_paths), label="vocabulary")
     before = (_rows(world, Job), listing(world.storage))
     response = world.client.post(
@@ -363,7 +362,7 @@ def test_a_job_never_names_a_file_of_the_host(world: World, data: st.DataObject)
     ],
 )
 def test_deep_or_huge_job_config_is_a_422_naming_the_limit(any_world: World, body: Any) -> None:
-    """A config nested hundreds deep or holding a 5000-digit integer: 422 naming the limit (issue 14 item 2)."""
+    """A config nested hundreds deep or holding a 5000-digit integer: 422 naming the limit."""
     world = any_world
     before = (_rows(world, Job), listing(world.storage))
     response = _post_json(world, "/v1/jobs", body(world, world.mallory_scene), world.mallory)
@@ -377,7 +376,7 @@ def test_deep_or_huge_job_config_is_a_422_naming_the_limit(any_world: World, bod
 
 @pytest.mark.parametrize("which", ["host", "tenant-absolute", "tenant-relative"])
 def test_another_tenants_vocabulary_cannot_be_named(any_world: World, which: str) -> None:
-    """The issue's exploit: tenant B names tenant A's vocabulary.json (or /etc/passwd); 422, no job (item 1)."""
+    """The cross-tenant exploit: tenant B names tenant A's vocabulary.json (or /etc/passwd); 422, no job."""
     world = any_world
     path = {"host": "/etc/passwd", "tenant-absolute": world.alice_paths[0], "tenant-relative": world.alice_paths[1]}
     before = _rows(world, Job)
@@ -465,7 +464,7 @@ def extreme_renders(draw: st.DrawFn) -> dict[str, Any]:
 @example(body={"T_world_cam": np.eye(4).tolist(), "camera": {**RENDER_CAMERA, "fx": 1e-300, "fy": 1e-300}})
 def test_render_numbers_are_checked_before_rendering(world: World, body: dict[str, Any]) -> None:
     """Extreme camera and pose numbers: a 422 from the API's own checks, never the render process's traceback
-    in a 503 (issue 14 item 3)."""
+    in a 503."""
     note(f"body: {body!r}")
     before = listing(world.storage)
     response = world.client.post(f"/v1/jobs/{world.mallory_job}/render", json=body, headers=world.mallory)
@@ -558,41 +557,41 @@ def test_bundle_links_never_reach_other_files(world: World, damage: Damage) -> N
 
 NAMED_BUNDLES = [
     pytest.param(WholeFile(file="scene.json", content=nested_json(100_000).encode(), label="100000 deep"),
-                 id="item2-scene-json-100000-deep"),
+                 id="scene-json-100000-deep"),
     pytest.param(RawField(file="scene.json", path=("name",), raw=nested_json(5000, bracket="{"), label="5000 deep"),
-                 id="item2-scene-json-field-5000-deep"),
+                 id="scene-json-field-5000-deep"),
     pytest.param(WholeFile(file="vocabulary.json", content=nested_json(50_000, bracket="{").encode(), label="deep"),
-                 id="item2-vocabulary-json-50000-deep"),
+                 id="vocabulary-json-50000-deep"),
     pytest.param(RawField(file="scene.json", path=("camera", "width"), raw=huge_integer(5000), label="5000 digits"),
-                 id="item2-scene-json-5000-digit-integer"),
+                 id="scene-json-5000-digit-integer"),
     pytest.param(RawField(file="vocabulary.json", path=("classes", 0, "kind"), raw=huge_integer(10_000),
-                          label="10000 digits"), id="item2-vocabulary-json-10000-digit-integer"),
+                          label="10000 digits"), id="vocabulary-json-10000-digit-integer"),
     pytest.param(WholeFile(file="geometry.ply", content=b"ply\nformat ascii 1.0\nelement vertex " + huge_integer(5000)
                            .encode() + b"\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
-                           label="5000-digit vertex count"), id="new-ply-5000-digit-vertex-count"),
+                           label="5000-digit vertex count"), id="ply-5000-digit-vertex-count"),
     pytest.param(WholeFile(file="features/000000.npy", content=npy_header((10**30, 6, 8)), label="shape 1e30"),
-                 id="new-npy-shape-1e30"),
+                 id="npy-shape-1e30"),
     pytest.param(WholeFile(file="features/000000.npy", content=npy_header((10**19, 6, 8)), label="shape 1e19"),
-                 id="new-npy-shape-1e19-no-data"),  # 10**19 * 6 * 8 wraps to 0 in int64: "complete" without data
+                 id="npy-shape-1e19-no-data"),  # 10**19 * 6 * 8 wraps to 0 in int64: "complete" without data
     pytest.param(Image(file="color/000001.jpg", width=40_000, height=40_000, color_type=2),
-                 id="item5-color-png-header-40000-by-40000"),
-    pytest.param(ExtraMember(name="color/" + "n" * 300 + ".png"), id="item4-member-name-300-chars"),
-    pytest.param(ExtraMember(name="d/" * 2100 + "f.bin", kind="tar"), id="item4-member-path-4200-chars"),
-    pytest.param(Image(file="masks/000000.png", width=2**31 - 1, height=2**31 - 1), id="item5-png-header-2g-by-2g"),
+                 id="color-png-header-40000-by-40000"),
+    pytest.param(ExtraMember(name="color/" + "n" * 300 + ".png"), id="member-name-300-chars"),
+    pytest.param(ExtraMember(name="d/" * 2100 + "f.bin", kind="tar"), id="member-path-4200-chars"),
+    pytest.param(Image(file="masks/000000.png", width=2**31 - 1, height=2**31 - 1), id="mask-png-header-2g-by-2g"),
     pytest.param(Image(file="depth/000000.png", width=40_000, height=40_000, bit_depth=16),
-                 id="item5-png-header-40000-by-40000"),
+                 id="depth-png-header-40000-by-40000"),
 ]  # fmt: skip
 
 
 @pytest.mark.parametrize("damage", NAMED_BUNDLES)
 def test_named_bad_bundles(world: World, damage: Damage) -> None:
-    """The issue's bundles: each a 422 that names the file (relative to the bundle), nothing kept. (Validation
+    """The named bad bundles: each a 422 that names the file (relative to the bundle), nothing kept. (Validation
     does not touch the database: one backend is enough.)"""
     _refused_bundle(world, damage.apply(world.valid_members))
 
 
 def test_a_huge_mask_is_refused_from_its_header(world: World) -> None:
-    """The issue's 20000 x 20000 mask in a small bundle (item 5): a 422 naming the file, not an accepted scene.
+    """A 20000 x 20000 mask in a small bundle (an image bomb): a 422 naming the file, not an accepted scene.
     (An 8-bit one: 400 MB decoded where the header is not read first.)"""
     bad = Image(file="masks/000000.png", width=20_000, height=20_000, complete=True).apply(world.valid_members)
     assert len(bad.data) < 2_000_000
@@ -601,7 +600,7 @@ def test_a_huge_mask_is_refused_from_its_header(world: World) -> None:
 
 def test_image_headers_are_checked_before_decoding(world: World) -> None:
     """A depth map of 6000 x 6000 (16-bit, valid, 72 MB decoded) against a 64 x 48 camera: refused from its
-    header, so the API never holds the decoded image (item 5). tracemalloc sees numpy and OpenCV's arrays."""
+    header, so the API never holds the decoded image. tracemalloc sees numpy and OpenCV's arrays."""
     bad = Image(file="depth/000000.png", width=6000, height=6000, bit_depth=16, complete=True)
     data = bad.apply(world.valid_members)
     tracemalloc.start()
@@ -720,7 +719,7 @@ def test_upload_patch_headers(world: World, offset: str, checksum: str | None, c
 @pytest.mark.parametrize("step", ["create", "create-with-body", "patch"])
 def test_uploads_check_the_free_disk(tmp_path: Path, step: str) -> None:
     """An upload the free disk cannot hold (PANOGS_MIN_FREE_DISK_BYTES above the free space) is refused at once
-    with 507 (or 413) and the reason, before any byte is stored; a PATCH checks again (issue 14 item 7)."""
+    with 507 (or 413) and the reason, before any byte is stored; a PATCH checks again."""
     data = b"PK\x05\x06" + bytes(18)
     settings = _settings(tmp_path, "sqlite", min_free_disk_bytes=2**62, quota_bytes=None)
     key = new_key(settings, "mallory")
@@ -779,7 +778,7 @@ def test_names_in_paths_never_leave_their_folder(world: World, name: str) -> Non
 @pytest.mark.parametrize("field", ["job-vocabulary", "scene-name", "upload-filename", "upload-filename-with-body"])
 def test_nul_characters_in_stored_text(any_world: World, field: str) -> None:
     """U+0000 in a text the service stores (PostgreSQL refuses it in text columns): accepted or a 4xx, never a
-    500, and nothing left behind either way. (Not one of issue 14's items: found by this suite.)"""
+    500, and nothing left behind either way. (Found by this suite, not reported before.)"""
     world = any_world
     client, auth = world.client, world.mallory
     nul = "chair\x00/etc/passwd"
@@ -849,7 +848,7 @@ SECURITY_HEADERS = ("x-content-type-options", "referrer-policy")
     ],
 )
 def test_every_answer_forbids_framing_and_sniffing(world: World, method: str, path: str, body: Any) -> None:
-    """Answers, refusals included, carry a strict set of security headers (issue 14 item 8)."""
+    """Answers, refusals included, carry a strict set of security headers."""
     response = world.client.request(method, path, json=body)
     headers = {k.lower(): v for k, v in response.headers.items()}
     assert headers.get("x-content-type-options") == "nosniff", headers

@@ -1,4 +1,4 @@
-"""A job's vocabulary over REST (issue 14, item 1): a built-in name, the bundle's own, or inline classes, checked
+"""A job's vocabulary over REST: a built-in name, the bundle's own, or inline classes, checked
 before the job row exists; never a path of the host, and no message repeats one.
 
 The worker half runs ``execute_job`` in-process on the same database: with the scripted pipeline here (its

@@ -1,4 +1,4 @@
-"""Deleting scenes and jobs with their files, per-tenant quotas, retention and orphan sweeping (issue 9), on
+"""Deleting scenes and jobs with their files, per-tenant quotas, retention and orphan sweeping, on
 PostgreSQL and on the embedded SQLite."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Limits from the outside review (issue 9): JSON bodies capped with a 413 naming the limit, short validation
+"""Limits from the outside review: JSON bodies capped with a 413 naming the limit, short validation
 errors, no upload left behind by a refused creation, and a dead embedded worker's job re-queued at once."""
 
 from __future__ import annotations

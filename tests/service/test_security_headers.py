@@ -1,4 +1,4 @@
-"""Every response carries the security headers (issue 14, item 8): API answers, app pages, assets, errors, 404s,
+"""Every response carries the security headers: API answers, app pages, assets, errors, 404s,
 the body limit's 413 and an unexpected 500; the app and the OpenAPI pages get the CSP they work with."""
 
 from __future__ import annotations

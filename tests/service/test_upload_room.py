@@ -1,4 +1,4 @@
-"""Room for what a tenant stores (issue 14, items 6 and 7): an upload being made into a scene counts once, and an
+"""Room for what a tenant stores: an upload being made into a scene counts once, and an
 upload is created, and each PATCH accepted, only when its remaining bytes fit in the quota (413) and on the disk
 with ``min_free_disk_bytes`` left free (507), refused before a byte is written."""
 
@@ -28,7 +28,7 @@ def _uploads_on_disk(settings: Settings) -> list[Path]:
 def test_the_upload_being_extracted_counts_once(
     client: TestClient, auth: dict[str, str], settings: Settings, tiny_zip: bytes
 ) -> None:
-    """The issue's case scaled down: a quota of 6.5 MB, a 3.05 MB upload, a 3.5 MB scene. Here the quota holds the
+    """The reported case scaled down: a quota of 6.5 MB, a 3.05 MB upload, a 3.5 MB scene. Here the quota holds the
     scene and the upload each, not both together."""
     upload = upload_bytes(client, auth, tiny_zip, filename="tiny.zip")
     scene_size = client.post("/v1/scenes", json={"upload_id": upload["id"]}, headers=auth).json()["size_bytes"]
@@ -51,7 +51,7 @@ def test_an_upload_the_disk_cannot_hold_is_refused_with_507(
     auth: dict[str, str], settings: Settings, tmp_path: Path
 ) -> None:
     free = shutil.disk_usage(tmp_path).free
-    # PANOGS_MIN_FREE_DISK_BYTES above the free disk: no upload at all (the issue's 3 MB one).
+    # PANOGS_MIN_FREE_DISK_BYTES above the free disk: no upload at all (the reported 3 MB one).
     above = settings.model_copy(update={"min_free_disk_bytes": free + 2**30})
     with _client(above) as c:
         r = c.post("/v1/uploads", content=b"x" * 3000, headers={**auth, **TUS, **OCTET, "Upload-Length": "3000"})
@@ -59,7 +59,7 @@ def test_an_upload_the_disk_cannot_hold_is_refused_with_507(
     assert r.json()["type"] == "insufficient_storage"
     assert "PANOGS_MIN_FREE_DISK_BYTES" in r.json()["message"]
     assert _uploads_on_disk(settings) == []
-    # An Upload-Length larger than the room left (the issue's 2 GiB upload against 230 MB): refused at creation.
+    # An Upload-Length larger than the room left (the reported 2 GiB upload against 230 MB): refused at creation.
     room_of_1_mib = settings.model_copy(update={"min_free_disk_bytes": max(0, free - 2**20)})
     with _client(room_of_1_mib) as c:
         r = c.post("/v1/uploads", headers={**auth, **TUS, "Upload-Length": str(2**31)})

@@ -1,6 +1,6 @@
 """The README's curl session runs as written against a fresh ``panogs serve`` (tools/readme_session.py): every
 line succeeds (``set -euo pipefail``, each curl with ``--fail-with-body``), and the files it downloads are a PLY
-and a PNG, not an error body (issue 14, item 9: the job was deleted before its render)."""
+and a PNG, not an error body (the README once deleted the job before rendering it)."""
 
 from __future__ import annotations
 

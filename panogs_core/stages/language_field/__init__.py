@@ -72,8 +72,8 @@ def plane_resolutions(bounds: np.ndarray, cfg: LanguageFieldConfig) -> list[int]
 def field_bounds(points: np.ndarray, padding: float) -> np.ndarray:
     """Axis-aligned box of the points, padded by ``padding`` metres on every side. ``(2, 3)`` float32.
 
-    DEPARTURE: the reference uses a hand-set box per scene (``scene.bound``, docs/method.md §1.4); we compute it
-    from the primitives so that any scene works without one.
+    DEPARTURE (docs/method.md §3.2): the box comes from the primitives, not from a hand-set ``scene.bound`` per
+    scene, so any scene works without one.
     """
     lo = points.min(axis=0).astype(np.float64) - padding
     hi = points.max(axis=0).astype(np.float64) + padding

@@ -18,29 +18,19 @@ from panogs_core.errors import ConfigError
 class LanguageFieldConfig:
     """Settings of the language field (docs/method.md §3.2-3.3; defaults: the reference's ScanNet settings).
 
-    DEPARTURE (training schedule): the reference trains 11 epochs at batch 256 with lr 1e-3 for both groups
-    (about 6.4k steps for 150k primitives). On a CPU the cost is per point, not per step, so we make fewer
-    passes (4 epochs, batch 1024) with larger learning rates (decoder 5e-3, planes 1e-2). Measured on a
-    synthetic 150k-point, 512-d room (ScanNet-20 CLIP embeddings on spatial blobs, 10 % class noise, 2 cores):
-    13 s instead of 61 s, decoded argmax agreeing with the fused argmax on 0.901 of the points (reference
-    schedule 0.905), mean cosine to the target 0.844 (0.846), accuracy against the true class 0.984 (0.981).
-    Larger batches (4096-8192) at the same cost per epoch needed more epochs for the same quality.
+    DEPARTURE (schedule, docs/method.md §3.3): 4 epochs at batch 1024 with larger learning rates, where the
+    reference trains 11 epochs at batch 256 and lr 1e-3; on a CPU the cost is per point, not per step.
     """
 
     # Metres per tri-plane cell, one per pyramid level (docs/method.md §3.2: ScanNet (0.2, 0.06), Replica (0.1, 0.04)).
-    # The Replica levels: at 6 cm a picture 2 cm in front of its wall shares the wall's cells and decodes as
-    # wall (picture IoU 0.00 -> 0.95, mIoU 0.871 -> 0.945 on the small default room, seed 0; the full table
-    # is in docs/benchmarks.md). The cost is per point, not per cell, so the finer planes cost little.
+    # DEPARTURE (docs/method.md §3.2): the Replica levels everywhere; at 6 cm a picture decodes as its wall.
     cell_sizes: tuple[float, ...] = (0.1, 0.04)
     channels: int = 10  # latent channels C per plane (reference num_components)
     init_scale: float = 0.1  # std of the N(0, s^2) plane initialisation
     hidden_dims: tuple[int, ...] = (128,)  # decoder hidden widths: C -> 128 -> D (ScanNet), no biases
     epochs: int = 4  # passes over the seen primitives (reference: 11)
-    # Small scenes get more passes, so every scene trains at least this many steps: at 4 epochs a 7.7k-point
-    # scene made only 32 steps and its decoded argmax matched the true class on 0.79 of the points (CLIP
-    # space); 16 epochs (128 steps) gave 0.98. 150 steps still lost whole classes on 30k-point rooms (small
-    # default preset: every chair decoded as desk on seed 1, mIoU 0.845; 600 steps: 0.951, PRQ(T) 0.77 ->
-    # 0.93). Large scenes are unaffected (150k points: 4 epochs are 600 steps).
+    # DEPARTURE (docs/method.md §3.3): small scenes get more passes, so every scene trains at least this many steps
+    # (150k points at 4 epochs already make about 600).
     min_steps: int = 600
     batch_size: int = 1024  # primitives per step (reference: 256)
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)

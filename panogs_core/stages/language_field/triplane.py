@@ -39,8 +39,7 @@ class _TriplaneDecoder(torch.nn.Module):
         grid = grid.unsqueeze(1)  # (3, 1, B, 2)
         latent = coords.new_zeros(coords.shape[0], self.planes[0].shape[1])  # (B, C)
         for plane in self.planes:
-            # DEPARTURE (reference: zero padding): "border" only matters outside the box, i.e. for
-            # decode_points on new points, which take the nearest face's value instead of a zero latent.
+            # DEPARTURE (docs/method.md §3.2): border padding, not zero; it only matters for new points outside the box.
             sampled = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
             latent = latent + sampled.sum(dim=0).squeeze(1).t()  # sum over planes, then over levels
         return latent
@@ -60,9 +59,8 @@ class _TriplaneDecoder(torch.nn.Module):
 def _to_unit_cube(points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
     """Map world points into ``[-1, 1]^3`` over the box. ``(B, 3)`` -> ``(B, 3)``.
 
-    DEPARTURE (docs/method.md pitfall 5): the reference feeds ``[0, 1]`` to ``grid_sample``, which expects
-    ``[-1, 1]``, so only one quadrant of every plane is ever used (effective cells twice the nominal size). We
-    use the whole plane, so the cells are the nominal ``cell_sizes``.
+    DEPARTURE (docs/method.md §3.2, pitfall 5): the whole plane, so the cells are the nominal ``cell_sizes``; the
+    reference feeds ``[0, 1]`` to ``grid_sample`` and uses one quadrant.
     """
     return (points - bounds[0]) / (bounds[1] - bounds[0]) * 2.0 - 1.0
 
@@ -121,8 +119,8 @@ def training_set(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coordinates in [-1, 1], unit targets and weights of the primitives with weight > 0 only.
 
-    DEPARTURE (minor): zero-weight (unseen) primitives add exactly 0 to the loss, so they are left out of the
-    batches; the batch mean then runs over seen primitives only (a constant rescale that Adam ignores).
+    DEPARTURE (minor, docs/method.md §3.3): zero-weight (unseen) primitives, which add exactly 0 to the loss, are
+    left out of the batches.
     """
     keep = np.flatnonzero(weights > 0)
     coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds))  # (M, 3)
@@ -140,11 +138,8 @@ _FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps", "xpu")
 def _optimizer(model: _TriplaneDecoder, cfg: LanguageFieldConfig) -> torch.optim.Optimizer:
     """Adam with the reference's two groups: planes (eps 1e-15, no decay) and decoder (L2 weight decay).
 
-    The fused implementation (one kernel per parameter for the whole update) where the device has one: on the
-    CPU torch otherwise picks the per-tensor loop, whose dozen element-wise passes over the planes (every
-    plane cell, every step) were half of the whole field's time (cProfile of `panogs run` on the large preset).
-    The update rule is the same; the rounding differs, so the decoded features move by a mean cosine of 2e-4.
-    Timings before and after: docs/benchmarks.md, "Speed of issue 8".
+    DEPARTURE (fused Adam, docs/method.md §3.3): torch's fused kernel where the device has one, instead of the
+    per-tensor loop torch picks on the CPU; the same update rule, rounded differently.
     """
     groups = [
         {"params": list(model.planes), "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},

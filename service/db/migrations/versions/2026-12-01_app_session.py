@@ -1,4 +1,4 @@
-"""App sessions: the browser app's short-lived sign-in, exchanged for an API key (issue 9).
+"""App sessions: the browser app's short-lived sign-in, exchanged for an API key.
 
 Revision ID: 0002_app_session
 Revises: 0001_initial

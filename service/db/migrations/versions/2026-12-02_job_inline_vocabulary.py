@@ -1,4 +1,4 @@
-"""Inline vocabularies: a job's label set given in the request body instead of a name (issue 14, item 1).
+"""Inline vocabularies: a job's label set given in the request body instead of a name.
 
 Revision ID: 0003_job_inline_vocabulary
 Revises: 0002_app_session
