@@ -17,7 +17,7 @@ import numpy as np
 
 from panogs_core.point_graphs import radius_pairs, same_label_components
 
-# The instance baseline of issue 8: "same label within 10 cm, under 100 vertices dropped".
+# The instance baseline: "same label within 10 cm, under 100 vertices dropped".
 COMPONENT_RADIUS_M = 0.10
 COMPONENT_MIN_POINTS = 100
 

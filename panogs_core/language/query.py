@@ -102,7 +102,7 @@ def query_instances(
         EncoderUnavailableError: free text but no encoder for the space.
     """
     if vocabulary.embeddings is None:
-        raise InputError("query: the vocabulary has no embeddings (call labelsets.ensure_embeddings)")
+        raise InputError("query: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)")
     if top_k < 1:
         raise InputError(f"query: top_k must be >= 1, found {top_k}")
     emb = _unit(np.asarray(vocabulary.embeddings, np.float32), name="vocabulary embeddings")

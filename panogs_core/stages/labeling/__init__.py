@@ -110,8 +110,7 @@ def assign_panoptic(
     unseen_counts: dict[str, int] = {}
     scores = field_sims
     if fused is None:
-        # DEPARTURE (docs/method.md §7.2; the reference takes the argmax everywhere): a zero feature has no evidence, so
-        # class -1 rather than class 0 by accident of argmax; the vote can still fill it from its segment.
+        # DEPARTURE (a zero feature has no evidence: class -1, not class 0 by accident of argmax): docs/method.md §7.2.
         cls = np.where(sq_norm > 1e-12, np.argmax(field_sims, axis=1), -1).astype(np.int64)
     else:
         cls, scores = primitive_classes(field_sims, fused, emb, cfg)
@@ -139,7 +138,9 @@ def _check_inputs(
     points: np.ndarray, features: np.ndarray, sp_labels: np.ndarray, cl_labels: np.ndarray, vocabulary: Vocabulary
 ) -> np.ndarray:  # (L, D) float32 unit
     if vocabulary.embeddings is None:
-        raise InputError("assign_panoptic: the vocabulary has no embeddings (call labelsets.ensure_embeddings)")
+        raise InputError(
+            "assign_panoptic: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)"
+        )
     n = np.shape(points)[0] if np.ndim(points) == 2 else -1
     if np.shape(points) != (n, 3) or n < 0:
         raise ShapeError(f"points: expected (N, 3), found {np.shape(points)}")

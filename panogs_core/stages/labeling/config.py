@@ -37,7 +37,7 @@ class LabelingConfig:
         unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``propagate`` (the nearest
             seen class along the kNN graph) or ``field`` (the field's extrapolation, the reference).
         instances: ``hybrid`` (class components split by large clusters), ``components`` or ``clusters``
-            (the SAM-guided clusters, split by class: the method before issue 8).
+            (the SAM-guided clusters, split by class: the earlier rule).
         component_radius: Longest kNN edge that joins two primitives of one class into a component, metres.
         split_min_points: A cluster splits a component only if it holds this many of its primitives ...
         split_min_fraction: ... and this share of it, and so does at least one other cluster.
@@ -47,32 +47,18 @@ class LabelingConfig:
             None = use them as given.
     """
 
-    # DEPARTURE (docs/method.md §7.3; the reference always votes): the reference's run on a real scan (docs/method.md
-    # §13) measured voting inside coarse segments lowering mIoU (0.86 -> 0.71) because 7-9 % of points sat in a segment
-    # of another majority class, and on the held-out ScanNet room of issue 8 the vote cost 4-5 mIoU points at easy and
-    # default. No vote at all loses at default and hard, where the per-primitive classes are noisy. So ``islands``
-    # (``vote_islands``): only a connected patch of another class smaller than ``island_points`` flips to its segment's
-    # majority, and only where that majority is a close second for it (softmax ratio >= ``vote_max_ratio``); a confident
-    # patch is an object on or in a larger one (a sink in its counter), not noise. On the realistic scan rooms (seeds
-    # 0-1) this was at or above both no vote and the plain island vote at every difficulty; the four-seed table is in
-    # docs/benchmarks.md. ``vote_min_fraction`` is the purity guard of both votes.
+    # DEPARTURE (the island vote with a close-second test, not the whole segment's): docs/method.md §7.5.
     vote: Literal["superprimitive", "islands", "none"] = "islands"
     vote_min_fraction: float = 0.5
     min_instance_points: int = 50
     score_temperature: float | None = None
-    # DEPARTURE (on top of the per-cluster majority relabel of ``_assemble``): a cluster's thing primitives are
-    # split by class into kNN-connected instances, small fragments rejoin the adjacent instance of their class
-    # (``_assemble_split``). Masks merge touching objects (chair under a table, night stand by a bed) and a
-    # forced relabel then rewrote the smaller one (chair -> table 232 points on default seed 0); chair-leg
-    # primitives left in the floor's cluster formed one extra "chair" across four chairs. Measured (small
-    # preset, seeds 0-1, language small-merge on): PRQ(T) easy 0.913 -> 0.929, default 0.809 -> 0.831;
-    # mIoU easy 0.931 -> 0.941, default 0.838 -> 0.852. False = ``_assemble``.
+    # DEPARTURE (a cluster's thing primitives split by class, ``instances.assemble_split``): docs/method.md §7.5.
     split_classes: bool = True
     split_neighbors: int = 7  # kNN used for the split when the caller passes none (the stage passes stage 5's)
-    # Issue 8 (labels that never lose to the fused-feature baselines): where the class evidence of a seen
-    # primitive comes from (``primitive_classes``), what the unseen ones get (``label_unseen``), and how
-    # instances are cut (``_assemble_components``). The values that reproduce the labelling before issue 8:
-    # evidence_fused_weight=0, unseen="field", vote="superprimitive", instances="clusters".
+    # Labels that never lose to the fused-feature baselines (docs/method.md §7.5): the class evidence of a seen
+    # primitive (``votes.primitive_classes``), the unseen ones (``unseen.label_unseen``), the instances
+    # (``instances.assemble_components``). The reference's labelling: evidence_fused_weight=0, unseen="field",
+    # vote="superprimitive", instances="clusters".
     evidence_fused_weight: float = 0.5
     unseen: Literal["segment", "propagate", "field"] = "segment"
     island_points: int = 150
@@ -81,12 +67,7 @@ class LabelingConfig:
     component_radius: float = 0.10
     split_min_points: int = 200
     split_min_fraction: float = 0.2
-    # DEPARTURE (point counts are the reference's unit): a point count means a surface area only at one point
-    # spacing. The counts above were tuned on the scan rooms (median nearest-neighbour spacing 3.7 cm, as
-    # ScanNet meshes); on the tiny rooms (6.3 cm) the same counts asked for three times the area, so no
-    # cluster could split a component and the 10 cm joins broke coarse objects apart (thing PRQ 0.59 against
-    # 0.78 before issue 8 at default). The counts scale with the area a point stands for, the join radius
-    # never drops below ``component_radius``. Table: docs/benchmarks.md, "Point spacing".
+    # DEPARTURE (counts in the surface a primitive stands for, not in primitives): docs/method.md §7.5.
     reference_spacing: float | None = 0.037
 
     def __post_init__(self) -> None:

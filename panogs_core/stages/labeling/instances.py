@@ -21,8 +21,7 @@ def assemble(
     thing = (cls >= 0) & is_thing[np.maximum(cls, 0)]
     semantic = cls.copy()
     instance = np.full(cls.shape, -1, np.int64)
-    # DEPARTURE (docs/method.md §7: no per-instance semantics, clusters evaluated as they are): each cluster's
-    # thing points form one instance relabelled to their majority thing class, so an instance has one class.
+    # DEPARTURE (each cluster's thing points: one instance of their majority thing class): docs/method.md §7.5.
     member = thing & (cluster >= 0)
     thing_classes = np.zeros(0, np.int64)
     if member.any():
@@ -34,8 +33,7 @@ def assemble(
         inst = np.where(member, inst_of_cluster[np.maximum(cluster, 0)], -1)
         instance[inst >= 0] = inst[inst >= 0]
         semantic[inst >= 0] = thing_classes[inst[inst >= 0]]
-    # DEPARTURE (reference clusters stuff like things): one instance per stuff class, whatever the cluster;
-    # the reference (docs/method.md §13) found one wall split into 9-18 clusters otherwise.
+    # DEPARTURE (one instance per stuff class, whatever the cluster): docs/method.md §7.5.
     stuff = (cls >= 0) & ~thing
     stuff_size = np.bincount(cls[stuff], minlength=len(is_thing))
     stuff_classes = np.flatnonzero((stuff_size >= min_points) & ~is_thing)
@@ -137,11 +135,9 @@ def assemble_components(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Thing instances from connected components of the classes, split by the clusters where they agree.
 
-    DEPARTURE (docs/method.md §6-7, the SAM-guided clusters are the instances): on two of three held-out real rooms
-    plain connected components of the argmax classes beat the clusters on thing PQ, and the clusters made more
-    false instances (7 against 2 in a bathroom, issue 8). So the classes draw the instances, as in the
-    baseline (``baselines.label_components``: one class, kNN edges up to ``component_radius``), and the
-    clusters only split a component where touching objects of one class stand together (a row of chairs, a
+    DEPARTURE (the classes draw the instances, the clusters only split them; docs/method.md §7.5). As in the
+    baseline (``evaluation.baselines.label_components``: one class, kNN edges up to ``component_radius``), and
+    the clusters only split a component where touching objects of one class stand together (a row of chairs, a
     run of bookshelves), which the classes alone cannot separate:
 
     1. ``instances="components"``: each component of at least ``min_instance_points`` primitives is an instance.

@@ -25,9 +25,8 @@ def label_unseen(
     at all. ``propagate``: the class of the seen primitive nearest along the kNN graph (edge length = distance), so the
     floor under a bed takes the floor's class across the floor, not the class of the bed 10 cm above it; primitives in
     parts of the graph with no seen primitive take the Euclidean nearest seen one's class. ``field``: the argmax of the
-    field's features there (the reference: the field extrapolates). DEPARTURE (docs/method.md §7.2; the reference uses
-    the field everywhere): on the held-out room the field labelled window vertices, 86 % of them unseen, 0.00 IoU;
-    nearest-seen fill reached 0.55 (issue 8).
+    field's features there (the reference: the field extrapolates). DEPARTURE (the segment's seen majority, not the
+    field): docs/method.md §7.5.
     """
     unseen = classes < 0
     counts = {"unseen": int(unseen.sum()), "field": 0, "segment": 0, "graph": 0, "nearest": 0}

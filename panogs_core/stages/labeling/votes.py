@@ -18,10 +18,8 @@ def primitive_classes(
 ) -> tuple[np.ndarray, np.ndarray]:  # (N,) int64 class (-1 where unseen), (N, L) the scores
     """Class of each seen primitive from its fused and field cosines; -1 where no key frame saw it.
 
-    DEPARTURE (docs/method.md §7.2; the reference labels with the field's features): on a held-out ScanNet room the
-    argmax of the fused features beat the field's on the surfaces key frames see (0.933 against 0.821 mIoU at easy,
-    issue 8): the field smooths small classes into the large ones beside them. ``evidence_fused_weight`` mixes the two
-    cosines (1 = fused only); the weight is chosen in bench/quality.py.
+    DEPARTURE (half fused, half field, not the field alone; docs/method.md §7.5): the field smooths small classes
+    into the large ones beside them. ``evidence_fused_weight`` mixes the two cosines (1 = fused only).
     """
     w = cfg.evidence_fused_weight
     seen = np.einsum("nd,nd->n", fused, fused) > 1e-12
