@@ -25,7 +25,7 @@ class LabelingConfig:
             instance -1). Counts primitives; the reference removes clusters < 200 points with <= 2 segments
             (docs/method.md §6.2).
         score_temperature: Softmax temperature (cosine units) of the instance score; None = derived from the
-            vocabulary's spread (``labelsets.default_temperature``; 0.01 for the CLIP label sets).
+            vocabulary's spread (``language.label_sets.default_temperature``; 0.01 for the CLIP label sets).
         split_classes: Split a cluster's thing primitives into one instance per class and connected part
             (``_assemble_split``) instead of relabelling them all to the cluster's majority thing class.
         split_neighbors: Neighbours of the kNN graph built for the split when ``assign_panoptic`` gets none.
