@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check migrations-check
+	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check migrations-check docs-tables
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -61,11 +61,15 @@ demo: install ## synthetic room -> whole pipeline -> instance table -> text quer
 	$(PANOGS) query $(DEMO)/run chair
 	$(PANOGS) render $(DEMO)/run --frame 000000 --out $(DEMO)/render
 
-readme: install ## run the demo afresh and write its output into README.md (between the demo-output markers)
+readme: install docs-tables ## run the demo afresh and write its output into README.md (between the demo-output markers)
 	$(PY) tools/readme_demo.py
 
-readme-check: install ## run the demo afresh and fail when README.md shows other results
+readme-check: install ## run the demo afresh and fail when README.md shows other results (or other run-folder tables)
+	$(PY) tools/run_folder_docs.py --check
 	$(PY) tools/readme_demo.py --check
+
+docs-tables: $(VENV)/.installed ## write README.md's and docs/architecture.md's run-folder tables from panogs_core/io/run_folder.py
+	$(PY) tools/run_folder_docs.py --write
 
 test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q

@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from panogs_core.io.ply import write_ply
+from panogs_core.gaussians.config import GaussianScene
+from panogs_core.gaussians.ply import write_gaussian_ply
+from panogs_core.io.run_folder import GAUSSIANS_PLY
 from service.viewer.local import RunViewer, serve
 
 CHROMIUM = os.environ.get("PANOGS_TEST_CHROMIUM", "/usr/bin/chromium")
@@ -47,10 +49,12 @@ def synthetic_run(out: Path, n: int, seed: int = 0) -> None:
     semantic = (instance % NUM_CLASSES).astype(np.int32)
     log_scale = np.full((n, 3), np.log(0.02), np.float32)
     dc = rng.normal(0, 1, (n, 3)).astype(np.float32)
-    fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "f_dc_0": dc[:, 0], "f_dc_1": dc[:, 1],
-              "f_dc_2": dc[:, 2], "scale_0": log_scale[:, 0], "scale_1": log_scale[:, 1],
-              "scale_2": log_scale[:, 2], "semantic": semantic, "instance": instance}  # fmt: skip
-    write_ply(out / "gaussians.ply", {k: np.ascontiguousarray(v) for k, v in fields.items()})
+    quats = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+    opacity = np.zeros(n, np.float32)
+    gaussians = GaussianScene(
+        means=points, sh=dc[:, None, :], opacity_logits=opacity, log_scales=log_scale, quats=quats, fitted=True
+    )
+    write_gaussian_ply(GAUSSIANS_PLY.path(out), gaussians, np.zeros((n, 3), np.float32), semantic, instance)
     dim = 8
     embeddings = np.eye(NUM_CLASSES, dim, dtype=np.float32) + 0.01
     rows = []

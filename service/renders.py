@@ -126,18 +126,19 @@ def check_request(body: RenderCreate, out_dir: Path) -> tuple[int, int]:
     """The render's size; refuses what the child would refuse, with the same messages (422), or 404."""
     from panogs_core.errors import InputError
     from panogs_core.gaussians.views import parse_camera, parse_pose, run_camera
+    from panogs_core.io.run_folder import CAMERAS_JSON, GAUSSIANS_PLY
 
     try:
         parse_pose(body.T_world_cam, "T_world_cam")
         camera = parse_camera(body.camera.model_dump(), "camera") if body.camera else run_camera(out_dir)[0]
     except InputError as exc:
-        if not (out_dir / "cameras.json").is_file():
+        if not CAMERAS_JSON.path(out_dir).is_file():
             raise NotFound("Gaussian scene of job", out_dir.name) from exc
         raise InvalidInput(str(exc)) from exc
     width, height = (body.width, body.height) if body.width and body.height else (camera.width, camera.height)
     if width * height > MAX_RENDER_PIXELS:
         raise InvalidInput(f"size {width}x{height}: a render has at most {MAX_RENDER_PIXELS} pixels")
-    if not (out_dir / "gaussians.ply").is_file():
+    if not GAUSSIANS_PLY.path(out_dir).is_file():
         raise NotFound("Gaussian scene of job", out_dir.name)
     return width, height
 

@@ -67,7 +67,9 @@ class ResultCache:
 
 def read_instances(out_dir: Path) -> list[dict[str, Any]]:
     """instances.json of a finished job."""
-    data = json.loads((out_dir / "instances.json").read_text())
+    from panogs_core.io.run_folder import INSTANCES_JSON
+
+    data = json.loads(INSTANCES_JSON.path(out_dir).read_text())
     return list(data if isinstance(data, list) else data.get("instances", []))
 
 

@@ -34,6 +34,7 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from panogs_core.errors import Cancelled, PanoGSError
+from panogs_core.io.run_folder import DOWNLOADABLE
 from panogs_core.types import Vocabulary
 from service.db import crud
 from service.db.faults import DatabaseFault, classify
@@ -46,17 +47,8 @@ from service.storage import Storage, sha256_file
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
-# The pipeline's outputs that become downloadable artifacts, with their media types.
-ARTIFACTS = {
-    "panoptic.ply": "application/octet-stream",
-    "gaussians.ply": "application/octet-stream",
-    "labels.npz": "application/octet-stream",
-    "instances.json": "application/json",
-    "report.json": "application/json",
-    "metrics.json": "application/json",
-    "vocabulary.json": "application/json",
-    "cameras.json": "application/json",  # the camera and key-frame poses, for renders
-}
+# The pipeline's outputs that become downloadable artifacts, with their media types (the run folder's declaration).
+ARTIFACTS = {name: spec.media_type for name, spec in DOWNLOADABLE.items()}
 
 
 class PipelineFn(Protocol):

@@ -17,6 +17,8 @@ import numpy as np
 
 from panogs_core.errors import ConfigError, ShapeError
 
+# 1 / (2 sqrt(pi)), the DC band's basis value: here rather than in spherical_harmonics, which imports torch.
+SH_C0 = 0.28209479177387814
 # Per-device defaults (see the module docstring and docs/benchmarks.md for the measurements behind them).
 CPU_ITERATIONS = 120
 # The CPU's time budget, as Gaussian-iterations: one iteration costs about 7 us per Gaussian at the CPU fit width
@@ -134,6 +136,10 @@ class GaussianScene:
     def sh_degree(self) -> int:
         return math.isqrt(self.sh.shape[1]) - 1
 
+    def dc_colors(self) -> np.ndarray:  # (N, 3) float32 in [0, 1]
+        """Each Gaussian's colour without its view dependence (the DC band alone), as 3DGS converts it."""
+        return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0).astype(np.float32)
+
     def summary(self) -> dict[str, Any]:
         """The report.json fields of the stage."""
         return {
@@ -188,8 +194,6 @@ class GaussianScene:
 
 def initial_gaussians(prims: Any, colors: np.ndarray, sh_degree: int = 0, note: str = "") -> GaussianScene:
     """The primitives' initialisation as a :class:`GaussianScene`: DC colour, identity rotations, no fit."""
-    from panogs_core.gaussians.spherical_harmonics import SH_C0
-
     n = prims.points.shape[0]
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3), np.float32)
     sh[:, 0, :] = (np.asarray(colors, np.float32) - 0.5) / SH_C0

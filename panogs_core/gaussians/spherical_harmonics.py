@@ -12,9 +12,9 @@ from __future__ import annotations
 import torch
 
 from panogs_core.errors import ConfigError, ShapeError
+from panogs_core.gaussians.config import SH_C0
 
 MAX_DEGREE = 3
-SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi))
 SH_C1 = 0.4886025119029199  # sqrt(3) / (2 sqrt(pi))
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (

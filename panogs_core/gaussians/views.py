@@ -1,8 +1,8 @@
 """Renders of a finished run from any camera: colour, depth, semantic class, instance, and a query's relevance.
 
-Inputs, all in the run's folder: ``gaussians.ply`` (the Gaussian scene with its labels), ``cameras.json`` (the
-bundle's intrinsics and key-frame poses, so that ``--frame ID`` needs no bundle), ``vocabulary.json`` and
-``instances.json`` (for the palette and text queries).
+Inputs, all in the run's folder (:mod:`panogs_core.io.run_folder` declares them): ``gaussians.ply`` (the Gaussian
+scene with its labels), ``cameras.json`` (the bundle's intrinsics and frame poses, so that ``--frame ID`` needs no
+bundle), ``vocabulary.json`` and ``instances.json`` (for the palette and text queries).
 
 A pose is given as JSON: ``{"T_world_cam": 4x4 camera-to-world (OpenCV axes, docs/conventions.md)}``, optionally
 with ``"camera": {"width", "height", "fx", "fy", "cx", "cy"}`` (default: the run's camera) ; ``size`` rescales the
@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import InputError
+from panogs_core.io.run_folder import CAMERAS_JSON, GAUSSIANS_PLY, load_result, load_vocabulary
 from panogs_core.io.run_json import read_run_json
 from panogs_core.types import Camera
 
-CAMERAS_FILE = "cameras.json"
 LABEL_MIN_ALPHA = 0.5  # below this accumulated opacity a pixel shows the background, so it gets no label
 MAX_PIXELS = 4096 * 4096  # a render larger than this is refused (memory)
 OVERLAY_WEIGHT = 0.5  # panoptic colours over the rendered colour
@@ -119,7 +119,7 @@ def resize_camera(camera: Camera, size: tuple[int, int] | None) -> Camera:
 
 def run_camera(run_dir: Path) -> tuple[Camera, dict[str, np.ndarray]]:
     """The run's camera and its frames' poses by id, from ``cameras.json``."""
-    path = run_dir / CAMERAS_FILE
+    path = CAMERAS_JSON.path(run_dir)
     doc = read_run_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
         raise InputError(f"{path}: expected an object with 'camera' and a 'frames' list")
@@ -135,7 +135,7 @@ def view_from_frame(run_dir: Path, frame_id: str, size: tuple[int, int] | None) 
     camera, poses = run_camera(run_dir)
     if frame_id not in poses:
         some = ", ".join(list(poses)[:5])
-        raise InputError(f"--frame {frame_id!r}: no such frame in {run_dir / CAMERAS_FILE} (frames: {some}, ...)")
+        raise InputError(f"--frame {frame_id!r}: no such frame in {CAMERAS_JSON.path(run_dir)} (frames: {some}, ...)")
     return ViewPose(camera=resize_camera(camera, size), T_world_cam=poses[frame_id])
 
 
@@ -165,10 +165,9 @@ class RunScene:
 def load_run_scene(run_dir: str | Path) -> RunScene:
     """``gaussians.ply`` and the vocabulary's thing/stuff kinds of a finished run."""
     from panogs_core.gaussians.ply import read_gaussian_ply
-    from panogs_core.io.run_folder import load_vocabulary
 
     root = Path(run_dir)
-    ply = root / "gaussians.ply"
+    ply = GAUSSIANS_PLY.path(root)
     if not ply.is_file():
         raise InputError(f"{ply}: not found (is this a finished run's folder?)")
     gaussians, semantic, instance = read_gaussian_ply(ply)
@@ -178,7 +177,6 @@ def load_run_scene(run_dir: str | Path) -> RunScene:
 
 def instance_relevance(run_dir: Path, query: str, instance: np.ndarray) -> np.ndarray:  # (N,) float32
     """Per Gaussian: its instance's score for ``query`` (panogs_core.language.query), 0 without an instance."""
-    from panogs_core.io.run_folder import load_result
     from panogs_core.language.query import query_instances
 
     loaded = load_result(run_dir)

@@ -1,22 +1,187 @@
-"""Read a finished run's folder back for queries and evaluation, without the pipeline and without torch.
+"""The run folder: the declaration of every file a run writes, and the reader of a finished run.
+
+``RUN_FILES`` is the one list of a run's files: name, media type, content, the module that writes it, those that
+read it back, whether a finished run may lack it, and whether the API serves it for download. The exporter, the
+run reader, the renders, the viewer, the worker's artifact list and the API's download route take their names
+and media types from it, and the tables of README.md and docs/architecture.md are generated from it
+(``tools/run_folder_docs.py``). The API imports this module: it imports numpy and the bounded readers, never the
+stages or torch.
 
 Queries need ``instances.json``, ``instance_features.npy`` and ``vocabulary.json`` (+ ``vocabulary.npy``);
-evaluation needs ``labels.npz``, ``panoptic.ply`` (the primitive positions) and ``vocabulary.json``. All are written
-by :func:`panogs_core.stages.export.write_outputs`.
+evaluation needs ``labels.npz``, ``panoptic.ply`` (the primitive positions) and ``vocabulary.json``.
+
+>>> DOWNLOADABLE["report.json"].media_type
+'application/json'
+>>> STAGES_FOLDER.path(Path("run")).as_posix()
+'run/stages'
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.io.run_json import read_run_json
-from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
+
+if TYPE_CHECKING:
+    from panogs_core.stages.labeling import InstanceInfo
+
+BINARY = "application/octet-stream"
+JSON = "application/json"
+FOLDER = "inode/directory"  # never served; the shared-mime-info name of a folder
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """One entry of a run's folder."""
+
+    name: str  # relative to the run folder; a folder's name ends with "/"
+    media_type: str  # what the API answers a download with
+    content: str  # one line: the "content" column of the docs tables
+    writer: str  # the module that puts it in the run folder
+    readers: tuple[str, ...]  # the modules that read it back
+    optional: bool = False  # a finished run may lack it (``content`` says when)
+    downloadable: bool = False  # listed and served under ``/v1/jobs/{id}/artifacts``
+
+    @property
+    def is_folder(self) -> bool:
+        return self.name.endswith("/")
+
+    def path(self, run_dir: str | Path) -> Path:
+        """Where it lies in ``run_dir``."""
+        return Path(run_dir) / self.name.rstrip("/")
+
+
+_EXPORT = "panogs_core.stages.export"
+_PIPELINE = "panogs_core.pipeline.run"
+_READER = "panogs_core.io.run_folder"
+
+PANOPTIC_PLY = RunFile(
+    "panoptic.ply",
+    BINARY,
+    "x, y, z, red, green, blue, semantic, instance per primitive; the colours show the segmentation (one colour per "
+    "instance, stuff by class)",
+    _EXPORT,
+    (_READER,),
+    downloadable=True,
+)
+LABELS_NPZ = RunFile(
+    "labels.npz",
+    BINARY,
+    "per primitive `semantic`, `instance`, `superprimitive`, `cluster` (int64, -1 = void) and `class_names`",
+    _EXPORT,
+    (_READER,),
+    downloadable=True,
+)
+INSTANCES_JSON = RunFile(
+    "instances.json",
+    JSON,
+    "per instance: id, class_name, class_index, kind (thing/stuff), score, num_points, centroid, bbox_min, "
+    "bbox_max (axis-aligned)",
+    _EXPORT,
+    (_READER, "service.results", "service.viewer.scene"),
+    downloadable=True,
+)
+INSTANCE_FEATURES_NPY = RunFile(
+    "instance_features.npy",
+    BINARY,
+    "(I, D) float32 unit mean language feature per instance (row = instance id), for queries",
+    _EXPORT,
+    (_READER,),
+)
+VOCABULARY_JSON = RunFile(
+    "vocabulary.json",
+    JSON,
+    "the run's label set (each class's name and kind, thing or stuff), its feature `space`, and `embeddings`: "
+    "the file of the class embeddings",
+    _EXPORT,
+    (_READER, "service.viewer.scene"),
+    downloadable=True,
+)
+VOCABULARY_NPY = RunFile(
+    "vocabulary.npy",
+    BINARY,
+    "(L, D) float32 embedding per class of `vocabulary.json`, in the run's feature space",
+    _EXPORT,
+    (_READER,),
+)
+GAUSSIANS_PLY = RunFile(
+    "gaussians.ply",
+    BINARY,
+    "the Gaussian scene (fitted, else the initialisation) in the standard 3D Gaussian splatting layout (x, y, z, "
+    "nx, ny, nz, `f_dc_*`, `f_rest_*`, logit `opacity`, log `scale_*`, `rot_*`) plus `semantic` and `instance`; "
+    "opens in the common splat viewers",
+    _EXPORT,
+    ("panogs_core.gaussians.views", "service.viewer.scene", "service.renders"),
+    downloadable=True,
+)
+CAMERAS_JSON = RunFile(
+    "cameras.json",
+    JSON,
+    "the camera and the pose of every frame of the bundle, so that `panogs render --frame` needs no bundle",
+    _EXPORT,
+    ("panogs_core.gaussians.views", "service.renders"),
+    downloadable=True,
+)
+REPORT_JSON = RunFile(
+    "report.json",
+    JSON,
+    "per stage: wall time, peak memory, device (`cpu`, `cuda`) and whether it came from a checkpoint; config, "
+    "input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), and `unseen_primitives`: how "
+    "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`)",
+    _PIPELINE,
+    ("bench.speed", "bench.service.bench_service"),
+    downloadable=True,
+)
+METRICS_JSON = RunFile(
+    "metrics.json",
+    JSON,
+    "mIoU, mAcc, PRQ(T), PRQ(S) in `standard` and `paper` modes; only when the bundle has `gt/labels.npz` in the "
+    "run's vocabulary",
+    _EXPORT,
+    ("panogs_core.cli",),
+    optional=True,
+    downloadable=True,
+)
+STAGES_FOLDER = RunFile(
+    "stages/",
+    FOLDER,
+    "the stage checkpoints (`<stage>.npz`), `manifest.json` (the key each was made with) and a stopped fit's "
+    "`appearance.partial.pt`: what a re-run resumes from",
+    _PIPELINE,
+    (_PIPELINE,),
+)
+BUNDLE_FOLDER = RunFile(
+    "bundle/",
+    FOLDER,
+    "the input archive, extracted; only when the run was given a `.zip` or `.tar.gz`",
+    _PIPELINE,
+    (_PIPELINE,),
+    optional=True,
+)
+
+RUN_FILES: tuple[RunFile, ...] = (
+    PANOPTIC_PLY,
+    LABELS_NPZ,
+    INSTANCES_JSON,
+    INSTANCE_FEATURES_NPY,
+    VOCABULARY_JSON,
+    VOCABULARY_NPY,
+    GAUSSIANS_PLY,
+    CAMERAS_JSON,
+    REPORT_JSON,
+    METRICS_JSON,
+    STAGES_FOLDER,
+    BUNDLE_FOLDER,
+)
+# What the API lists and serves for a finished job, by name (docs/service.md).
+DOWNLOADABLE: dict[str, RunFile] = {f.name: f for f in RUN_FILES if f.downloadable}
 
 
 @dataclass(frozen=True)
@@ -40,7 +205,7 @@ class RunLabels:
 
 def load_vocabulary(out_dir: Path) -> tuple[Vocabulary, str]:
     """The run's vocabulary (with embeddings) and its feature space."""
-    doc = read_run_json(out_dir / "vocabulary.json")
+    doc = read_run_json(VOCABULARY_JSON.path(out_dir))
     assert isinstance(doc, dict)
     classes = doc.get("classes", [])
     embeddings = None
@@ -58,16 +223,18 @@ def load_result(out_dir: str | Path) -> LoadedResult:
     Raises:
         InputError: a file is missing or does not match the others.
     """
+    from panogs_core.stages.labeling import InstanceInfo  # here: the labeling stage imports scipy
+
     out = Path(out_dir)
     vocab, space = load_vocabulary(out)
-    rows = read_run_json(out / "instances.json")
+    rows = read_run_json(INSTANCES_JSON.path(out))
     assert isinstance(rows, list)
-    feats_path = out / "instance_features.npy"
+    feats_path = INSTANCE_FEATURES_NPY.path(out)
     if not feats_path.is_file():
         raise InputError(f"{feats_path}: missing; is {out} the --out folder of a finished run?")
     feats = np.load(feats_path, allow_pickle=False).astype(np.float32)
     if feats.shape[0] != len(rows):
-        raise InputError(f"{feats_path}: {feats.shape[0]} rows but instances.json lists {len(rows)} instances")
+        raise InputError(f"{feats_path}: {feats.shape[0]} rows but {INSTANCES_JSON.name} lists {len(rows)} instances")
     instances = tuple(
         InstanceInfo(
             id=int(r["id"]),
@@ -94,7 +261,7 @@ def load_run_labels(out_dir: str | Path) -> RunLabels:
     """
     out = Path(out_dir)
     vocab, _ = load_vocabulary(out)
-    labels_path, ply_path = out / "labels.npz", out / "panoptic.ply"
+    labels_path, ply_path = LABELS_NPZ.path(out), PANOPTIC_PLY.path(out)
     for path in (labels_path, ply_path):
         if not path.is_file():
             raise InputError(f"{path}: missing; is {out} the --out folder of a finished run?")

@@ -24,6 +24,7 @@ import numpy as np
 
 from panogs_core import __version__
 from panogs_core.io.bundle import Bundle, open_bundle
+from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER
 from panogs_core.pipeline import stage_table as st
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
@@ -140,7 +141,7 @@ class _Runner:
     """Runs stages with timing, progress and checkpoints; holds nothing but bookkeeping."""
 
     def __init__(self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None) -> None:
-        self.checkpoints = _Checkpoints(out_dir / "stages", resume)
+        self.checkpoints = _Checkpoints(STAGES_FOLDER.path(out_dir), resume)
         self.on_progress = on_progress
         self.timings: list[StageStats] = []
 
@@ -247,7 +248,8 @@ def run_pipeline(
     t_start = time.perf_counter()
 
     scene = runner.step(
-        "validate", lambda _: bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=out / "bundle")
+        "validate",
+        lambda _: bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out)),
     )
     input_hash = hash_bundle(scene)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
@@ -341,5 +343,5 @@ def _write_report(
             "cuda": torch.version.cuda,  # None in a CPU build of torch
         },
     }
-    (out / "report.json").write_text(json.dumps(report, indent=2))
-    result.files["report.json"] = out / "report.json"
+    REPORT_JSON.path(out).write_text(json.dumps(report, indent=2))
+    result.files[REPORT_JSON.name] = REPORT_JSON.path(out)

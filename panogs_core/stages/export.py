@@ -1,22 +1,9 @@
-"""Write a run's outputs (docs/architecture.md, "Outputs of a run"); compute metrics when there is ground truth.
+"""Write a run's outputs; compute metrics when there is ground truth.
 
-Files, all in the run's folder:
-
-- ``panoptic.ply``: x, y, z, red, green, blue, semantic, instance per primitive. red/green/blue colour the panoptic
-  segmentation (one colour per instance, stuff by class) so it reads at a glance in any PLY viewer; the captured
-  colours are in ``gaussians.ply``.
-- ``labels.npz``: per primitive ``semantic``, ``instance``, ``superprimitive``, ``cluster`` (int64, -1 void) and
-  ``class_names``.
-- ``instances.json``: a list of instances (id, class_name, class_index, kind, score, num_points, centroid,
-  bbox_min, bbox_max).
-- ``instance_features.npy``: (I, D) float32 unit mean language feature per instance (row = instance id), for
-  vector and text queries without the pipeline.
-- ``vocabulary.json`` + ``vocabulary.npy``: the label set the run used, with the feature space.
-- ``gaussians.ply``: the Gaussian scene (fitted by the appearance stage, else the initialisation with the
-  geometry's or fused colours) in the standard 3D Gaussian splatting layout (x, y, z, nx, ny, nz, f_dc_0..2,
-  f_rest_*, opacity, scale_0..2, rot_0..3; panogs_core/gaussians/ply.py) plus ``semantic`` and ``instance``.
-- ``cameras.json``: the camera and every frame's pose, so that ``panogs render --frame ID`` needs no bundle.
-- ``metrics.json`` when the bundle has ``gt/labels.npz`` (standard and paper modes).
+The files, their names and what each holds are declared once, in :mod:`panogs_core.io.run_folder` (``RUN_FILES``;
+docs/architecture.md, "Outputs of a run", is generated from it). ``panoptic.ply``'s red/green/blue colour the
+panoptic segmentation (one colour per instance, stuff by class) so that it reads at a glance in any PLY viewer;
+the captured colours are in ``gaussians.ply``.
 """
 
 from __future__ import annotations
@@ -30,6 +17,17 @@ import numpy as np
 from panogs_core.gaussians.config import GaussianScene, initial_gaussians
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.ply import write_ply
+from panogs_core.io.run_folder import (
+    CAMERAS_JSON,
+    GAUSSIANS_PLY,
+    INSTANCE_FEATURES_NPY,
+    INSTANCES_JSON,
+    LABELS_NPZ,
+    METRICS_JSON,
+    PANOPTIC_PLY,
+    VOCABULARY_JSON,
+    VOCABULARY_NPY,
+)
 from panogs_core.palette import panoptic_colors
 from panogs_core.stages.clustering import Clusters
 from panogs_core.stages.fusion import FusedFeatures
@@ -39,14 +37,17 @@ from panogs_core.stages.superprimitives import SuperPrimitives
 from panogs_core.types import Vocabulary
 
 
-def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> None:
-    """``vocabulary.json`` (bundle format + ``space``) and ``vocabulary.npy``."""
+def write_vocabulary(out: Path, vocab: Vocabulary, feature_space: str) -> dict[str, Path]:
+    """``vocabulary.json`` (bundle format + ``space``) and ``vocabulary.npy``; returns the paths written."""
     classes = [{"name": n, "kind": k} for n, k in zip(vocab.names, vocab.kinds, strict=True)]
     doc: dict[str, Any] = {"classes": classes, "space": feature_space}
+    files = {VOCABULARY_JSON.name: VOCABULARY_JSON.path(out)}
     if vocab.embeddings is not None:
-        np.save(out / "vocabulary.npy", np.asarray(vocab.embeddings, dtype=np.float32))
-        doc["embeddings"] = "vocabulary.npy"
-    (out / "vocabulary.json").write_text(json.dumps(doc, indent=1))
+        files[VOCABULARY_NPY.name] = VOCABULARY_NPY.path(out)
+        np.save(files[VOCABULARY_NPY.name], np.asarray(vocab.embeddings, dtype=np.float32))
+        doc["embeddings"] = VOCABULARY_NPY.name
+    files[VOCABULARY_JSON.name].write_text(json.dumps(doc, indent=1))
+    return files
 
 
 def write_gaussians(
@@ -93,9 +94,9 @@ def write_outputs(
     pts = np.asarray(prims.points, dtype=np.float32)
 
     rgb = panoptic_colors(semantic, instance, vocab.is_thing)
-    files["panoptic.ply"] = out / "panoptic.ply"
+    files[PANOPTIC_PLY.name] = PANOPTIC_PLY.path(out)
     write_ply(
-        files["panoptic.ply"],
+        files[PANOPTIC_PLY.name],
         {
             "x": pts[:, 0],
             "y": pts[:, 1],
@@ -107,9 +108,9 @@ def write_outputs(
             "instance": instance.astype(np.int32),
         },
     )
-    files["labels.npz"] = out / "labels.npz"
+    files[LABELS_NPZ.name] = LABELS_NPZ.path(out)
     np.savez_compressed(
-        files["labels.npz"],
+        files[LABELS_NPZ.name],
         semantic=semantic,
         instance=instance,
         superprimitive=np.asarray(superprimitives.labels, dtype=np.int64),
@@ -117,28 +118,27 @@ def write_outputs(
         class_names=np.array(vocab.names),
     )
     instances = [i.to_json() for i in labels.instances]
-    files["instances.json"] = out / "instances.json"
-    files["instances.json"].write_text(json.dumps(instances, indent=1))
+    files[INSTANCES_JSON.name] = INSTANCES_JSON.path(out)
+    files[INSTANCES_JSON.name].write_text(json.dumps(instances, indent=1))
     dim = vocab.embeddings.shape[1] if vocab.embeddings is not None else 0
     feats = (
         np.stack([np.asarray(i.feature, np.float32) for i in labels.instances])
         if instances
         else np.zeros((0, dim), np.float32)
     )
-    files["instance_features.npy"] = out / "instance_features.npy"
-    np.save(files["instance_features.npy"], feats)
-    write_vocabulary(out, vocab, scene.feature_space)
-    files["vocabulary.json"] = out / "vocabulary.json"
-    files["gaussians.ply"] = out / "gaussians.ply"
-    write_gaussians(files["gaussians.ply"], prims, primitive_colors(prims, fused), semantic, instance, gaussians)
+    files[INSTANCE_FEATURES_NPY.name] = INSTANCE_FEATURES_NPY.path(out)
+    np.save(files[INSTANCE_FEATURES_NPY.name], feats)
+    files.update(write_vocabulary(out, vocab, scene.feature_space))
+    files[GAUSSIANS_PLY.name] = GAUSSIANS_PLY.path(out)
+    write_gaussians(files[GAUSSIANS_PLY.name], prims, primitive_colors(prims, fused), semantic, instance, gaussians)
     from panogs_core.gaussians.views import write_cameras
 
-    files["cameras.json"] = write_cameras(out / "cameras.json", scene.camera, scene.frames)
+    files[CAMERAS_JSON.name] = write_cameras(CAMERAS_JSON.path(out), scene.camera, scene.frames)
 
     metrics = compute_metrics(scene, pts, semantic, instance, vocab)
     if metrics is not None:
-        files["metrics.json"] = out / "metrics.json"
-        files["metrics.json"].write_text(json.dumps(metrics, indent=2))
+        files[METRICS_JSON.name] = METRICS_JSON.path(out)
+        files[METRICS_JSON.name].write_text(json.dumps(metrics, indent=2))
     return files, metrics
 
 

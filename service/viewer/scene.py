@@ -14,7 +14,8 @@ Arrays: ``position`` float32 (N, 3), ``color`` uint8 (N, 3) camera colour, ``sem
 
 The header carries the classes (name, kind, palette colour, primitive count), the instances of ``instances.json``
 (with their colour), the bounds, and the primitive count before decimation. Built from ``gaussians.ply`` (colour
-and scale) and ``vocabulary.json``/``instances.json``; numpy only, so ``panogs view`` needs no pipeline.
+and scale, read by the core's Gaussian PLY reader) and ``vocabulary.json``/``instances.json``, as
+``panogs_core.io.run_folder`` declares them; numpy only, so ``panogs view`` needs no pipeline.
 """
 
 from __future__ import annotations
@@ -28,13 +29,13 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import InputError
-from panogs_core.io.ply import read_ply_vertices
+from panogs_core.gaussians.ply import read_gaussian_ply
+from panogs_core.io.run_folder import GAUSSIANS_PLY, INSTANCES_JSON, VOCABULARY_JSON
 from panogs_core.io.run_json import read_run_json
 from panogs_core.palette import VOID_COLOR, class_color, instance_color
 
 MAGIC = b"PGSV"
 FORMAT_VERSION = 1
-SH_C0 = 0.28209479177387814  # 3DGS: colour = 0.5 + SH_C0 * f_dc
 DECIMATION_SEED = 0  # the same run decimated twice keeps the same primitives
 
 
@@ -48,15 +49,18 @@ class ViewerScene:
 
 
 def _read_primitives(run_dir: Path) -> dict[str, np.ndarray]:
-    path = run_dir / "gaussians.ply"
+    """Per Gaussian: position, DC colour in [0, 1], log scales, class and instance."""
+    path = GAUSSIANS_PLY.path(run_dir)
     if not path.is_file():
         raise InputError(f"{path}: missing; is {run_dir} the --out folder of a finished run?")
-    vertices = read_ply_vertices(path)
-    needed = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "scale_0", "scale_1", "scale_2", "semantic", "instance"}
-    missing = sorted(needed - vertices.keys())
-    if missing:
-        raise InputError(f"{path}: vertex properties {', '.join(missing)} missing")
-    return vertices
+    gaussians, semantic, instance = read_gaussian_ply(path)
+    return {
+        "position": gaussians.means,
+        "color": gaussians.dc_colors(),
+        "log_scale": gaussians.log_scales,
+        "semantic": semantic,
+        "instance": instance,
+    }
 
 
 def decimation_indices(total: int, limit: int | None) -> np.ndarray | None:
@@ -81,22 +85,20 @@ def build_scene(
         InputError: a file of the run is missing or does not match the others.
     """
     run = Path(run_dir)
-    vocabulary = read_run_json(run / "vocabulary.json")
-    instances = read_run_json(run / "instances.json")
+    vocabulary = read_run_json(VOCABULARY_JSON.path(run))
+    instances = read_run_json(INSTANCES_JSON.path(run))
     if isinstance(instances, dict):
         instances = instances.get("instances", [])
     v = _read_primitives(run)
-    total = int(v["x"].shape[0])
+    total = int(v["position"].shape[0])
     keep = decimation_indices(total, max_primitives)
 
     def column(name: str) -> np.ndarray:
         return v[name] if keep is None else v[name][keep]
 
-    position = np.stack([column("x"), column("y"), column("z")], axis=1).astype(np.float32)
-    dc = np.stack([column("f_dc_0"), column("f_dc_1"), column("f_dc_2")], axis=1)
-    color = np.clip((0.5 + SH_C0 * dc) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    log_scale = np.stack([column("scale_0"), column("scale_1"), column("scale_2")], axis=1)
-    scale = np.exp(log_scale.astype(np.float64)).mean(axis=1).astype(np.float32)
+    position = column("position").astype(np.float32)
+    color = (column("color") * 255.0 + 0.5).astype(np.uint8)
+    scale = np.exp(column("log_scale").astype(np.float64)).mean(axis=1).astype(np.float32)
     semantic = column("semantic").astype(np.int16)
     instance = column("instance").astype(np.int32)
 

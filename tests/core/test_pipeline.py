@@ -12,7 +12,7 @@ import pytest
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import BundleError, Cancelled, InputError
 from panogs_core.io.ply import read_ply_vertices
-from panogs_core.io.run_folder import load_result
+from panogs_core.io.run_folder import RUN_FILES, load_result
 from panogs_core.language.query import query_instances
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import STAGES, run_pipeline
@@ -67,6 +67,20 @@ def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> 
         assert np.all(pts <= np.array(inst["bbox_max"]) + 1e-5)
     gauss = read_ply_vertices(out / "gaussians.ply")
     assert {"f_dc_0", "opacity", "scale_0", "rot_0", "semantic"} <= set(gauss)
+
+
+def test_the_run_folder_holds_what_its_declaration_lists(tiny_run: tuple[Path, object, list]) -> None:
+    """Every file the exporter and the pipeline write is declared, and every file a run always has is there."""
+    out, result, _ = tiny_run
+    declared = {spec.name.rstrip("/"): spec for spec in RUN_FILES}
+    written = {path.name: path.is_dir() for path in out.iterdir()}
+    undeclared = sorted(set(written) - set(declared))
+    assert undeclared == [], f"written but not declared in panogs_core/io/run_folder.py: {undeclared}"
+    assert set(result.files) <= {spec.name for spec in RUN_FILES if not spec.is_folder}
+    for name, is_dir in written.items():
+        assert is_dir == declared[name].is_folder, name
+    missing = sorted(name for name, spec in declared.items() if not spec.optional and name not in written)
+    assert missing == [], f"declared as always written, but absent: {missing}"
 
 
 def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:

@@ -11,9 +11,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from declared_run import write_declared_files
 from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
 
+from panogs_core.io.run_folder import DOWNLOADABLE, RUN_FILES
+from service.db.models import Artifact
+from service.db.session import get_session_factory, session_scope
 from service.encoder import EncoderProcess
 from service.main import create_app
 from service.settings import Settings
@@ -98,6 +102,33 @@ class TestInstancesAndDownloads:
     @pytest.mark.parametrize("name", ["gaussians.ply", "..%2F..%2Fpanogs.db", "stages", "instance_features.npy"])
     def test_unknown_artifact(self, client: TestClient, auth: dict[str, str], job_id: str, name: str) -> None:
         assert client.get(f"/v1/jobs/{job_id}/artifacts/{name}", headers=auth).status_code == 404
+
+
+def test_the_api_serves_the_declared_downloads(
+    client: TestClient, auth: dict[str, str], tiny_zip: bytes, settings: Settings
+) -> None:
+    """Of a run folder holding every declared file, the API lists and serves exactly the declared downloads, with
+    the declared media types, even where a row names another file."""
+    scene = make_scene(client, auth, tiny_zip)
+    job_id = client.post("/v1/jobs", json={"scene_id": scene["id"]}, headers=auth).json()["id"]
+    out_dir = Storage(settings.storage).job_dir(uuid.UUID(job_id))
+    write_declared_files(out_dir)
+    mark_succeeded(settings, uuid.UUID(job_id))
+    with session_scope(get_session_factory(settings.database)) as session:  # a row the declaration does not serve
+        path = Storage(settings.storage).rel(out_dir / "instance_features.npy")
+        session.add(Artifact(job_id=uuid.UUID(job_id), name="instance_features.npy", path=path, size_bytes=1,
+                             sha256="0" * 64, media_type="application/octet-stream"))  # fmt: skip
+        session.commit()
+    listed = client.get(f"/v1/jobs/{job_id}/artifacts", headers=auth).json()["data"]
+    assert {a["name"]: a["media_type"] for a in listed} == {n: f.media_type for n, f in DOWNLOADABLE.items()}
+    for spec in RUN_FILES:
+        response = client.get(f"/v1/jobs/{job_id}/artifacts/{spec.name.rstrip('/')}", headers=auth)
+        if spec.downloadable:
+            assert response.status_code == 200, spec.name
+            assert response.headers["content-type"] == spec.media_type
+            assert response.content == spec.name.encode()
+        else:
+            assert response.status_code == 404, spec.name
 
 
 class TestQuery:

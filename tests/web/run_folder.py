@@ -8,9 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from panogs_core.io.ply import write_ply
+from panogs_core.gaussians.config import SH_C0, GaussianScene
+from panogs_core.gaussians.ply import write_gaussian_ply
+from panogs_core.io.run_folder import GAUSSIANS_PLY
 
-SH_C0 = 0.28209479177387814
 CLASSES = [("wall", "stuff"), ("chair", "thing"), ("table", "thing")]
 
 
@@ -24,12 +25,12 @@ def write_run(out: Path, n: int = 60, dim: int = 8) -> dict[str, Any]:
     instance = (np.arange(n) % 3).astype(np.int32)
     semantic = instance.copy()
     semantic[:5], instance[:5] = -1, -1
-    dc = (colors - 0.5) / SH_C0
-    fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
-              "f_dc_0": dc[:, 0], "f_dc_1": dc[:, 1], "f_dc_2": dc[:, 2], "opacity": np.ones(n, np.float32),
-              "scale_0": log_scale[:, 0], "scale_1": log_scale[:, 1], "scale_2": log_scale[:, 2],
-              "semantic": semantic, "instance": instance}  # fmt: skip
-    write_ply(out / "gaussians.ply", {k: np.ascontiguousarray(v) for k, v in fields.items()})
+    sh = ((colors - 0.5) / SH_C0)[:, None, :]  # the DC band only
+    quats = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+    gaussians = GaussianScene(
+        means=points, sh=sh, opacity_logits=np.ones(n, np.float32), log_scales=log_scale, quats=quats, fitted=True
+    )
+    write_gaussian_ply(GAUSSIANS_PLY.path(out), gaussians, np.zeros((n, 3), np.float32), semantic, instance)
     embeddings = np.eye(len(CLASSES), dim, dtype=np.float32)
     rows, feats = [], []
     for k, (name, kind) in enumerate(CLASSES):

@@ -14,11 +14,13 @@ from typing import Any
 import numpy as np
 import pytest
 import scripted_pipeline as scripted
+from declared_run import write_declared_files
 from sqlalchemy import create_engine, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 from wk_helpers import read_job, update_job
 
 from panogs_core.errors import InputError
+from panogs_core.io.run_folder import DOWNLOADABLE
 from service.db.base import utcnow
 from service.db.models import JobState
 from service.settings import Settings
@@ -49,6 +51,18 @@ class TestSuccess:
         ply = next(a for a in job.artifacts if a.name == "panoptic.ply")
         assert ply.size_bytes == (settings.storage / ply.path).stat().st_size
         assert len(ply.sha256) == 64
+
+    def test_artifacts_are_the_declared_downloads(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
+        """Given every file the run folder declares, the worker records exactly those the API serves."""
+        job_id = make_job()
+
+        def every_file(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            write_declared_files(out_dir)
+            return scripted.ScriptedResult(out_dir=out_dir, instances=[])
+
+        assert _run(make_env(every_file), job_id) == JobState.SUCCEEDED
+        recorded = {a.name: a.media_type for a in read_job(settings, job_id).artifacts}
+        assert recorded == {name: spec.media_type for name, spec in DOWNLOADABLE.items()}
 
     def test_progress_written_while_running(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
         job_id = make_job()

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
+from panogs_core.io.run_folder import DOWNLOADABLE
 from service import results
 from service.api.deps import JobDep, SettingsDep, StorageDep, TenantDep
 from service.db.models import Job, JobState
@@ -50,10 +51,11 @@ def list_artifacts(job: JobDep) -> ArtifactsPublic:
             name=a.name,
             size_bytes=a.size_bytes,
             sha256=a.sha256,
-            media_type=a.media_type,
+            media_type=DOWNLOADABLE[a.name].media_type,
             url=f"/v1/jobs/{job.id}/artifacts/{a.name}",
         )
         for a in _finished(job).artifacts
+        if a.name in DOWNLOADABLE  # a row the declaration no longer serves is neither listed nor served
     ]
     return ArtifactsPublic(data=data, count=len(data))
 
@@ -68,16 +70,16 @@ def list_artifacts(job: JobDep) -> ArtifactsPublic:
     },
 )
 def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileResponse:
-    """Download one file (``panoptic.ply``, ``labels.npz``, ``gaussians.ply``, ``report.json`` ...).
+    """Download one file of ``panogs_core.io.run_folder.DOWNLOADABLE`` (``panoptic.ply``, ``gaussians.ply`` ...).
 
     Supports ``Range: bytes=start-end`` (206) to resume an interrupted download.
     """
     artifact = next((a for a in _finished(job).artifacts if a.name == name), None)
-    if artifact is None:
+    if artifact is None or name not in DOWNLOADABLE:
         raise NotFound("artifact", name)
     return FileResponse(
         storage.path(artifact.path),
-        media_type=artifact.media_type,
+        media_type=DOWNLOADABLE[name].media_type,
         filename=artifact.name,
         headers={"ETag": f'"{artifact.sha256}"', "Cache-Control": "private, max-age=3600"},
     )
