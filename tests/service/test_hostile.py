@@ -158,12 +158,12 @@ def _secret_vocabulary(root: Path) -> None:
 
 
 def _settings(tmp: Path, backend: str, **overrides: Any) -> Settings:
+    # No stand-in pipeline: jobs are only created here, never run, and their config is checked by the real
+    # PipelineConfig.
     values: dict[str, Any] = {
         "data_dir": tmp / "data",
         "api_key_cache_s": 0,
         "status_cache_s": 0,
-        # Jobs are only created here, never run: their config is checked by the real PipelineConfig.
-        "pipeline_function": "panogs_core.pipeline.run:run_pipeline",
         "query_encoder": "off",  # free text needs no encoder process: it is refused (422) unless it is a class
         "quota_concurrent_jobs": None,
         "max_upload_bytes": 50_000_000,

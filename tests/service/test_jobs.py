@@ -84,7 +84,7 @@ class TestCreate:
 
     def test_real_pipeline_config_is_checked(self, make_settings: Callable[..., Settings], tiny_zip: bytes) -> None:
         pytest.importorskip("panogs_core.pipeline.config", reason="the core's PipelineConfig is not importable yet")
-        settings = make_settings("postgres", pipeline_function="panogs_core.pipeline.run:run_pipeline")
+        settings = make_settings("postgres", stand_in=None)
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
             auth = new_key(settings)
             scene = make_scene(client, auth, tiny_zip)

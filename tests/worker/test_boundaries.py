@@ -14,7 +14,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("service", "worker")
-TEST_ONLY = ("scripted_pipeline", "service_harness", "fresh_install", "tests")
+TEST_ONLY = ("scripted_pipeline", "thread_probe", "pipeline_stand_in", "service_harness", "fresh_install", "tests")
 # Alembic scripts: Alembic runs them inside its own context; importing them outside it is meaningless.
 NOT_MODULES = ("service.db.migrations.env",)
 

@@ -48,8 +48,8 @@ def test_embedded_broker_app_writes_nothing(tmp_path: Path) -> None:
 
 def test_worker_app_runs_jobs_with_the_settings_it_was_given(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Explicit settings win over the environment, and the job environment is built by the first task only."""
-    monkeypatch.setenv("PANOGS_PIPELINE_FUNCTION", "no_such_module:run")  # what the environment would say
-    settings = Settings(_env_file=None, data_dir=tmp_path / "data", pipeline_function="scripted_pipeline:run_pipeline")  # type: ignore[call-arg]
+    monkeypatch.setenv("PANOGS_JOB_QUEUE", "not-this-queue")  # what the environment would say
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", job_queue="gpu")  # type: ignore[call-arg]
     built: list[Settings] = []
     monkeypatch.setattr(tasks, "build_job_env", lambda s, _shutdown: built.append(s) or "env")
     monkeypatch.setattr(tasks, "run_job", lambda env, job_id, **_kw: f"{env}:{job_id}")
