@@ -31,9 +31,9 @@ from service_harness import (
 from sqlalchemy import text
 from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
 
+from service.api_app import create_app
 from service.db.migrate import upgrade
 from service.db.session import get_engine
-from service.main import create_app
 from service.settings import Settings
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)

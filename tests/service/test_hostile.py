@@ -70,10 +70,10 @@ from panogs_core.gaussians.ply import write_gaussian_ply
 from panogs_core.gaussians.views import write_cameras
 from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
+from service.api_app import create_app
 from service.db.migrate import upgrade
 from service.db.models import Job, Upload
 from service.db.session import get_engine, get_session_factory, session_scope
-from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
 

@@ -22,9 +22,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key
 
+from service.api_app import create_app
 from service.db.models import Job, JobState, Scene
 from service.db.session import get_session_factory, session_scope
-from service.main import create_app
 from service.schemas import MAX_VOCABULARY_CLASSES
 from service.settings import Settings
 from service.storage import Storage

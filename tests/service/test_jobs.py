@@ -11,10 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key
 
+from service.api_app import create_app
 from service.broker import TaskName
 from service.db.models import Job, JobState
 from service.db.session import get_session_factory, session_scope
-from service.main import create_app
 from service.settings import Settings
 
 

@@ -14,8 +14,8 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
 
+from service.api_app import create_app
 from service.encoder import EncoderProcess
-from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
 

@@ -25,8 +25,8 @@ from service_harness import SCRIPTED_PIPELINE
 from sqlalchemy import text
 from svc_helpers import RecordingSender, make_scene, new_key, pack, write_tiny_bundle
 
+from service.api_app import create_app
 from service.db.session import get_engine
-from service.main import create_app
 from service.settings import Settings
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]

@@ -13,7 +13,7 @@ import pytest
 from service.broker import QueueName, TaskName, create_celery_app
 from service.settings import Settings
 from worker import tasks
-from worker.app import create_worker_app
+from worker.celery_app import create_worker_app
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -81,9 +81,9 @@ def test_worker_modules_do_not_import_torch(tmp_path: Path) -> None:
     """A prefork parent that imported torch deadlocks its children: building the worker app must not pull it
     in (the CUDA check and the pipeline are loaded by the first task)."""
     code = (
-        "import sys, worker.tasks, worker.app, worker.runner, worker.cli, worker.device\n"
+        "import sys, worker.tasks, worker.celery_app, worker.runner, worker.cli, worker.device\n"
         "from service.settings import Settings\n"
-        "worker.app.create_worker_app(Settings(_env_file=None, data_dir=sys.argv[1]))\n"
+        "worker.celery_app.create_worker_app(Settings(_env_file=None, data_dir=sys.argv[1]))\n"
         "print('torch' in sys.modules)"
     )
     argv = [sys.executable, "-c", code, str(tmp_path / "data")]
