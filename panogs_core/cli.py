@@ -522,6 +522,7 @@ def add_command_groups(sub: Any, groups: Iterable[EntryPoint] | None = None) -> 
     module; any other error of loading it, above all an import error of our own code, is raised.
     """
     found = sorted(entry_points(group=COMMAND_GROUP) if groups is None else groups, key=lambda ep: ep.name)
+    # Our packages: a module of theirs that is missing is a bug to show, not an extra to install.
     own = {"panogs_core"} | {ep.module.partition(".")[0] for ep in found}
     skipped = []
     for ep in found:
