@@ -1,5 +1,5 @@
-"""The ``panogs`` command line: synth, import, validate, run, eval, query (and serve / keys / worker from the service
-and the worker).
+"""The ``panogs`` command line: synth, import, validate, run, eval, query, render, and the commands of the
+installed extras, found through the ``panogs.commands`` entry points (:func:`add_command_groups`).
 
 Every command calls the same library functions as the service. Heavy modules are imported inside the commands,
 so ``panogs --help`` is instant.
@@ -11,11 +11,14 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from importlib.metadata import Distribution, EntryPoint, PackageNotFoundError, distribution, entry_points
 from pathlib import Path
-from typing import Any, Protocol, TextIO
+from typing import Any, NoReturn, Protocol, TextIO
 
 from panogs_core.errors import PanoGSError
 
@@ -352,7 +355,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every command."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="panogs", description="Open-vocabulary 3D panoptic segmentation (PanoGS) of posed RGB-D captures."
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log stage details")
@@ -435,7 +438,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_query)
 
     _add_render_command(sub)
-    _add_optional_commands(sub)
+    parser.not_installed = tuple(add_command_groups(sub))
+    if parser.not_installed:
+        parser.epilog = not_installed_text(parser.not_installed)
     return parser
 
 
@@ -474,16 +479,111 @@ def _add_render_command(sub: Any) -> None:
     p.set_defaults(func=_cmd_render)
 
 
-def _add_optional_commands(sub: Any) -> None:
-    """``serve`` / ``keys`` from the service and ``worker`` from the worker, when installed; the core never
-    depends on them."""
-    try:
-        from service.cli import add_service_commands
-        from worker.cli import add_worker_commands
-    except ImportError:
-        return
-    add_service_commands(sub)
-    add_worker_commands(sub)
+COMMAND_GROUP = "panogs.commands"  # entry points "<extra> = module:add_commands" (pyproject.toml)
+_REQUIREMENT = re.compile(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*(?:\[([^\]]*)\])?")
+_EXTRA_MARKER = re.compile(r"""\bextra\s*==\s*['"]([^'"]+)['"]""")
+
+
+@dataclass(frozen=True)
+class MissingGroup:
+    """A command group this install lacks: its entry point's name, the extra that brings it and what is missing."""
+
+    name: str
+    install: str | None  # e.g. "pip install 'panogs[service]'"; None when no extra of that name exists
+    missing: tuple[str, ...]
+
+    def describe(self) -> str:
+        how = f"{self.install}; " if self.install else ""
+        return f"the {self.name} commands ({how}this install lacks {', '.join(self.missing)})"
+
+
+def not_installed_text(groups: Iterable[MissingGroup]) -> str:
+    """One sentence naming the command groups this install lacks and how to install them."""
+    return "Not installed: " + "; ".join(group.describe() for group in groups) + "."
+
+
+class _Parser(argparse.ArgumentParser):
+    """An unknown command also names the command groups this install lacks, with the extra that brings each."""
+
+    not_installed: tuple[MissingGroup, ...] = ()
+
+    def error(self, message: str) -> NoReturn:
+        if self.not_installed and "invalid choice" in message:
+            message = f"{message}\n{not_installed_text(self.not_installed)}"
+        super().error(message)
+
+
+def add_command_groups(sub: Any, groups: Iterable[EntryPoint] | None = None) -> list[MissingGroup]:
+    """Add the commands of every ``panogs.commands`` entry point (default: the installed ones) to ``sub``.
+
+    Each entry point is named for the extra its commands need (``service``, ``worker``) and names a function
+    that adds them to an argparse subparsers object; the core never imports those packages itself. A group is
+    skipped, and returned, when that extra's distributions are not installed or loading it misses a third-party
+    module; any other error of loading it, above all an import error of our own code, is raised.
+    """
+    found = sorted(entry_points(group=COMMAND_GROUP) if groups is None else groups, key=lambda ep: ep.name)
+    # Our packages: a module of theirs that is missing is a bug to show, not an extra to install.
+    own = {"panogs_core"} | {ep.module.partition(".")[0] for ep in found}
+    skipped = []
+    for ep in found:
+        dist: Distribution | None = getattr(ep, "dist", None)
+        missing = _missing_distributions(dist, ep.name)
+        if not missing:
+            try:
+                add = ep.load()
+            except ModuleNotFoundError as exc:
+                if exc.name is None or exc.name.partition(".")[0] in own:
+                    raise
+                missing = (exc.name,)
+            else:
+                add(sub)
+                continue
+        install = f"pip install '{dist.name}[{ep.name}]'" if dist is not None and _has_extra(dist, ep.name) else None
+        skipped.append(MissingGroup(ep.name, install, missing))
+    return skipped
+
+
+def _normal(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _extra_requirements(dist: Distribution) -> dict[str, list[tuple[str, list[str]]]]:
+    """``dist``'s requirements by extra: (distribution name, its extras) per line of ``Requires-Dist``."""
+    by_extra: dict[str, list[tuple[str, list[str]]]] = {}
+    for line in dist.requires or ():
+        spec, _, marker = line.partition(";")
+        extra, name = _EXTRA_MARKER.search(marker), _REQUIREMENT.match(spec)
+        if extra is not None and name is not None:
+            extras = [e.strip() for e in (name[2] or "").split(",") if e.strip()]
+            by_extra.setdefault(_normal(extra[1]), []).append((name[1], extras))
+    return by_extra
+
+
+def _has_extra(dist: Distribution, extra: str) -> bool:
+    return _normal(extra) in _extra_requirements(dist)
+
+
+def _missing_distributions(dist: Distribution | None, extra: str) -> tuple[str, ...]:
+    """The distributions that ``extra`` of ``dist`` requires and this install lacks, through the extras of
+    ``dist`` that it includes (``worker`` is ``panogs[service,pipeline]``); none when ``dist`` has no such extra."""
+    if dist is None:
+        return ()
+    by_extra = _extra_requirements(dist)
+    todo, seen, missing = [_normal(extra)], set(), set()
+    while todo:
+        current = todo.pop()
+        if current in seen:
+            continue
+        seen.add(current)
+        for name, extras in by_extra.get(current, ()):
+            if _normal(name) == _normal(dist.name):
+                todo.extend(_normal(e) for e in extras)
+                continue
+            try:
+                distribution(name)
+            except PackageNotFoundError:
+                missing.add(name)
+    return tuple(sorted(missing))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """The broker side of the job queue: task and queue names, the Celery app's configuration, and a ping.
 
 Both the API (which publishes jobs by task name) and the worker (which registers the task under that name) build
-their Celery app with :func:`create_celery_app`; the worker adds its task code on top (``worker.app``). Only the
+their Celery app with :func:`create_celery_app`; the worker adds its task code on top (``worker.celery_app``). Only the
 worker imports this module's names from the service, never the other way round, so the API never imports task
 code, and importing this module builds nothing and writes nothing.
 

@@ -116,7 +116,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # docker stop: same clean path as Ctrl-C
     try:
         uvicorn.run(
-            "service.main:create_app",
+            "service.api_app:create_app",
             factory=True,
             host=args.host,
             port=args.port,

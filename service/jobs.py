@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 import uuid
-from collections.abc import Callable
 from typing import Any
 
 from sqlalchemy import Engine, Row
@@ -22,25 +20,20 @@ from service.settings import Settings
 from service.stored_text import printable_text
 
 
-def config_factory(pipeline_function: str) -> Callable[[dict[str, Any]], Any]:
-    """What turns a job's overrides into the pipeline's config: ``PipelineConfig.from_dict``, or the
-    ``make_config`` of the module of a stand-in pipeline (``Settings.pipeline_function``)."""
-    module_name = pipeline_function.partition(":")[0]
-    if module_name != "panogs_core.pipeline.run":
-        make_config = getattr(importlib.import_module(module_name), "make_config", None)
-        if make_config is not None:
-            return make_config  # type: ignore[no-any-return]
+def pipeline_config(overrides: dict[str, Any]) -> Any:
+    """A job's pipeline config from its overrides: ``PipelineConfig.from_dict``, which the API checks them with and
+    the worker runs them with. Tests put their stand-in pipeline's here (tests/support/pipeline_stand_in.py)."""
     from panogs_core.pipeline.config import PipelineConfig
 
-    return PipelineConfig.from_dict
+    return PipelineConfig.from_dict(overrides)
 
 
-def validate_config(overrides: dict[str, Any], pipeline_function: str) -> None:
+def validate_config(overrides: dict[str, Any]) -> None:
     """Refuse overrides that the pipeline's config refuses (unknown keys, bad values), with its message."""
     from panogs_core.errors import ConfigError
 
     try:
-        config_factory(pipeline_function)(overrides)
+        pipeline_config(overrides)
     except ConfigError as exc:
         raise InvalidInput("the pipeline config overrides are not valid", problems=[_shortened(str(exc))]) from exc
 
@@ -78,7 +71,7 @@ def create_job(
     scene = crud.get_owned(session, Scene, body.scene_id, tenant_id)
     if scene is None:
         raise NotFound("scene", body.scene_id)
-    validate_config(body.config, settings.pipeline_function)
+    validate_config(body.config)
     check_vocabulary(body, scene)
     check_job_quota(session, settings, tenant_id)
     job = Job(

@@ -55,7 +55,6 @@ class Settings(BaseSettings):
     progress_interval_s: float = Field(default=0.5, ge=0)  # least time between progress writes/cancel checks
     reaper_interval_s: float = Field(default=5.0, gt=0)  # API-side sweep for lost jobs and undispatched jobs
     transient_retry_s: float = Field(default=120.0, ge=0)  # how long the worker waits out a database outage
-    pipeline_function: str = "panogs_core.pipeline.run:run_pipeline"  # module:function the worker runs
 
     # API.
     api_key_cache_s: float = Field(default=5.0, ge=0)  # a revoked key may work this much longer per process

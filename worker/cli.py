@@ -72,8 +72,8 @@ def limit_threads(settings: Settings) -> int:
 def cmd_worker(args: argparse.Namespace) -> int:
     """Run a Celery worker in this process until stopped."""
     settings = settings_from_args(args)
-    limit_threads(settings)  # before the worker app's imports (numpy among them)
-    from worker.app import create_worker_app
+    limit_threads(settings)  # before the Celery app's imports (numpy among them)
+    from worker.celery_app import create_worker_app
 
     settings.ensure_dirs()
     parent = os.environ.get(PARENT_PID_ENV)

@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import importlib
 import logging
 import threading
 import time
@@ -36,11 +35,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from panogs_core.errors import Cancelled, PanoGSError
 from panogs_core.io.run_folder import DOWNLOADABLE
 from panogs_core.types import Vocabulary
+from service import jobs
 from service.db import crud
 from service.db.faults import DatabaseFault, classify
 from service.db.models import Artifact, Job, JobState
 from service.db.session import session_scope
-from service.jobs import config_factory
 from service.settings import Settings
 from service.storage import Storage, sha256_file
 
@@ -101,14 +100,15 @@ class JobEnv:
     shutdown: threading.Event = field(default_factory=threading.Event)  # set when the worker is stopping
 
 
-def load_pipeline(spec: str) -> tuple[PipelineFn, tuple[str, ...], Callable[[dict[str, Any]], Any]]:
-    """Import ``module:function``, the module's ``STAGES`` and its config factory.
+def load_pipeline() -> tuple[PipelineFn, tuple[str, ...], Callable[[dict[str, Any]], Any]]:
+    """The core's pipeline, its stage names and the config factory the API checks a job's overrides with.
 
-    The config factory is the module's ``make_config`` when it has one, else ``PipelineConfig.from_dict``.
+    Imports the pipeline, torch with it: a task calls this, never a prefork parent. Tests put a stand-in pipeline
+    here (tests/support/pipeline_stand_in.py); no setting can.
     """
-    module_name, _, attr = spec.partition(":")
-    module = importlib.import_module(module_name)
-    return getattr(module, attr), tuple(getattr(module, "STAGES", ())), config_factory(spec)
+    from panogs_core.pipeline.run import STAGES, run_pipeline
+
+    return run_pipeline, tuple(STAGES), jobs.pipeline_config
 
 
 def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:

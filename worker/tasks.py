@@ -50,7 +50,7 @@ def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEn
     threads = settings.worker_thread_count
     set_torch_threads(threads)  # here, not in the worker's parent: a torch call there deadlocks forked children
     logger.info("jobs use %d thread(s) in this process (PANOGS_WORKER_THREADS)", threads)
-    pipeline, stages, make_config = runner.load_pipeline(settings.pipeline_function)
+    pipeline, stages, make_config = runner.load_pipeline()
     has_cuda = cuda_available()
     logger.info("jobs train on %s unless they name a device", "cuda" if has_cuda else "cpu")
     return runner.JobEnv(

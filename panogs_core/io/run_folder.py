@@ -85,7 +85,7 @@ INSTANCES_JSON = RunFile(
     "per instance: id, class_name, class_index, kind (thing/stuff), score, num_points, centroid, bbox_min, "
     "bbox_max (axis-aligned)",
     _EXPORT,
-    (_READER, "service.results", "service.viewer.scene"),
+    (_READER, "service.job_results", "service.viewer.scene"),
     downloadable=True,
 )
 INSTANCE_FEATURES_NPY = RunFile(
@@ -118,7 +118,7 @@ GAUSSIANS_PLY = RunFile(
     "nx, ny, nz, `f_dc_*`, `f_rest_*`, logit `opacity`, log `scale_*`, `rot_*`) plus `semantic` and `instance`; "
     "opens in the common splat viewers",
     _EXPORT,
-    ("panogs_core.gaussians.views", "service.viewer.scene", "service.renders"),
+    ("panogs_core.gaussians.views", "service.viewer.scene", "service.render_child"),
     downloadable=True,
 )
 CAMERAS_JSON = RunFile(
@@ -126,7 +126,7 @@ CAMERAS_JSON = RunFile(
     JSON,
     "the camera and the pose of every frame of the bundle, so that `panogs render --frame` needs no bundle",
     _EXPORT,
-    ("panogs_core.gaussians.views", "service.renders"),
+    ("panogs_core.gaussians.views", "service.render_child"),
     downloadable=True,
 )
 REPORT_JSON = RunFile(

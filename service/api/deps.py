@@ -12,7 +12,6 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.app_sessions import APP_HEADER, COOKIE_NAME, SAFE_METHODS, session_tenant
 from service.auth import KeyVerifier, Tenant
 from service.db import crud
 from service.db.models import Job, Scene, Upload
@@ -20,6 +19,7 @@ from service.db.session import session_scope
 from service.errors import Forbidden, NotFound, Unauthorized
 from service.settings import Settings
 from service.storage import Storage
+from service.web_app_sessions import APP_HEADER, COOKIE_NAME, SAFE_METHODS, session_tenant
 
 
 # Plain attribute reads: async, so that FastAPI does not hop to its threadpool for them.

@@ -22,7 +22,7 @@ DEFAULT_MAX_BYTES = 64 * 1024 * 1024  # refuse a file larger than this (mail and
 def class_queries(run_dir: Path) -> dict[str, Any]:
     """The answer of the query endpoint to each class name of the run's vocabulary (default top-k)."""
     from panogs_core.io.run_folder import load_result
-    from service.results import run_query
+    from service.job_results import run_query
     from service.schemas import QueryCreate
 
     result = load_result(run_dir)

@@ -41,7 +41,7 @@ class RunViewer:
     def query(self, body: dict[str, Any]) -> tuple[int, dict[str, Any]]:
         """(status, JSON) of a query, as the API answers it."""
         from service.errors import ServiceError
-        from service.results import run_query
+        from service.job_results import run_query
         from service.schemas import QueryCreate
 
         try:

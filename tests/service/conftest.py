@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from pipeline_stand_in import use
 from service_harness import (
     DEFAULT_PG_ADMIN_URL,
     DEFAULT_REDIS_URL,
@@ -30,9 +31,9 @@ from service_harness import (
 from sqlalchemy import text
 from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
 
+from service.api_app import create_app
 from service.db.migrate import upgrade
 from service.db.session import get_engine
-from service.main import create_app
 from service.settings import Settings
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
@@ -73,16 +74,20 @@ def _clean_postgres(url: str) -> None:
 
 
 @pytest.fixture
-def make_settings(tmp_path: Path, sqlite_template: Path, request: pytest.FixtureRequest) -> Callable[..., Settings]:
-    """Settings for a backend, with everything on disk under this test's tmp_path."""
+def make_settings(
+    tmp_path: Path, sqlite_template: Path, request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
+) -> Callable[..., Settings]:
+    """Settings for a backend, with everything on disk under this test's tmp_path; jobs' configs are those of the
+    scripted pipeline (API tests run no pipeline) unless ``stand_in=None`` keeps the core's."""
 
-    def make(backend: str = "postgres", **overrides: Any) -> Settings:
+    def make(backend: str = "postgres", *, stand_in: str | None = SCRIPTED_PIPELINE, **overrides: Any) -> Settings:
+        if stand_in is not None:
+            use(monkeypatch, stand_in)
         values: dict[str, Any] = {
             "data_dir": tmp_path / "data",
             "heartbeat_timeout_s": 30,
             "api_key_cache_s": 0,
             "status_cache_s": 0,
-            "pipeline_function": SCRIPTED_PIPELINE,  # API tests run no pipeline
         }
         if backend == "postgres":
             url = request.getfixturevalue("pg_url")

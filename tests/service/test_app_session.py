@@ -6,10 +6,10 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 from svc_helpers import BOTH_BACKENDS, make_scene
 
-from service.app_sessions import APP_HEADER, COOKIE_NAME
 from service.auth import revoke_api_key
 from service.db.session import get_session_factory, session_scope
 from service.settings import Settings
+from service.web_app_sessions import APP_HEADER, COOKIE_NAME
 
 APP = {APP_HEADER: "1"}
 

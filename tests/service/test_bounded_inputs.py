@@ -15,7 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, edit_manifest, make_scene, new_key, pack, upload_bytes, write_tiny_bundle
 
-from service.main import create_app
+from service.api_app import create_app
 from service.settings import Settings
 
 

@@ -270,9 +270,9 @@ def test_production_refuses_placeholders(tmp_path: Path) -> None:
 
 
 def test_the_missing_extras_messages_say_what_to_do_in_the_deployment() -> None:
-    from service.results import _text_extra_hint
+    from service.job_results import _text_extra_hint
 
     missing = "minilm-l6: sentence-transformers is not installed (pip install 'panogs[text]')"
     assert "rebuild the API image with --build-arg API_KIND=full" in _text_extra_hint(missing)
     assert _text_extra_hint("free-text queries are switched off on this server") == ""
-    assert "--build-arg API_KIND=full" in (REPO / "service" / "renders.py").read_text()
+    assert "--build-arg API_KIND=full" in (REPO / "service" / "render_child.py").read_text()

@@ -20,6 +20,7 @@ from typing import Any
 
 import httpx
 import pytest
+from pipeline_stand_in import ENV as STAND_IN
 from procs import REPO, Procs, TcpProxy, wait_for
 from service_harness import (
     DEFAULT_PG_ADMIN_URL,
@@ -132,7 +133,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
             "PANOGS_BROKER_URL": f"redis://127.0.0.1:{redis_proxy.port}/{REDIS_URL.rsplit('/', 1)[1]}",
             "PANOGS_BROKER_KEY_PREFIX": prefix,
             "PANOGS_DATA_DIR": str(tmp / "data"),
-            "PANOGS_PIPELINE_FUNCTION": SCRIPTED_PIPELINE,
+            STAND_IN: SCRIPTED_PIPELINE,
             "PANOGS_SCRIPTED_STAGE_S": str(STAGE_S),
             "PANOGS_HEARTBEAT_INTERVAL_S": "0.5",
             "PANOGS_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),

@@ -69,10 +69,10 @@ from panogs_core.gaussians.ply import write_gaussian_ply
 from panogs_core.gaussians.views import write_cameras
 from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
+from service.api_app import create_app
 from service.db.migrate import upgrade
 from service.db.models import Job, Upload
 from service.db.session import get_engine, get_session_factory, session_scope
-from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
 
@@ -157,12 +157,12 @@ def _secret_vocabulary(root: Path) -> None:
 
 
 def _settings(tmp: Path, backend: str, **overrides: Any) -> Settings:
+    # No stand-in pipeline: jobs are only created here, never run, and their config is checked by the real
+    # PipelineConfig.
     values: dict[str, Any] = {
         "data_dir": tmp / "data",
         "api_key_cache_s": 0,
         "status_cache_s": 0,
-        # Jobs are only created here, never run: their config is checked by the real PipelineConfig.
-        "pipeline_function": "panogs_core.pipeline.run:run_pipeline",
         "query_encoder": "off",  # free text needs no encoder process: it is refused (422) unless it is a class
         "quota_concurrent_jobs": None,
         "max_upload_bytes": 50_000_000,

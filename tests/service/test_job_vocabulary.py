@@ -22,9 +22,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key
 
+from service.api_app import create_app
 from service.db.models import Job, JobState, Scene
 from service.db.session import get_session_factory, session_scope
-from service.main import create_app
 from service.schemas import MAX_VOCABULARY_CLASSES
 from service.settings import Settings
 from service.storage import Storage
@@ -285,7 +285,7 @@ class TestRealPipeline:
         embeddings = np.load(folder / "vocabulary.npy").astype(float).tolist()
         classes = [{"name": f"my {c['name']}", "kind": c["kind"], "embedding": e} for c, e in zip(own, embeddings)]
         archive = Path(shutil.make_archive(str(tmp_path / "scene"), "zip", folder)).read_bytes()
-        settings = make_settings("sqlite", pipeline_function="panogs_core.pipeline.run:run_pipeline")
+        settings = make_settings("sqlite", stand_in=None)
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
             auth = new_key(settings)
             scene = make_scene(client, auth, archive)

@@ -11,10 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key
 
+from service.api_app import create_app
 from service.broker import TaskName
 from service.db.models import Job, JobState
 from service.db.session import get_session_factory, session_scope
-from service.main import create_app
 from service.settings import Settings
 
 
@@ -84,7 +84,7 @@ class TestCreate:
 
     def test_real_pipeline_config_is_checked(self, make_settings: Callable[..., Settings], tiny_zip: bytes) -> None:
         pytest.importorskip("panogs_core.pipeline.config", reason="the core's PipelineConfig is not importable yet")
-        settings = make_settings("postgres", pipeline_function="panogs_core.pipeline.run:run_pipeline")
+        settings = make_settings("postgres", stand_in=None)
         with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
             auth = new_key(settings)
             scene = make_scene(client, auth, tiny_zip)

@@ -12,11 +12,11 @@ from fastapi.testclient import TestClient
 from svc_helpers import BOTH_BACKENDS, RecordingSender, make_scene, new_key, pack, upload_bytes, write_tiny_bundle
 from test_results import _unit, finish_job
 
+from service.api_app import create_app
 from service.db.base import utcnow
 from service.db.models import Artifact, Job, JobState, Scene
 from service.db.session import get_session_factory, session_scope
 from service.lifecycle import sweep_orphans, sweep_retention
-from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
 

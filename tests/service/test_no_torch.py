@@ -33,7 +33,7 @@ def mark(step):
 from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, make_scene, new_key, pack, write_tiny_bundle
 from service.db.migrate import upgrade
-from service.main import create_app
+from service.api_app import create_app
 from service.settings import Settings
 mark("import")
 settings = Settings(_env_file=None, data_dir=Path({tmp!r}) / "data")
@@ -60,7 +60,7 @@ def test_api_never_imports_torch(tmp_path: Path) -> None:
     done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     steps = json.loads(done.stdout.strip().splitlines()[-1])
-    assert not steps["import"], "importing service.main imported torch"
+    assert not steps["import"], "importing service.api_app imported torch"
     assert not steps["scene"], "validating a bundle imported torch"
     assert not steps["job"], "creating or reading a job imported torch"
 

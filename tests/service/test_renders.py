@@ -18,7 +18,7 @@ from panogs_core.gaussians.ply import write_gaussian_ply
 from panogs_core.gaussians.views import write_cameras
 from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
-from service.renders import MAX_RENDER_PIXELS
+from service.render_child import MAX_RENDER_PIXELS
 from service.settings import Settings
 from service.storage import Storage
 
@@ -118,9 +118,9 @@ def test_unfinished_and_foreign_jobs(
 def test_an_api_host_without_torch_answers_503_with_the_reason(
     client: TestClient, auth: dict[str, str], finished_job: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from service import renders
+    from service import render_child
 
-    monkeypatch.setattr(renders, "torch_installed", lambda: False)
+    monkeypatch.setattr(render_child, "torch_installed", lambda: False)
     r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist()}, headers=auth)
     assert r.status_code == 503
     assert "pipeline extra" in r.json()["message"]
@@ -156,15 +156,15 @@ def test_a_crashing_render_child_is_logged_and_answered_without_traceback_or_pat
     monkeypatch: pytest.MonkeyPatch,
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    from service import renders
+    from service import render_child
 
     # The real child process, running a module that crashes the way a rasterizer bug would.
     (tmp_path / "crashing_render.py").write_text(
         "import sys\nraise RuntimeError('overflow while rendering ' + sys.argv[2])\n"
     )
-    monkeypatch.setenv("PYTHONPATH", f"{tmp_path}:{Path(renders.__file__).parents[1]}")
-    monkeypatch.setattr(renders, "RENDER_MODULE", "crashing_render")
-    with caplog.at_level("ERROR", logger="service.renders"):
+    monkeypatch.setenv("PYTHONPATH", f"{tmp_path}:{Path(render_child.__file__).parents[1]}")
+    monkeypatch.setattr(render_child, "RENDER_MODULE", "crashing_render")
+    with caplog.at_level("ERROR", logger="service.render_child"):
         r = client.post(f"/v1/jobs/{finished_job}/render", json={"T_world_cam": np.eye(4).tolist()}, headers=auth)
     assert r.status_code == 503
     message = r.json()["message"]

@@ -16,10 +16,10 @@ from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
 
 from panogs_core.io.run_folder import DOWNLOADABLE, RUN_FILES
+from service.api_app import create_app
 from service.db.models import Artifact
 from service.db.session import get_session_factory, session_scope
 from service.encoder import EncoderProcess
-from service.main import create_app
 from service.settings import Settings
 from service.storage import Storage
 

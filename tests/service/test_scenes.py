@@ -23,7 +23,7 @@ from svc_helpers import (
     write_tiny_bundle,
 )
 
-from service.main import create_app
+from service.api_app import create_app
 from service.settings import Settings
 
 

@@ -14,6 +14,7 @@ import schemathesis
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
+from pipeline_stand_in import stand_in
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
@@ -24,8 +25,8 @@ from service_harness import SCRIPTED_PIPELINE
 from sqlalchemy import text
 from svc_helpers import RecordingSender, make_scene, new_key, pack, write_tiny_bundle
 
+from service.api_app import create_app
 from service.db.session import get_engine
-from service.main import create_app
 from service.settings import Settings
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
@@ -43,11 +44,11 @@ def app_and_auth(pg_url: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
         api_key_cache_s=0,
         status_cache_s=0,
         max_upload_bytes=1_000_000,
-        pipeline_function=SCRIPTED_PIPELINE,
     )
     app = create_app(settings_, sender=RecordingSender(), run_reaper=False)
     auth = new_key(settings_)
-    with TestClient(app) as client:  # a scene and a job exist, so that some generated requests find rows
+    # A scene and a job exist, so that some generated requests find rows; jobs' configs are the scripted pipeline's.
+    with stand_in(SCRIPTED_PIPELINE), TestClient(app) as client:
         scene = make_scene(client, auth, pack(write_tiny_bundle(Path(tmp / "bundle"))))
         client.post("/v1/jobs", json={"scene_id": scene["id"]}, headers=auth)
         previous, DEFERRED.app = DEFERRED.app, app

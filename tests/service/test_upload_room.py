@@ -10,7 +10,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 from svc_helpers import RecordingSender, new_key, upload_bytes
 
-from service.main import create_app
+from service.api_app import create_app
 from service.settings import Settings
 
 TUS = {"Tus-Resumable": "1.0.0"}

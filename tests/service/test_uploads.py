@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from svc_helpers import BOTH_BACKENDS, RecordingSender, new_key, upload_bytes
 
-from service.main import create_app
+from service.api_app import create_app
 from service.settings import Settings
 
 OCTET = {"Content-Type": "application/offset+octet-stream", "Tus-Resumable": "1.0.0"}

@@ -4,11 +4,12 @@ Same signature and the same outputs' names, no torch, and a known duration: each
 ``PANOGS_SCRIPTED_STAGE_S`` seconds (default 0.2) in 5 progress steps, and leaves a checkpoint so that a
 resumed run skips it. The config overrides it accepts are ``{"fail_at": "<stage>"}`` (raise a
 ``NumericalError`` there), ``{"stage_s": <seconds>}`` and, as the real config has it,
-``{"language_field": {"device": ...}}`` (the worker sets it; report.json records it). Select it with
-``PANOGS_PIPELINE_FUNCTION=scripted_pipeline:run_pipeline`` and ``tests/support`` on the Python path. A test
-double, not shipped: its outputs are placeholders (two instances, "chair" and "table"; given a parsed
-``Vocabulary``, as the worker passes a job's inline one, they take its first class names and ``vocabulary.json``
-lists its classes). Like the real pipeline it takes a built-in name or a ``Vocabulary``, never a path.
+``{"language_field": {"device": ...}}`` (the worker sets it; report.json records it). ``pipeline_stand_in`` puts
+it in place of the pipeline (in a started process: ``PANOGS_TEST_PIPELINE=scripted_pipeline`` and
+``tests/support`` on the Python path). A test double, not shipped: its outputs are placeholders (two instances,
+"chair" and "table"; given a parsed ``Vocabulary``, as the worker passes a job's inline one, they take its first
+class names and ``vocabulary.json`` lists its classes). Like the real pipeline it takes a built-in name or a
+``Vocabulary``, never a path.
 """
 
 from __future__ import annotations

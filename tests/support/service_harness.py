@@ -33,7 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 SUPPORT = Path(__file__).resolve().parent  # this folder: the test doubles a started worker imports
 DEFAULT_PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
-SCRIPTED_PIPELINE = "scripted_pipeline:run_pipeline"  # Settings.pipeline_function of the test double
+SCRIPTED_PIPELINE = "scripted_pipeline"  # the test double of the pipeline (pipeline_stand_in.py)
 
 # How to start each service on a Debian machine like CI's (the commands .ci/run runs).
 START_POSTGRES = "pg_ctlcluster --skip-systemctl-redirect $(ls /etc/postgresql) main start"
@@ -147,7 +147,8 @@ def compose_command(service: str) -> list[str]:
 
 
 def python_path() -> str:
-    """PYTHONPATH for a started process: the repository and the test doubles (``scripted_pipeline``)."""
+    """PYTHONPATH for a started process: the repository and the test doubles (``scripted_pipeline``), with the
+    ``sitecustomize.py`` that puts one in place of the pipeline when ``PANOGS_TEST_PIPELINE`` names it."""
     return os.pathsep.join([str(REPO), str(SUPPORT)])
 
 

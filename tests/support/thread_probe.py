@@ -1,7 +1,7 @@
 """A pipeline for the worker's thread tests: records the thread state of the process that runs the job into
 ``threads.json`` of the run folder, then does what the scripted pipeline does (``scripted_pipeline``).
 
-Select it with ``PANOGS_PIPELINE_FUNCTION=thread_probe:run_pipeline`` and ``tests/support`` on the Python path.
+Select it with ``PANOGS_TEST_PIPELINE=thread_probe`` and ``tests/support`` on the Python path (pipeline_stand_in.py).
 A test double, not shipped.
 """
 

@@ -19,7 +19,7 @@ from run_folder import write_run
 from panogs_core.errors import InputError
 from panogs_core.io.run_folder import load_result
 from panogs_core.palette import CLASS_PALETTE, instance_color
-from service.results import run_query
+from service.job_results import run_query
 from service.schemas import QueryCreate
 from service.viewer.export_html import export_html
 from service.viewer.scene import build_scene, decode

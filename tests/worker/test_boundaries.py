@@ -14,7 +14,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("service", "worker")
-TEST_ONLY = ("scripted_pipeline", "service_harness", "fresh_install", "tests")
+TEST_ONLY = ("scripted_pipeline", "thread_probe", "pipeline_stand_in", "service_harness", "fresh_install", "tests")
 # Alembic scripts: Alembic runs them inside its own context; importing them outside it is meaningless.
 NOT_MODULES = ("service.db.migrations.env",)
 
@@ -91,6 +91,6 @@ def test_importing_every_module_writes_nothing(tmp_path: Path) -> None:
     done = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     imported = json.loads(done.stdout.strip().splitlines()[-1])
-    assert {"service.main", "service.broker", "worker.app", "worker.tasks", "worker.cli"} <= set(imported)
+    assert {"service.api_app", "service.broker", "worker.celery_app", "worker.tasks", "worker.cli"} <= set(imported)
     assert sorted(p.name for p in cwd.iterdir()) == []
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"], "nothing written under HOME either"

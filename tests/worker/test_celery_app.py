@@ -13,7 +13,7 @@ import pytest
 from service.broker import QueueName, TaskName, create_celery_app
 from service.settings import Settings
 from worker import tasks
-from worker.app import create_worker_app
+from worker.celery_app import create_worker_app
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -48,8 +48,8 @@ def test_embedded_broker_app_writes_nothing(tmp_path: Path) -> None:
 
 def test_worker_app_runs_jobs_with_the_settings_it_was_given(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Explicit settings win over the environment, and the job environment is built by the first task only."""
-    monkeypatch.setenv("PANOGS_PIPELINE_FUNCTION", "no_such_module:run")  # what the environment would say
-    settings = Settings(_env_file=None, data_dir=tmp_path / "data", pipeline_function="scripted_pipeline:run_pipeline")  # type: ignore[call-arg]
+    monkeypatch.setenv("PANOGS_JOB_QUEUE", "not-this-queue")  # what the environment would say
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", job_queue="gpu")  # type: ignore[call-arg]
     built: list[Settings] = []
     monkeypatch.setattr(tasks, "build_job_env", lambda s, _shutdown: built.append(s) or "env")
     monkeypatch.setattr(tasks, "run_job", lambda env, job_id, **_kw: f"{env}:{job_id}")
@@ -81,9 +81,9 @@ def test_worker_modules_do_not_import_torch(tmp_path: Path) -> None:
     """A prefork parent that imported torch deadlocks its children: building the worker app must not pull it
     in (the CUDA check and the pipeline are loaded by the first task)."""
     code = (
-        "import sys, worker.tasks, worker.app, worker.runner, worker.cli, worker.device\n"
+        "import sys, worker.tasks, worker.celery_app, worker.runner, worker.cli, worker.device\n"
         "from service.settings import Settings\n"
-        "worker.app.create_worker_app(Settings(_env_file=None, data_dir=sys.argv[1]))\n"
+        "worker.celery_app.create_worker_app(Settings(_env_file=None, data_dir=sys.argv[1]))\n"
         "print('torch' in sys.modules)"
     )
     argv = [sys.executable, "-c", code, str(tmp_path / "data")]

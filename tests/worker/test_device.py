@@ -61,7 +61,7 @@ def test_the_task_decides_the_device_when_it_builds_its_environment(
 ) -> None:
     """The real pipeline's configs follow ``torch.cuda.is_available()`` as the task sees it."""
     torch = pytest.importorskip("torch")
-    real = settings.model_copy(update={"pipeline_function": "panogs_core.pipeline.run:run_pipeline"})
+    real = settings  # the worker's tests put no stand-in in runner.load_pipeline: it loads the core's pipeline
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert tasks.build_job_env(real, threading.Event()).make_config({}).language_field.device == "cuda"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

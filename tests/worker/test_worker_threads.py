@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from pipeline_stand_in import ENV as STAND_IN
 from pydantic import ValidationError
 from service_harness import Procs, wait_for
 from wk_helpers import read_job
@@ -54,7 +55,7 @@ def _run_in_worker(settings: Settings, job_id: uuid.UUID, log_dir: Path, **env: 
     """Start ``panogs worker`` on ``settings``'s embedded data folder with the thread probe as its pipeline, send
     it the job, and return the thread state its job process recorded (plus the worker's own pid)."""
     settings.ensure_dirs()  # the broker folders, so that the message can be sent before the worker is up
-    procs = Procs({"PANOGS_PIPELINE_FUNCTION": "thread_probe:run_pipeline", **env}, log_dir)
+    procs = Procs({STAND_IN: "thread_probe", **env}, log_dir)
     try:
         argv = [sys.executable, "-m", "panogs_core.cli", "worker", "--data-dir", str(settings.data_dir)]
         worker = procs.start("worker", argv)

@@ -7,7 +7,7 @@ import uuid
 from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from service import renders, results
+from service import job_results, render_child
 from service.api.deps import SettingsDep, StorageDep, TenantDep
 from service.db.session import get_read_engine
 from service.schemas import error_responses
@@ -22,7 +22,7 @@ router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
 )
 async def render(
     job_id: uuid.UUID,
-    body: renders.RenderCreate,
+    body: render_child.RenderCreate,
     request: Request,
     tenant: TenantDep,
     settings: SettingsDep,
@@ -32,6 +32,6 @@ async def render(
     of the job's scene from ``T_world_cam``, at most ``MAX_RENDER_PIXELS`` pixels."""
     engine = get_read_engine(settings.database)
     # the tenant's job, succeeded (404 / 409 otherwise)
-    await run_in_threadpool(results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
-    png = await run_in_threadpool(renders.render_layer, body, storage.job_dir(job_id))
+    await run_in_threadpool(job_results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
+    png = await run_in_threadpool(render_child.render_layer, body, storage.job_dir(job_id))
     return Response(png, media_type="image/png")

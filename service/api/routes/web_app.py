@@ -2,7 +2,7 @@
 
 ``POST /app/session`` takes ``{"key": "pgs_..."}`` in the body (never in a URL), checks it like a bearer key and
 answers with an HttpOnly, SameSite=Strict session cookie (Secure over HTTPS) that the ``/v1`` routes accept in
-place of the key (:mod:`service.app_sessions`). The key itself is not kept by the browser.
+place of the key (:mod:`service.web_app_sessions`). The key itself is not kept by the browser.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from service import app_sessions
+from service import web_app_sessions
 from service.api.deps import FactoryDep, SettingsDep
 from service.db.session import session_scope
 from service.errors import NotFound, ServiceUnavailable, Unauthorized
@@ -81,7 +81,7 @@ async def sign_in(body: SessionCreate, request: Request, factory: FactoryDep, se
             tenant = verifier.verify(session, body.key)
             if tenant is None:
                 return None
-            token, _ = app_sessions.open_session(session, tenant.id, settings.session_ttl_s)
+            token, _ = web_app_sessions.open_session(session, tenant.id, settings.session_ttl_s)
             return token
 
     token = await run_in_threadpool(open_session)
@@ -89,7 +89,7 @@ async def sign_in(body: SessionCreate, request: Request, factory: FactoryDep, se
         raise Unauthorized("invalid or revoked API key")
     response = Response(status_code=204)
     response.set_cookie(
-        app_sessions.COOKIE_NAME,
+        web_app_sessions.COOKIE_NAME,
         token,
         max_age=settings.session_ttl_s,
         httponly=True,
@@ -100,7 +100,7 @@ async def sign_in(body: SessionCreate, request: Request, factory: FactoryDep, se
     return response
 
 
-Token = Annotated[str | None, Cookie(alias=app_sessions.COOKIE_NAME, include_in_schema=False)]
+Token = Annotated[str | None, Cookie(alias=web_app_sessions.COOKIE_NAME, include_in_schema=False)]
 
 
 @router.get("/app/session", response_model=SessionPublic, responses=error_responses(401))
@@ -111,7 +111,7 @@ async def whoami(factory: FactoryDep, token: Token = None) -> SessionPublic:
 
     def look_up() -> SessionPublic | None:
         with session_scope(factory) as session:
-            found = app_sessions.session_tenant(session, token)
+            found = web_app_sessions.session_tenant(session, token)
             if found is None:
                 return None
             tenant, row = found
@@ -130,9 +130,9 @@ async def sign_out(factory: FactoryDep, token: Token = None) -> Response:
 
         def close() -> None:
             with session_scope(factory) as session:
-                app_sessions.close_session(session, token)
+                web_app_sessions.close_session(session, token)
 
         await run_in_threadpool(close)
     response = Response(status_code=204)
-    response.delete_cookie(app_sessions.COOKIE_NAME, path="/", httponly=True, samesite="strict")
+    response.delete_cookie(web_app_sessions.COOKIE_NAME, path="/", httponly=True, samesite="strict")
     return response

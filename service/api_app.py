@@ -1,4 +1,4 @@
-"""The FastAPI application. Run it with ``uvicorn service.main:create_app --factory`` or ``panogs serve``.
+"""The API's FastAPI application. Run it with ``uvicorn service.api_app:create_app --factory`` or ``panogs serve``.
 
 ``create_app`` builds everything the routes use (settings, sessions, storage, key verifier, the Celery app
 used to publish jobs by name, the result cache and the lazily started text-encoder process) and keeps it in
@@ -13,19 +13,17 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service.api.routes import app as app_routes
-from service.api.routes import health, jobs, results, scenes, uploads
-from service.api.routes import renders as render_routes
+from service.api.routes import artifacts, health, instances, jobs, renders, scenes, uploads, viewer_scene, web_app
 from service.auth import KeyVerifier
 from service.body_limit import BodyLimit
 from service.cache import TTLCache
 from service.db.session import get_session_factory
 from service.encoder import EncoderProcess
 from service.errors import install_error_handlers
+from service.job_results import ResultCache
 from service.json_body import BoundedJsonBody, body_limits
 from service.queue import Sender, celery_sender
 from service.reaper import Reaper
-from service.results import ResultCache
 from service.security_headers import SecurityHeaders
 from service.settings import Settings, get_settings
 from service.storage import HashStates, Storage
@@ -90,10 +88,10 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.state.encoder = encoder
     install_error_handlers(app)
     app.include_router(health.router)
-    for router in (uploads.router, scenes.router, jobs.router, results.router):
+    for router in (uploads.router, scenes.router, jobs.router, instances.router, artifacts.router, viewer_scene.router):
         app.include_router(router, prefix=API_PREFIX)
-    app.include_router(render_routes.router, prefix=API_PREFIX)  # renders of a finished job
-    app.include_router(app_routes.router)
+    app.include_router(renders.router, prefix=API_PREFIX)  # renders of a finished job
+    app.include_router(web_app.router)
     app.add_middleware(BoundedJsonBody, limits=body_limits(settings))  # inside BodyLimit: it sees capped bodies only
     app.add_middleware(BodyLimit, limit=settings.max_json_body_bytes)
     app.add_middleware(SecurityHeaders)  # added last: the outermost, so that every answer carries the headers

@@ -1,4 +1,4 @@
-"""App sign-in: an API key is exchanged once for a random session token, kept by the browser in an HttpOnly,
+"""The web app's sign-in: an API key is exchanged once for a random session token, kept by the browser in an HttpOnly,
 SameSite=Strict cookie. The long-lived key never travels again (not in URLs, not in logs, not in page storage).
 
 Only SHA-256(token) is stored (``app_session``); a session ends at its expiry, at sign-out, or when its key is

@@ -1,0 +1,63 @@
+"""``/v1/jobs/{id}/artifacts``: a finished job's downloadable files, listed and downloaded (with HTTP Range)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import FileResponse
+
+from panogs_core.io.run_folder import DOWNLOADABLE
+from service.api.deps import JobDep, StorageDep
+from service.db.models import Job, JobState
+from service.errors import Conflict, NotFound
+from service.schemas import ArtifactPublic, ArtifactsPublic, error_responses
+
+router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
+_ERRORS = error_responses(404, 409)
+
+
+def _finished(job: Job) -> Job:
+    if job.state != JobState.SUCCEEDED:
+        raise Conflict(f"job {job.id} is {job.state.value}; results exist once it has succeeded")
+    return job
+
+
+@router.get("/artifacts", response_model=ArtifactsPublic, responses=_ERRORS)
+def list_artifacts(job: JobDep) -> ArtifactsPublic:
+    """The job's downloadable files."""
+    data = [
+        ArtifactPublic(
+            name=a.name,
+            size_bytes=a.size_bytes,
+            sha256=a.sha256,
+            media_type=DOWNLOADABLE[a.name].media_type,
+            url=f"/v1/jobs/{job.id}/artifacts/{a.name}",
+        )
+        for a in _finished(job).artifacts
+        if a.name in DOWNLOADABLE  # a row the declaration no longer serves is neither listed nor served
+    ]
+    return ArtifactsPublic(data=data, count=len(data))
+
+
+@router.get(
+    "/artifacts/{name}",
+    response_class=FileResponse,
+    responses={
+        **_ERRORS,
+        200: {"content": {"application/octet-stream": {}}},
+        206: {"description": "a byte range"},
+    },
+)
+def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileResponse:
+    """Download one file of ``panogs_core.io.run_folder.DOWNLOADABLE`` (``panoptic.ply``, ``gaussians.ply`` ...).
+
+    Supports ``Range: bytes=start-end`` (206) to resume an interrupted download.
+    """
+    artifact = next((a for a in _finished(job).artifacts if a.name == name), None)
+    if artifact is None or name not in DOWNLOADABLE:
+        raise NotFound("artifact", name)
+    return FileResponse(
+        storage.path(artifact.path),
+        media_type=DOWNLOADABLE[name].media_type,
+        filename=artifact.name,
+        headers={"ETag": f'"{artifact.sha256}"', "Cache-Control": "private, max-age=3600"},
+    )
