@@ -39,7 +39,8 @@ def body_limits(settings: Settings) -> JsonLimits:
 
 def is_json_content(scope: Scope) -> bool:
     """True when FastAPI would parse this request's body as JSON (its rule, fastapi.routing)."""
-    value = dict(scope["headers"]).get(b"content-type")
+    headers: dict[bytes, bytes] = dict(scope["headers"])
+    value = headers.get(b"content-type")
     if value is None:
         return True
     media = value.split(b";", 1)[0].strip().lower()

@@ -105,7 +105,7 @@ def create_scene(
             archive, workdir=scene_dir, limits=bundle_limits(settings) if settings is not None else None, **limits
         )
         if name is None:  # the bundle's own name; a refusal keeps the upload, to retry with a "name"
-            printable_text(bundle.name, "scene.json: name (give a printable \"name\" in the request instead)")
+            printable_text(bundle.name, 'scene.json: name (give a printable "name" in the request instead)')
         scene = Scene(
             id=scene_id,
             api_key_id=upload.api_key_id,
