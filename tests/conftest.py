@@ -1,0 +1,25 @@
+"""Fixtures shared by every test folder.
+
+``synth_tiny``: one ``panogs synth --preset tiny`` per session. Each start of the CLI imports torch and loads the
+MiniLM text encoder (5 to 10 s on 2 cores); the tests that upload or run the tiny room only read it, so they share
+one. A test that changes the bundle copies it first.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def synth_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The folder ``panogs synth OUT --preset tiny`` writes (default difficulty, seed and feature space)."""
+    folder = tmp_path_factory.mktemp("synth-tiny") / "scene"
+    argv = [sys.executable, "-m", "panogs_core.cli", "synth", str(folder), "--preset", "tiny"]
+    subprocess.run(argv, cwd=REPO, check=True, capture_output=True, timeout=300)
+    return folder
