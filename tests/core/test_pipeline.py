@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the language field on a shared host)
 
 from panogs_core.cli import main as cli_main
 from panogs_core.config import PipelineConfig
