@@ -37,6 +37,13 @@ INLINE = {
 }  # the tiny bundle's features are 8-d
 
 
+@pytest.fixture(autouse=True)
+def quick_stages(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stand-in pipeline's stages take 0.2 s each by default (for tests that stop a job mid-run); nothing
+    here waits on a stage, and each run here was 1.2 s of sleep."""
+    monkeypatch.setenv("PANOGS_SCRIPTED_STAGE_S", "0.01")
+
+
 @pytest.fixture
 def scene(client: TestClient, auth: dict[str, str], tiny_zip: bytes) -> dict[str, Any]:
     return make_scene(client, auth, tiny_zip)
