@@ -30,6 +30,7 @@ def tiny_bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
 
 
+# The run with the default config (about 20 s on 2 cores): every test that reads it is marked slow.
 @pytest.fixture(scope="module")
 def tiny_run(tiny_bundle: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object, list]:
     out = tmp_path_factory.mktemp("run")
@@ -38,6 +39,7 @@ def tiny_run(tiny_bundle: Path, tmp_path_factory: pytest.TempPathFactory) -> tup
     return out, result, seen
 
 
+@pytest.mark.slow
 def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> None:
     out, result, _ = tiny_run
     for name in (
@@ -70,6 +72,7 @@ def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> 
     assert {"f_dc_0", "opacity", "scale_0", "rot_0", "semantic"} <= set(gauss)
 
 
+@pytest.mark.slow
 def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:
     out, _, seen = tiny_run
     report = json.loads((out / "report.json").read_text())
@@ -80,6 +83,7 @@ def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:
     assert {s for s, _, _ in seen} == set(STAGES)  # progress reached the caller for every stage
 
 
+@pytest.mark.slow
 def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None:
     """Floors well below what the method reaches, so they catch breakage, not noise."""
     _, result, _ = tiny_run
@@ -91,6 +95,7 @@ def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None
     assert result.metrics["paper"]["miou"] == pytest.approx(m["miou"], abs=0.2)
 
 
+@pytest.mark.slow
 def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list]
 ) -> None:
@@ -104,6 +109,7 @@ def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     assert restored.instances == first.instances
 
 
+@pytest.mark.slow
 def test_a_run_stopped_in_the_appearance_fit_resumes_there(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
 ) -> None:
@@ -131,6 +137,7 @@ def test_a_run_stopped_in_the_appearance_fit_resumes_there(
     assert resumed.appearance["iterations"] == 10
 
 
+@pytest.mark.slow
 def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list]
 ) -> None:
@@ -148,6 +155,7 @@ def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
     assert run_pipeline(tiny_bundle, out).instances == first.instances
 
 
+@pytest.mark.slow
 def test_query_by_class_name_returns_instances_of_that_class(tiny_run: tuple[Path, object, list]) -> None:
     out, _, _ = tiny_run
     loaded = load_result(out)
@@ -178,6 +186,7 @@ def test_invalid_bundle_is_refused_before_any_work(tiny_bundle: Path, tmp_path: 
     assert not (tmp_path / "out" / "labels.npz").exists()
 
 
+@pytest.mark.slow
 def test_cli_run_and_query(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -206,6 +215,7 @@ def test_cli_reports_user_errors_cleanly(tmp_path: Path, capsys: pytest.CaptureF
     assert "unknown key" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_gaussian_scene_is_fitted_reported_and_renders(tiny_run: tuple[Path, object, list], tmp_path: Path) -> None:
     out, _, _ = tiny_run
     report = json.loads((out / "report.json").read_text())
@@ -234,6 +244,7 @@ def _renamed_vocabulary(bundle: Path, folder: Path) -> Path:
     return folder / "vocabulary.json"
 
 
+@pytest.mark.slow
 def test_cli_run_takes_a_vocabulary_file(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

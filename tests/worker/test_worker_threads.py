@@ -66,6 +66,7 @@ def _run_in_worker(settings: Settings, job_id: uuid.UUID, log_dir: Path, **env: 
     return {**json.loads(probe.read_text()), "worker_pid": worker.pid}
 
 
+@pytest.mark.slow  # a real worker process: start, one job, warm shutdown
 @pytest.mark.skipif(available_cores() < 2, reason="one core: a limit of 1 is also the default")
 def test_a_solo_worker_runs_its_jobs_with_the_configured_threads(
     settings: Settings, make_job: MakeJob, tmp_path: Path
@@ -82,6 +83,7 @@ def test_a_solo_worker_runs_its_jobs_with_the_configured_threads(
     assert environ["OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER"] == "0"
 
 
+@pytest.mark.slow  # a real worker process: start, one job, warm shutdown
 def test_a_prefork_child_gets_its_share_of_the_cores(settings: Settings, make_job: MakeJob, tmp_path: Path) -> None:
     """No setting: two job processes share the worker's cores; the limits reach the forked child."""
     state = _run_in_worker(settings, make_job(), tmp_path, PANOGS_WORKER_POOL="prefork", PANOGS_WORKER_CONCURRENCY="2")
