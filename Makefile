@@ -61,8 +61,8 @@ readme-check: install ## run the demo afresh and fail when README.md shows other
 test: install ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q
 
-test-fast: install ## core tests only
-	$(VENV)/bin/pytest -q tests/core
+test-fast: install ## the whole tree but the tests marked slow (about a minute; PostgreSQL and Redis as for test)
+	$(VENV)/bin/pytest -q -m "not slow"
 
 lint: install ## ruff (lint + format check) and mypy on panogs_core, service and worker
 	$(VENV)/bin/ruff check .
