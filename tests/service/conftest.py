@@ -31,18 +31,22 @@ from sqlalchemy import text
 from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
 
 from service.db.migrate import upgrade
+from service.db.models import Base
 from service.db.session import get_engine
 from service.main import create_app
 from service.settings import Settings
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
-TABLES = ("artifact", "job", "scene", "upload", "api_key")
+# Children first: a DELETE per table, which on the few rows a test leaves takes under 1 ms where TRUNCATE took
+# 18 (it rewrites every table's files), before each of the ~160 PostgreSQL tests.
+TABLES = ("artifact", "job", "scene", "upload", "app_session", "api_key")
 
 
 @pytest.fixture(scope="session")
 def pg_url() -> Iterator[str]:
     """A migrated PostgreSQL database of this session."""
+    assert set(TABLES) == set(Base.metadata.tables), "TABLES must name every table, children first"
     require_postgres(PG_ADMIN_URL)
     with temp_postgres(PG_ADMIN_URL) as url:
         upgrade(url)
@@ -69,7 +73,8 @@ def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _clean_postgres(url: str) -> None:
     with get_engine(url).begin() as conn:
-        conn.execute(text(f"TRUNCATE {', '.join(TABLES)} CASCADE"))
+        for table in TABLES:
+            conn.execute(text(f"DELETE FROM {table}"))
 
 
 @pytest.fixture
