@@ -60,6 +60,9 @@ def _run_in_worker(settings: Settings, job_id: uuid.UUID, log_dir: Path, **env: 
         worker = procs.start("worker", argv)
         create_celery_app(settings).send_task(TaskName.RUN_JOB.value, args=[str(job_id)], queue="cpu")
         wait_for(lambda: read_job(settings, job_id).state is JobState.SUCCEEDED, 120, "the job", procs.tail("worker"))
+        # What the job recorded is all this reads: kill the worker's process group (its forked child with it)
+        # rather than wait 4-5 s for an idle Celery worker's warm shutdown (test_runner and test_faults test that).
+        procs.kill("worker")
     finally:
         procs.stop_all()
     probe = next(Storage(settings.storage).job_dir(job_id).rglob("threads.json"))
