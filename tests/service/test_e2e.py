@@ -87,7 +87,7 @@ def scaled(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
             procs.worker()
             yield url, headers, tmp / "shared"
         finally:
-            procs.stop_all()
+            procs.kill_all()  # the API and the worker: nothing here checks their shutdown
             drop_redis_prefix(REDIS_URL, prefix)
 
 
