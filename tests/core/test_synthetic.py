@@ -392,7 +392,7 @@ class TestScanPreset:
         feats = scan.read_features(scan.feature_frames[0])
         assert feats.shape == (120 // 4, 160 // 4, 512)
 
-    @pytest.mark.slow
+    @pytest.mark.slow  # reads the scan fixture
     def test_unannotated_ground_truth(self, scan: Scene) -> None:
         gt, geo = scan.read_ground_truth(), scan.read_geometry()
         assert gt is not None
@@ -406,7 +406,7 @@ class TestScanPreset:
         assert (unannotated & inner & (geo.points[:, 2] > 0.05)).sum() > 100
         assert gt.semantic.max() < len(CLASS_NAMES)
 
-    @pytest.mark.slow
+    @pytest.mark.slow  # reads the scan fixture
     def test_some_geometry_seen_by_no_key_frame(self, scan: Scene) -> None:
         """The geometry comes from the dense trajectory; the sparse key frames miss part of it."""
         from panogs_core.visibility import VisibilityConfig, compute_visibility
