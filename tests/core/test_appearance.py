@@ -93,6 +93,7 @@ def _fit(bundle: Path, **settings: object) -> GaussianScene:
     return fit_appearance(scene, _prims(points), np.full((len(points), 3), 0.5, np.float32), cfg)
 
 
+@pytest.mark.slow  # 40 fit iterations with PSNR before and after (2-4 s here)
 def test_the_fit_raises_psnr_and_skips_frames_without_colour(wall_bundle: Path) -> None:
     steps: list[tuple[int, int]] = []
     points, _ = _wall()

@@ -53,11 +53,9 @@ def test_reporter_follows_the_stream() -> None:
 
 
 @pytest.mark.slow
-def test_run_into_a_log_prints_a_line_per_stage(tmp_path: Path) -> None:
+def test_run_into_a_log_prints_a_line_per_stage(tmp_path: Path, synth_tiny: Path) -> None:
     """The real command with stderr to a pipe, as in ``make demo > log``."""
-    scene = tmp_path / "scene"
-    synth = [sys.executable, "-m", "panogs_core.cli", "synth", str(scene), "--preset", "tiny"]
-    subprocess.run(synth, cwd=REPO, check=True, capture_output=True, timeout=300)
+    scene = synth_tiny  # the session's ``panogs synth --preset tiny``, only read
     short = ["--set", "language_field.epochs=1", "--set", "language_field.min_steps=1"]  # the log is the point
     short += ["--set", "appearance.iterations=2"]
     run = [sys.executable, "-m", "panogs_core.cli", "run", str(scene), "--out", str(tmp_path / "run"), *short]

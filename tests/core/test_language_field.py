@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: small tensors)
 
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
 from panogs_core.stages.language_field import (

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: small tensors)
 
 from panogs_core.errors import ConfigError
 from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the language field on a shared host)
 
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import BundleError, Cancelled, InputError
@@ -29,6 +30,7 @@ def tiny_bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
 
 
+# The run with the default config (about 20 s on 2 cores): every test that reads it is marked slow.
 @pytest.fixture(scope="module")
 def tiny_run(tiny_bundle: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object, list]:
     out = tmp_path_factory.mktemp("run")
@@ -37,6 +39,7 @@ def tiny_run(tiny_bundle: Path, tmp_path_factory: pytest.TempPathFactory) -> tup
     return out, result, seen
 
 
+@pytest.mark.slow
 def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> None:
     out, result, _ = tiny_run
     for name in (
@@ -83,6 +86,7 @@ def test_the_run_folder_holds_what_its_declaration_lists(tiny_run: tuple[Path, o
     assert missing == [], f"declared as always written, but absent: {missing}"
 
 
+@pytest.mark.slow
 def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:
     out, _, seen = tiny_run
     report = json.loads((out / "report.json").read_text())
@@ -93,6 +97,7 @@ def test_report_has_every_stage(tiny_run: tuple[Path, object, list]) -> None:
     assert {s for s, _, _ in seen} == set(STAGES)  # progress reached the caller for every stage
 
 
+@pytest.mark.slow
 def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None:
     """Floors well below what the method reaches, so they catch breakage, not noise."""
     _, result, _ = tiny_run
@@ -104,6 +109,7 @@ def test_metric_floors_on_tiny_easy(tiny_run: tuple[Path, object, list]) -> None
     assert result.metrics["paper"]["miou"] == pytest.approx(m["miou"], abs=0.2)
 
 
+@pytest.mark.slow
 def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list]
 ) -> None:
@@ -117,6 +123,7 @@ def test_resume_reuses_checkpoints_and_reruns_changed_stages(
     assert restored.instances == first.instances
 
 
+@pytest.mark.slow
 def test_a_run_stopped_in_the_appearance_fit_resumes_there(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
 ) -> None:
@@ -144,6 +151,7 @@ def test_a_run_stopped_in_the_appearance_fit_resumes_there(
     assert resumed.appearance["iterations"] == 10
 
 
+@pytest.mark.slow
 def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list]
 ) -> None:
@@ -161,6 +169,7 @@ def test_settings_of_one_stage_do_not_redo_the_mask_lookup_or_the_graph_cut(
     assert run_pipeline(tiny_bundle, out).instances == first.instances
 
 
+@pytest.mark.slow
 def test_query_by_class_name_returns_instances_of_that_class(tiny_run: tuple[Path, object, list]) -> None:
     out, _, _ = tiny_run
     loaded = load_result(out)
@@ -191,6 +200,7 @@ def test_invalid_bundle_is_refused_before_any_work(tiny_bundle: Path, tmp_path: 
     assert not (tmp_path / "out" / "labels.npz").exists()
 
 
+@pytest.mark.slow
 def test_cli_run_and_query(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -219,6 +229,7 @@ def test_cli_reports_user_errors_cleanly(tmp_path: Path, capsys: pytest.CaptureF
     assert "unknown key" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_gaussian_scene_is_fitted_reported_and_renders(tiny_run: tuple[Path, object, list], tmp_path: Path) -> None:
     out, _, _ = tiny_run
     report = json.loads((out / "report.json").read_text())
@@ -247,6 +258,7 @@ def _renamed_vocabulary(bundle: Path, folder: Path) -> Path:
     return folder / "vocabulary.json"
 
 
+@pytest.mark.slow
 def test_cli_run_takes_a_vocabulary_file(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

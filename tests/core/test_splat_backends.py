@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: small tensors)
 
 from panogs_core.errors import ConfigError
 from panogs_core.gaussians.backends import resolve_backend

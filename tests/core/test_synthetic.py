@@ -105,6 +105,7 @@ class TestBundle:
             assert 1.3 - 1e-6 <= frame.T_world_cam[2, 3] <= 1.7 + 1e-6
             assert rot[2, 1] < -0.5  # OpenCV: camera y (image down) points roughly down in the z-up world
 
+    @pytest.mark.slow  # builds a tiny scene (1.5-2 s here)
     def test_without_geometry(self, tmp_path: Path) -> None:
         root, _ = _build(tmp_path / "scene", difficulty="easy", seed=0, with_geometry=False)
         assert not (root / "geometry.ply").exists()
@@ -220,6 +221,7 @@ class TestViews:
         assert seen == set(np.unique(gt.instance).tolist())
 
 
+@pytest.mark.slow  # each test builds another tiny scene (1.5-2 s here)
 class TestDeterminism:
     def test_same_seed_same_bundle(self, easy: tuple[Path, float], tmp_path: Path) -> None:
         again, _ = _build(tmp_path / "again", difficulty="easy", seed=0)
@@ -378,6 +380,7 @@ class TestScanPreset:
         root = tmp_path_factory.mktemp("scan") / "scene"
         return open_bundle(make_scene(root, preset=self._small(), difficulty="default", seed=0))
 
+    @pytest.mark.slow  # the scan fixture builds a scene (1.5-2.5 s here)
     def test_frames(self, scan: Bundle) -> None:
         spec = PRESETS["scan"]
         assert spec.realistic
@@ -389,6 +392,7 @@ class TestScanPreset:
         feats = scan.read_features(scan.feature_frames[0])
         assert feats.shape == (120 // 4, 160 // 4, 512)
 
+    @pytest.mark.slow  # reads the scan fixture
     def test_unannotated_ground_truth(self, scan: Bundle) -> None:
         gt, geo = scan.read_ground_truth(), scan.read_geometry()
         assert gt is not None
@@ -402,6 +406,7 @@ class TestScanPreset:
         assert (unannotated & inner & (geo.points[:, 2] > 0.05)).sum() > 100
         assert gt.semantic.max() < len(CLASS_NAMES)
 
+    @pytest.mark.slow  # reads the scan fixture
     def test_some_geometry_seen_by_no_key_frame(self, scan: Bundle) -> None:
         """The geometry comes from the dense trajectory; the sparse key frames miss part of it."""
         from panogs_core.stages.visibility import VisibilityConfig, compute_visibility

@@ -116,6 +116,7 @@ def test_clip_without_model_path() -> None:
         get_text_encoder("clip-vit-b32")
 
 
+@pytest.mark.slow  # imports transformers (1-2.5 s here)
 @pytest.mark.usefixtures("offline")
 def test_clip_bad_folder(tmp_path: Path) -> None:
     pytest.importorskip("transformers")

@@ -90,6 +90,7 @@ def _fresh_process_state(code: str) -> dict[str, object]:
     return dict(json.loads(done.stdout.splitlines()[-1]))
 
 
+@pytest.mark.slow  # a fresh interpreter imports torch, numpy and OpenCV (1-3 s here)
 @pytest.mark.skipif(threads.available_cores() < 2, reason="one core: a limit of 1 is also the default")
 def test_panogs_run_limits_every_pool_before_the_pipeline_loads() -> None:
     """What ``panogs run --threads 1`` does first, in a process of its own: torch, OpenMP and numpy's OpenBLAS

@@ -33,17 +33,21 @@ from svc_helpers import RecordingSender, new_key, pack, write_tiny_bundle
 
 from service.api_app import create_app
 from service.db.migrate import upgrade
+from service.db.models import Base
 from service.db.session import get_engine
 from service.settings import Settings
 
 PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
-TABLES = ("artifact", "job", "scene", "upload", "api_key")
+# Children first: a DELETE per table, which on the few rows a test leaves takes under 1 ms where TRUNCATE took
+# 18 (it rewrites every table's files), before each of the ~160 PostgreSQL tests.
+TABLES = ("artifact", "job", "scene", "upload", "app_session", "api_key")
 
 
 @pytest.fixture(scope="session")
 def pg_url() -> Iterator[str]:
     """A migrated PostgreSQL database of this session."""
+    assert set(TABLES) == set(Base.metadata.tables), "TABLES must name every table, children first"
     require_postgres(PG_ADMIN_URL)
     with temp_postgres(PG_ADMIN_URL) as url:
         upgrade(url)
@@ -70,7 +74,8 @@ def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _clean_postgres(url: str) -> None:
     with get_engine(url).begin() as conn:
-        conn.execute(text(f"TRUNCATE {', '.join(TABLES)} CASCADE"))
+        for table in TABLES:
+            conn.execute(text(f"DELETE FROM {table}"))
 
 
 @pytest.fixture

@@ -210,6 +210,7 @@ def test_install_torch_pins_the_build_and_the_constraints() -> None:
     assert 'panogs-check-torch "$variant"' in text
 
 
+@pytest.mark.slow  # two fresh interpreters import torch
 def test_check_torch_tells_the_build_apart() -> None:
     pytest.importorskip("torch")
     import torch

@@ -156,7 +156,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
                 cluster.add_worker()
             yield cluster
         finally:
-            procs.stop_all()
+            procs.kill_all()  # the API and the workers: nothing here checks their shutdown
             pg_proxy.close()
             redis_proxy.close()
             drop_redis_prefix(REDIS_URL, prefix)

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 import uuid
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,13 @@ INLINE = {
         {"name": "wall", "embedding": [0, 0, 1, 0, 0, 0, 0, 0]},
     ]
 }  # the tiny bundle's features are 8-d
+
+
+@pytest.fixture(autouse=True)
+def quick_stages(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stand-in pipeline's stages take 0.2 s each by default (for tests that stop a job mid-run); nothing
+    here waits on a stage, and each run here was 1.2 s of sleep."""
+    monkeypatch.setenv("PANOGS_SCRIPTED_STAGE_S", "0.01")
 
 
 @pytest.fixture
@@ -264,23 +269,21 @@ class TestInline:
         assert _job_count(settings) == 0
 
 
-# The labels are what this test reads: a two-iteration appearance fit keeps the real pipeline short (the fit has its
-# own tests).
-FAST = {"appearance": {"iterations": 2}}
+# The class names of the labels are what this test reads, not their quality: a two-iteration appearance fit and a
+# one-step language field keep the real pipeline short (both have their own tests; every stage still runs).
+FAST = {"appearance": {"iterations": 2}, "language_field": {"epochs": 1, "min_steps": 1}}
 
 
 @pytest.mark.slow
 class TestRealPipeline:
-    def test_inline_vocabulary_end_to_end(self, make_settings: Any, tmp_path: Path) -> None:
+    def test_inline_vocabulary_end_to_end(self, make_settings: Any, tmp_path: Path, synth_tiny: Path) -> None:
         """The real pipeline on a tiny synthetic scene, with the bundle's classes renamed and given inline
         (names, kinds and the bundle's own embeddings): the job succeeds and its instances and vocabulary.json
         carry the inline names."""
         from panogs_core.pipeline.config import PipelineConfig
         from panogs_core.pipeline.run import STAGES, run_pipeline
 
-        folder = tmp_path / "scene"
-        subprocess.run([sys.executable, "-m", "panogs_core.cli", "synth", str(folder), "--preset", "tiny"],
-                       check=True, capture_output=True, timeout=600)  # fmt: skip
+        folder = synth_tiny  # only read
         own = json.loads((folder / "vocabulary.json").read_text())["classes"]
         embeddings = np.load(folder / "vocabulary.npy").astype(float).tolist()
         classes = [{"name": f"my {c['name']}", "kind": c["kind"], "embedding": e} for c, e in zip(own, embeddings)]

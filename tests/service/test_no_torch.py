@@ -53,6 +53,7 @@ print(json.dumps(steps))
 """
 
 
+@pytest.mark.slow  # a fresh interpreter through upload, scene and job
 def test_api_never_imports_torch(tmp_path: Path) -> None:
     helpers = str(Path(__file__).parent)
     code = SCRIPT.format(helpers=helpers, support=str(SUPPORT), tmp=str(tmp_path))

@@ -80,10 +80,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]
 
 
 @pytest.fixture(scope="module")
-def bundle_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny synthetic scene (``panogs synth --preset tiny``) zipped, as a user would upload it."""
+def bundle_zip(tmp_path_factory: pytest.TempPathFactory, synth_tiny: Path) -> Path:
+    """A tiny synthetic scene (``panogs synth --preset tiny``, the session's) zipped, as a user would upload it."""
     tmp = tmp_path_factory.mktemp("web-bundle")
-    folder = tmp / "tiny-room"
-    subprocess.run([sys.executable, "-m", "panogs_core.cli", "synth", str(folder), "--preset", "tiny"],
-                   cwd=REPO, check=True, capture_output=True, timeout=300)  # fmt: skip
-    return Path(shutil.make_archive(str(folder), "zip", folder))
+    return Path(shutil.make_archive(str(tmp / "tiny-room"), "zip", synth_tiny))

@@ -133,6 +133,7 @@ def test_panogs_view_prints_its_url(run: tuple[Path, dict[str, Any]]) -> None:
         proc.wait(timeout=20)
 
 
+@pytest.mark.slow  # starts Chromium
 def test_offline_file_opens_in_the_browser_and_answers_a_class(
     run: tuple[Path, dict[str, Any]], tmp_path: Path, browser: Any
 ) -> None:

@@ -89,13 +89,13 @@ def test_cuda_job_on_a_cpu_worker_fails_with_a_clear_message(
     assert "no CUDA device" in (job.error_message or "")
 
 
-def test_pipeline_report_names_a_device_per_stage(tmp_path: Path) -> None:
+@pytest.mark.slow
+def test_pipeline_report_names_a_device_per_stage(tmp_path: Path, synth_tiny: Path) -> None:
     """The real pipeline's report.json: the language field on the configured device, the rest on the CPU."""
     pytest.importorskip("torch")
     from panogs_core.pipeline.run import run_pipeline
-    from panogs_core.synthetic import make_scene
 
-    bundle = make_scene(tmp_path / "scene", preset="tiny", seed=0)
+    bundle = synth_tiny  # only read: the run writes under tmp_path
     config = PipelineConfig.from_dict(
         {"language_field": {"epochs": 1, "min_steps": 1, "device": "cpu"}, "appearance": {"iterations": 2}}
     )

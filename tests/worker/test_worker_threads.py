@@ -61,12 +61,16 @@ def _run_in_worker(settings: Settings, job_id: uuid.UUID, log_dir: Path, **env: 
         worker = procs.start("worker", argv)
         create_celery_app(settings).send_task(TaskName.RUN_JOB.value, args=[str(job_id)], queue="cpu")
         wait_for(lambda: read_job(settings, job_id).state is JobState.SUCCEEDED, 120, "the job", procs.tail("worker"))
+        # What the job recorded is all this reads: kill the worker's process group (its forked child with it)
+        # rather than wait 4-5 s for an idle Celery worker's warm shutdown (test_runner and test_faults test that).
+        procs.kill("worker")
     finally:
         procs.stop_all()
     probe = next(Storage(settings.storage).job_dir(job_id).rglob("threads.json"))
     return {**json.loads(probe.read_text()), "worker_pid": worker.pid}
 
 
+@pytest.mark.slow  # a real worker process: start, one job, warm shutdown
 @pytest.mark.skipif(available_cores() < 2, reason="one core: a limit of 1 is also the default")
 def test_a_solo_worker_runs_its_jobs_with_the_configured_threads(
     settings: Settings, make_job: MakeJob, tmp_path: Path
@@ -83,6 +87,7 @@ def test_a_solo_worker_runs_its_jobs_with_the_configured_threads(
     assert environ["OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER"] == "0"
 
 
+@pytest.mark.slow  # a real worker process: start, one job, warm shutdown
 def test_a_prefork_child_gets_its_share_of_the_cores(settings: Settings, make_job: MakeJob, tmp_path: Path) -> None:
     """No setting: two job processes share the worker's cores; the limits reach the forked child."""
     state = _run_in_worker(settings, make_job(), tmp_path, PANOGS_WORKER_POOL="prefork", PANOGS_WORKER_CONCURRENCY="2")
