@@ -74,7 +74,7 @@ docs-tables: $(VENV)/.installed ## write README.md's and docs/architecture.md's 
 test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q
 
-test-fast: install ## the whole tree but the tests marked slow (about a minute; PostgreSQL and Redis as for test)
+test-fast: $(VENV)/.installed $(WEB_BUILT) ## the whole tree but the tests marked slow (about a minute; PostgreSQL and Redis as for test)
 	$(VENV)/bin/pytest -q -m "not slow"
 
 lint: $(VENV)/.installed ## ruff (lint + format check) over every Python folder, mypy (strict on service and worker)
