@@ -24,6 +24,7 @@ pytestmark = pytest.mark.slow
 JOB_TIMEOUT_MS = 300_000  # the tiny scene takes ~15 s alone; the machine may be shared
 VIEWPORT = {"width": 1200, "height": 760}
 CSP_VIOLATIONS: list[str] = []  # what Chromium refused under the app's Content-Security-Policy, from every page
+WHILE_FITTING: dict[str, Any] = {}  # the job's row and its instances while its results are ready and its fit runs
 
 
 def _sign_in(context: Any, url: str, key: str) -> Any:
@@ -74,6 +75,19 @@ def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
     assert len(patches) > 2, patches  # the dropped chunk was sent again
     ident = row.get_attribute("data-job-id")
     try:
+        # The results come before the Gaussian fit: the row says so while the job still runs (the tiny room's fit
+        # takes some 10-40 s, the table is polled every second).
+        fitting = f'tr[data-job-id="{ident}"][data-state=running][data-results=ready]'
+        page.wait_for_selector(fitting, timeout=JOB_TIMEOUT_MS)
+        WHILE_FITTING.update(
+            fit=page.locator(f"{fitting} td.pgs-fit").inner_text(),
+            open=page.locator(f"{fitting} [data-action=open]").count(),
+            data_fit=page.locator(fitting).get_attribute("data-fit"),
+            instances=httpx.get(
+                f"{served['url']}/v1/jobs/{ident}/instances",
+                headers={"Authorization": f"Bearer {served['keys']['alice']}"},
+            ).status_code,
+        )
         page.wait_for_selector(f'tr[data-job-id="{ident}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
     except Exception:
         print(served["log"]())
@@ -95,11 +109,19 @@ def _open_viewer(page: Any, url: str, job_id: str, view: str = "") -> None:
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
 
 
+def test_the_results_answer_while_the_fit_runs(job_id: str) -> None:
+    assert WHILE_FITTING["data_fit"] == "running"
+    assert WHILE_FITTING["fit"].startswith("fitting "), WHILE_FITTING
+    assert WHILE_FITTING["open"] == 1, "the viewer opens on the results"
+    assert WHILE_FITTING["instances"] == 200
+
+
 def test_upload_reaches_succeeded_and_opens_the_viewer(
     page: Any, job_id: str, served: dict[str, Any], artifacts: Path
 ) -> None:
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     assert row.locator("td").nth(2).inner_text() == "succeeded"
+    assert row.locator("td.pgs-fit").inner_text() == "fitted"
     row.locator("[data-action=open]").click()
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
     assert page.locator(".pgs-instances li").count() > 3
