@@ -36,6 +36,11 @@ export function fitRunning(job) {
   return job.fit?.state === "running" && !isTerminal(job.state);
 }
 
+// gaussians.ply is final (the photo view and renders need it): fitted, or no fit made.
+export function sceneFitted(job) {
+  return job.fit ? ["succeeded", "skipped"].includes(job.fit.state) : job.state === "succeeded";
+}
+
 const FIT_TEXTS = {
   succeeded: "fitted",
   skipped: "not fitted (off)",

@@ -8,7 +8,7 @@ import { Viewer } from "../../viewer/viewer.js";
 import { APP_HEADER, api } from "../api-client.js";
 import { showError } from "../messages.js";
 import { viewerHash } from "../routes.js";
-import { fitRunning, resultsReady } from "../rules.js";
+import { fitRunning, resultsReady, sceneFitted } from "../rules.js";
 
 // ctx: { page, onLeave(fn) } (router.js)
 export async function viewerPage(ctx, jobId, params) {
@@ -31,8 +31,20 @@ export async function viewerPage(ctx, jobId, params) {
     message.textContent = `The Gaussian scene is being fitted (${Math.round(job.fit.progress * 100)}%); the point views show the results now.`;
   } else message.remove();
   root.style.height = "100%"; // through the CSSOM: the page's CSP refuses style attributes
+  // The photo view needs the fitted scene: offered once the fit is done (gaussians.ply answers 409 before).
+  const photo = sceneFitted(job)
+    ? {
+        load: () => import("../../viewer/photo.js"),
+        bytes: async () => {
+          const response = await fetch(`/v1/jobs/${jobId}/artifacts/gaussians.ply`, { headers: APP_HEADER });
+          if (!response.ok) throw new Error(`gaussians.ply: ${response.status}`);
+          return new Uint8Array(await response.arrayBuffer());
+        },
+      }
+    : null;
   const viewer = new Viewer(root, {
     state: paramsToState(params),
+    photo,
     queryFn: (text) => api("POST", `/v1/jobs/${jobId}/query`, { text }),
     onStateChange: (state) => history.replaceState(null, "", viewerHash(jobId, stateToParams(state))),
   });
