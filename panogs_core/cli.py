@@ -182,6 +182,9 @@ def _parse_overrides(pairs: list[str]) -> dict[str, Any]:
     return out
 
 
+FITTING_LINE = "the results are written; fitting the Gaussian scene (gaussians.ply) ..."
+
+
 def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
     """A fixed-width table of instances (things first, by class then size)."""
     rows = sorted(instances, key=lambda i: (i["kind"] != "thing", i["class_name"], -i["num_points"]))
@@ -282,7 +285,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(format_instances(result.instances))
         if result.metrics:
             print("\n" + format_metrics(result.metrics))
-        print("\nthe results are written; fitting the Gaussian scene (gaussians.ply) ...", flush=True)
+        print("\n" + FITTING_LINE, flush=True)
         printed.append(result)
 
     try:

@@ -81,7 +81,7 @@ def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
         fitting = f'tr[data-job-id="{ident}"][data-state=running][data-results=ready]'
         page.wait_for_selector(fitting, timeout=JOB_TIMEOUT_MS)
         WHILE_FITTING.update(
-            fit=page.locator(f"{fitting} td.pgs-fit").inner_text(),
+            fit=page.locator(f"{fitting} td.pgs-fit").inner_text().strip(),
             open=page.locator(f"{fitting} [data-action=open]").count(),
             data_fit=page.locator(fitting).get_attribute("data-fit"),
             instances=httpx.get(
@@ -122,7 +122,7 @@ def test_upload_reaches_succeeded_and_opens_the_viewer(
 ) -> None:
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     assert row.locator("td").nth(2).inner_text() == "succeeded"
-    assert row.locator("td.pgs-fit").inner_text() == "fitted"
+    assert row.locator("td.pgs-fit").inner_text().strip() == "fitted"
     row.locator("[data-action=open]").click()
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
     assert page.locator(".pgs-instances li").count() > 3
