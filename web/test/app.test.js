@@ -12,6 +12,7 @@ import {
   jobStateText,
   pollDelay,
   resultsReady,
+  sceneFitted,
   vocabularyBody,
   vocabularyText,
 } from "../src/app/rules.js";
@@ -73,6 +74,14 @@ describe("results before the Gaussian fit", () => {
     assert.equal(fitText(failed), "fit failed: NumericalError: NaN");
     assert.equal(fitRunning(failed), false);
     assert.equal(fitText({ state: "canceled", fit: { state: "canceled", progress: 0.5 } }), "fit canceled");
+  });
+
+  it("offers the photo view only once gaussians.ply is final", () => {
+    assert.equal(sceneFitted({ state: "running", fit: { state: "running", progress: 0.3 } }), false);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "succeeded", progress: 1 } }), true);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "skipped", progress: 1 } }), true);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "failed", progress: 0.4 } }), false);
+    assert.equal(sceneFitted({ state: "canceled", fit: { state: "canceled", progress: 0.4 } }), false);
   });
 });
 
