@@ -182,6 +182,9 @@ def _parse_overrides(pairs: list[str]) -> dict[str, Any]:
     return out
 
 
+FITTING_LINE = "the results are written; fitting the Gaussian scene (gaussians.ply) ..."
+
+
 def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
     """A fixed-width table of instances (things first, by class then size)."""
     rows = sorted(instances, key=lambda i: (i["kind"] != "thing", i["class_name"], -i["num_points"]))
@@ -198,7 +201,13 @@ def format_instances(instances: list[dict[str, Any]], limit: int = 40) -> str:
 
 
 def format_appearance(summary: dict[str, Any]) -> str:
-    """One line on the Gaussian scene's fit: PSNR before and after, or why it did not run ("" without a fit)."""
+    """One line on the Gaussian scene's fit: PSNR before and after, why it did not run, or how it failed ("" without
+    a fit)."""
+    if summary.get("state") in ("failed", "canceled"):
+        return (
+            f"gaussians: the fit {summary['state']} ({summary.get('error', '')}); the results stand, gaussians.ply "
+            "holds the initialisation"
+        )
     if summary.get("psnr_after") is not None:
         return (
             f"gaussians: PSNR {summary['psnr_before']:.2f} -> {summary['psnr_after']:.2f} dB on "
@@ -264,23 +273,44 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.set:
         cfg = cfg.with_overrides(_parse_overrides(args.set))
     progress = stage_reporter(args.quiet, sys.stderr)
+    printed: list[Any] = []
+
+    def print_results(result: Any) -> None:
+        """The results as soon as they are written, before the appearance fit."""
+        progress.close()
+        print(
+            f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
+            f"{result.total_s:.1f} s -> {result.out_dir}"
+        )
+        print(format_instances(result.instances))
+        if result.metrics:
+            print("\n" + format_metrics(result.metrics))
+        print("\n" + FITTING_LINE, flush=True)
+        printed.append(result)
+
     try:
         result = run_pipeline(
-            args.bundle, args.out, cfg, vocabulary=vocabulary, on_progress=progress, resume=not args.no_resume
+            args.bundle,
+            args.out,
+            cfg,
+            vocabulary=vocabulary,
+            on_progress=progress,
+            resume=not args.no_resume,
+            on_results=print_results,
         )
+    except KeyboardInterrupt:
+        progress.close()
+        if printed:
+            print(
+                "interrupted during the Gaussian fit: the results above are written, gaussians.ply holds the "
+                "initialisation; run the same command again to resume the fit",
+                file=sys.stderr,
+            )
+            return 130
+        raise
     finally:
         progress.close()
-    total = sum(t.wall_s for t in result.timings)
-    print(
-        f"\n{result.scene_name}: {result.num_primitives} primitives, {len(result.instances)} instances, "
-        f"{total:.1f} s -> {result.out_dir}"
-    )
-    line = format_appearance(result.appearance)
-    if line:
-        print(line)
-    print(format_instances(result.instances))
-    if result.metrics:
-        print("\n" + format_metrics(result.metrics))
+    print(format_appearance(result.appearance) or "gaussians: the initialisation (no fit)")
     return 0
 
 

@@ -83,6 +83,24 @@ class Conflict(ServiceError):
     type = "conflict"
 
 
+class FitNotReady(Conflict):
+    """The job's results are ready but its Gaussian scene is not (its fit runs, failed or was canceled).
+
+    The body adds ``fit``: ``{"state", "progress", "error"}``; while the fit runs, ``Retry-After`` says when to ask
+    again.
+    """
+
+    type = "fit_not_ready"
+
+    def __init__(self, message: str, fit: dict[str, Any], *, retry_after_s: int | None = None) -> None:
+        headers = {"Retry-After": str(retry_after_s)} if retry_after_s is not None else None
+        super().__init__(message, headers=headers)
+        self.fit = fit
+
+    def body(self) -> dict[str, Any]:
+        return {**super().body(), "fit": self.fit}
+
+
 class InvalidInput(ServiceError):
     """The request is well-formed but its content is refused."""
 
@@ -223,7 +241,8 @@ def _storage_roots(request: Request) -> list[Path]:
 
 def safe_error_body(request: Request, body: dict[str, Any]) -> dict[str, Any]:
     """The body of an error response as it may leave the server (module docstring); logs what it changed."""
-    texts = [body.get("message", ""), *(body.get("problems") or [])]
+    fit = body.get("fit") if isinstance(body.get("fit"), dict) else None
+    texts = [body.get("message", ""), *(body.get("problems") or []), (fit or {}).get("error") or ""]
     if any(isinstance(t, str) and has_traceback(t) for t in texts):
         request_id = uuid.uuid4().hex[:12]
         logger.error("a traceback was about to be answered on %s %s (request %s): %r", request.method,
@@ -238,6 +257,8 @@ def safe_error_body(request: Request, body: dict[str, Any]) -> dict[str, Any]:
         out["message"] = sanitize_message(body["message"], roots)
     if isinstance(body.get("problems"), list):
         out["problems"] = [sanitize_message(p, roots) if isinstance(p, str) else p for p in body["problems"]]
+    if fit is not None and isinstance(fit.get("error"), str):
+        out["fit"] = {**fit, "error": sanitize_message(fit["error"], roots)}
     if out != body:
         logger.info("host paths cut from the error answered on %s %s: %r", request.method, request.url.path, body)
     return out

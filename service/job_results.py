@@ -1,4 +1,8 @@
-"""A finished job's results as the API serves them: instances and queries, loaded once and kept warm.
+"""A job's results as the API serves them: instances and queries, loaded once and kept warm.
+
+Results are ready before the job has finished: the pipeline writes them before the appearance fit, and the worker
+records ``results_at`` then (docs/service.md, "Results before the fit"). The Gaussian scene (renders,
+``gaussians.ply``) waits for the fit: :func:`check_fitted` answers 409 ``fit_not_ready`` with its progress.
 
 Results are read with ``panogs_core.io.run_folder.load_result`` (numpy only) and kept in a small LRU per API
 process; a finished job's folder never changes, so the cache needs no invalidation beyond the job id.
@@ -19,11 +23,13 @@ from typing import Any, Literal
 from sqlalchemy import Engine
 
 from service.db import crud
-from service.db.models import JobState
+from service.db.models import FitState
 from service.encoder import EncoderFailed, EncoderProcess, RemoteTextEncoder
-from service.errors import Conflict, InvalidInput, NotFound, ServiceUnavailable
+from service.errors import Conflict, FitNotReady, InvalidInput, NotFound, ServiceUnavailable
 from service.schemas import InstancePublic, InstancesPublic, QueryCreate, QueryHitPublic, QueryResult
 from service.storage import Storage
+
+FIT_RETRY_AFTER_S = 5  # what a 409 fit_not_ready asks a client to wait while the fit runs
 
 
 @dataclass(frozen=True)
@@ -74,14 +80,56 @@ def read_instances(out_dir: Path) -> list[dict[str, Any]]:
 
 
 def finished(engine: Engine, cache: ResultCache, storage: Storage, job_id: uuid.UUID, tenant_id: uuid.UUID) -> Loaded:
-    """The result of a tenant's succeeded job (one autocommit SELECT, then the cache)."""
+    """The result of a tenant's job whose results are ready, the fit done or not (one autocommit SELECT, then the
+    cache)."""
     with engine.connect() as conn:
         row = crud.read_job_row(conn, job_id, tenant_id)
     if row is None:
         raise NotFound("job", job_id)
-    if row.state != JobState.SUCCEEDED:
-        raise Conflict(f"job {job_id} is {row.state.value}; results exist once it has succeeded")
+    if row.results_at is None:
+        raise Conflict(f"job {job_id} is {row.state.value}; results exist once its labelling is done")
     return cache.get(job_id, storage.job_dir(job_id))
+
+
+def fitted_scene(engine: Engine, job_id: uuid.UUID, tenant_id: uuid.UUID) -> None:
+    """Check that a tenant's job has its final Gaussian scene (renders, ``gaussians.ply``).
+
+    Raises:
+        NotFound: no such job of the tenant.
+        Conflict: its results are not ready.
+        FitNotReady: its results are ready, its fit is not done (or failed, or was canceled); the body says how far.
+    """
+    with engine.connect() as conn:
+        row = crud.read_job_row(conn, job_id, tenant_id)
+    if row is None:
+        raise NotFound("job", job_id)
+    check_fitted(row)
+
+
+def check_fitted(job: Any) -> None:
+    """Raise :class:`Conflict` or :class:`FitNotReady` unless the job's Gaussian scene is final (a row or a model)."""
+    if job.results_at is None:
+        raise Conflict(f"job {job.id} is {job.state.value}; results exist once its labelling is done")
+    fit: FitState | None = job.fit_state
+    if fit is not None and fit.scene_ready:
+        return
+    progress = round(float(job.fit_progress or 0.0), 4)
+    body = {"state": (fit or FitState.RUNNING).value, "progress": progress, "error": job.fit_error}
+    if fit in (FitState.FAILED, FitState.CANCELED):
+        raise FitNotReady(
+            f"job {job.id}: the Gaussian fit {fit.value}; its results stand, but gaussians.ply holds only the "
+            "initialisation and is neither served nor rendered",
+            body,
+        )
+    if job.state.is_terminal:  # the job ended during its fit without saying how (a worker lost for good)
+        body["state"] = FitState.FAILED.value
+        raise FitNotReady(f"job {job.id} is {job.state.value}; its Gaussian fit did not finish", body)
+    raise FitNotReady(
+        f"job {job.id}: the Gaussian fit is {progress:.0%} done; gaussians.ply and renders exist once it has "
+        "succeeded (the instances and queries answer now)",
+        body,
+        retry_after_s=FIT_RETRY_AFTER_S,
+    )
 
 
 def answer_query(

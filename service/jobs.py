@@ -15,7 +15,7 @@ from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
 from service.lifecycle import check_job_quota
-from service.schemas import InlineVocabulary, InlineVocabularyPublic, JobCreate, JobError, JobPublic
+from service.schemas import FitPublic, InlineVocabulary, InlineVocabularyPublic, JobCreate, JobError, JobPublic
 from service.settings import Settings
 from service.stored_text import printable_text
 
@@ -158,6 +158,8 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         progress=job.progress,
         stage_timings=job.stage_timings or {},
         error=error,
+        results_ready=results_ready(job),
+        fit=fit_public(job),
         config=job.config or {},
         vocabulary=public_vocabulary(job.vocabulary, job.vocabulary_classes),
         cancel_requested=job.cancel_requested,
@@ -166,3 +168,15 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         started_at=job.started_at,
         finished_at=job.finished_at,
     )
+
+
+def results_ready(job: Job | Row[Any]) -> bool:
+    """True once a job's results (labels, instances, their artifacts) are recorded: they do not wait for the fit."""
+    return job.results_at is not None
+
+
+def fit_public(job: Job | Row[Any]) -> FitPublic | None:
+    """The job's appearance fit, once its results are ready."""
+    if job.results_at is None or job.fit_state is None:
+        return None
+    return FitPublic(state=job.fit_state, progress=round(float(job.fit_progress or 0.0), 4), error=job.fit_error)

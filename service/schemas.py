@@ -20,7 +20,7 @@ from pydantic import (
 )
 
 from panogs_core.language.label_sets import BUILTIN_VOCABULARIES, describe_name, is_builtin_name
-from service.db.models import JobState, UploadState
+from service.db.models import FitState, JobState, UploadState
 
 MAX_QUERY_CHARS = 1_000
 MAX_VECTOR_DIM = 8_192
@@ -53,6 +53,9 @@ class ErrorBody(BaseModel):
     type: str = Field(description="stable machine-readable error kind, e.g. not_found, invalid_bundle")
     message: str
     problems: list[str] | None = Field(default=None, description="one line per problem, when there are several")
+    fit: FitPublic | None = Field(
+        default=None, description="type fit_not_ready: the job's appearance fit (gaussians.ply and renders wait for it)"
+    )
 
 
 # Uploads ---------------------------------------------------------------------------------------------------
@@ -251,6 +254,14 @@ class JobError(BaseModel):
     message: str
 
 
+class FitPublic(BaseModel):
+    """The appearance fit of a job whose results are ready: it runs after them."""
+
+    state: FitState = Field(description="running, succeeded, skipped (no fit made), failed or canceled")
+    progress: float = Field(description="0..1 over the fit alone")
+    error: str | None = Field(default=None, description="why the fit failed or stopped")
+
+
 class JobPublic(BaseModel):
     """A job's state and progress."""
 
@@ -261,6 +272,10 @@ class JobPublic(BaseModel):
     progress: float = Field(description="0..1 over all stages")
     stage_timings: dict[str, float] = Field(description="seconds per finished stage")
     error: JobError | None
+    results_ready: bool = Field(
+        description="the instances, queries, viewer scene and label artifacts answer (before the fit is done)"
+    )
+    fit: FitPublic | None = Field(description="the appearance fit, once the results are ready; else null")
     config: dict[str, Any]
     vocabulary: str | InlineVocabularyPublic | None = Field(
         description="the built-in label set asked for, the inline classes, or null: the bundle's own"

@@ -26,8 +26,12 @@ _COMMON = {
     "Referrer-Policy": "no-referrer",
 }
 API_CSP = "default-src 'none'; frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+# 'wasm-unsafe-eval': the viewer's photo view (Spark, web/src/viewer/photo.js) compiles its WebAssembly module, the
+# splat sorter and PLY decoder, from bytes in its own bundle; it allows compiling WebAssembly only, not eval() or
+# new Function(), and no other origin. Its worker is a blob: URL of the same bundle (worker-src, already there).
 APP_CSP = (
-    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
+    "default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; style-src 'self'; img-src 'self' data: blob:; "
+    "connect-src 'self'; "
     "worker-src 'self' blob:; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
 )
 _CDN = "https://cdn.jsdelivr.net"

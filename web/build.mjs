@@ -11,16 +11,24 @@ const out = join(here, "..", "service", "static", "app");
 rmSync(out, { recursive: true, force: true });
 mkdirSync(out, { recursive: true });
 
-await build({
-  entryPoints: { app: join(here, "src", "app-main.js"), viewer: join(here, "src", "viewer-main.js") },
+const common = {
   bundle: true,
   minify: true,
-  format: "iife",
   target: ["es2020"],
   outdir: out,
   legalComments: "none",
   logLevel: "warning",
+};
+// app.js is an ES module split in chunks: the photo view (Spark, 3 MB with its WebAssembly) loads on demand.
+await build({
+  ...common,
+  entryPoints: { app: join(here, "src", "app-main.js") },
+  format: "esm",
+  splitting: true,
+  chunkNames: "chunk-[hash]",
 });
+// viewer.js stays one classic script: the offline file of `panogs export-html` inlines it.
+await build({ ...common, entryPoints: { viewer: join(here, "src", "viewer-main.js") }, format: "iife" });
 for (const name of readdirSync(join(here, "public"))) {
   copyFileSync(join(here, "public", name), join(out, name));
 }

@@ -28,17 +28,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from panogs_core.errors import Cancelled, PanoGSError
-from panogs_core.io.run_folder import DOWNLOADABLE
+from panogs_core.io.run_folder import DOWNLOADABLE, GAUSSIANS_PLY
 from panogs_core.types import Vocabulary
 from service import jobs
 from service.db import crud
+from service.db.base import utcnow
 from service.db.faults import DatabaseFault, classify
-from service.db.models import Artifact, Job, JobState
+from service.db.models import Artifact, FitState, Job, JobState
 from service.db.session import session_scope
 from service.settings import Settings
 from service.storage import Storage, sha256_file
@@ -48,6 +49,9 @@ T = TypeVar("T")
 
 # The pipeline's outputs that become downloadable artifacts, with their media types (the run folder's declaration).
 ARTIFACTS = {name: spec.media_type for name, spec in DOWNLOADABLE.items()}
+# The stage that runs after the results are written, and the file it finishes (served once the fit is done).
+FIT_STAGE = "appearance"
+FITTED_FILES = frozenset({GAUSSIANS_PLY.name})
 
 
 class PipelineFn(Protocol):
@@ -62,6 +66,7 @@ class PipelineFn(Protocol):
         vocabulary: str | Vocabulary | None,
         on_progress: Callable[[str, int, int], None],
         resume: bool,
+        on_results: Callable[[Any], None],
     ) -> Any: ...
 
 
@@ -146,6 +151,8 @@ class _Tracker:
     last_write: float = 0.0
     stop: threading.Event = field(default_factory=threading.Event)
     lost: bool = False
+    results_ready: bool = False  # the results are recorded; what runs now is the appearance fit
+    fit_progress: float = 0.0
 
     def fraction(self, stage: str, done: int, total: int) -> float:
         if stage not in self.env.stages:
@@ -173,7 +180,11 @@ class _Tracker:
         self.last_write = now
         if now - self.started > self.env.settings.job_time_limit_s:
             raise TimeLimitExceeded(f"the job ran longer than {self.env.settings.job_time_limit_s:g} s")
-        self.write(stage=stage, progress=self.fraction(stage, done, total), stage_timings=dict(self.timings))
+        values: dict[str, Any] = {}
+        if self.results_ready and stage == FIT_STAGE:
+            self.fit_progress = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
+            values["fit_progress"] = self.fit_progress
+        self.write(stage=stage, progress=self.fraction(stage, done, total), stage_timings=dict(self.timings), **values)
 
     def write(self, **values: Any) -> None:
         """Progress and heartbeat write; a database that is away is skipped, a lost lease or a cancel
@@ -293,6 +304,7 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
                 vocabulary=vocabulary,
                 on_progress=tracker.on_progress,
                 resume=True,
+                on_results=lambda _result: _record_results(job.id, tracker, out_dir),
             )
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
@@ -305,13 +317,16 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         )
         logger.info("job %s: handed back to the queue (worker shutting down)", job.id)
         return JobState.QUEUED
-    except CancelRequested:
+    except CancelRequested as exc:
         tracker.close_stage(time.monotonic())
-        return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings)
+        fit = {"fit_state": FitState.CANCELED, "fit_error": str(exc)} if tracker.results_ready else {}
+        return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings, **fit)
     except (TimeLimitExceeded, PanoGSError) as exc:
         # Domain errors: the input or the configuration is at fault, retrying cannot help.
         tracker.close_stage(time.monotonic())
         logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
+        message = without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000]
+        fit = {"fit_state": FitState.FAILED, "fit_error": f"{type(exc).__name__}: {message}"}
         return _finish(
             job.id,
             tracker.lease,
@@ -319,11 +334,17 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             JobState.FAILED,
             stage_timings=tracker.timings,
             error_type=type(exc).__name__,
-            error_message=without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000],
+            error_message=message,
+            **(fit if tracker.results_ready else {}),
         )
     tracker.close_stage(time.monotonic())
     timings = merge_timings(tracker.timings, getattr(result, "timings", None))
-    artifacts = collect_artifacts(job.id, out_dir, env.storage)
+    fit_state, fit_error = fit_outcome(result)
+    if fit_error is not None:
+        fit_error = without_host_paths(fit_error, env, bundle_dir, out_dir)[:10_000]
+        logger.info("job %s: results ready, the Gaussian fit %s: %s", job.id, fit_state, fit_error)
+    exclude = frozenset() if fit_state.scene_ready else FITTED_FILES  # an unfitted scene is not served
+    artifacts = collect_artifacts(job.id, out_dir, env.storage, exclude=exclude)
     return _finish(
         job.id,
         tracker.lease,
@@ -333,7 +354,50 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         progress=1.0,
         stage=None,
         stage_timings=timings,
+        results_at=func.coalesce(Job.results_at, utcnow()),  # a pipeline without on_results: now
+        fit_state=fit_state,
+        fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
+        fit_error=fit_error,
     )
+
+
+def fit_outcome(result: Any) -> tuple[FitState, str | None]:
+    """How the pipeline's appearance fit ended (``PipelineResult.appearance``: ``state``, ``error``).
+
+    A pipeline that says nothing of a fit (one without it) counts as fitted: its outputs are final when it returns.
+    """
+    appearance = getattr(result, "appearance", None)
+    if not isinstance(appearance, Mapping):
+        return FitState.SUCCEEDED, None
+    try:
+        state = FitState(str(appearance.get("state", FitState.SUCCEEDED.value)))
+    except ValueError:
+        state = FitState.SUCCEEDED
+    if state in (FitState.RUNNING, FitState.CANCELED):  # returned, so it did not stop; a running one never ended
+        state = FitState.FAILED
+    error = appearance.get("error")
+    return state, (str(error) if error is not None else None)
+
+
+def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None:
+    """The pipeline wrote its results (before the fit): record their artifacts and ``results_at``; the
+    instances, queries and viewer scene answer from here on. Called in the pipeline's thread.
+
+    Raises:
+        LeaseLost: another task holds the job now.
+    """
+    env = tracker.env
+    artifacts = collect_artifacts(job_id, out_dir, env.storage, exclude=FITTED_FILES)
+
+    def write() -> bool:
+        with session_scope(env.session_factory) as session:
+            return crud.record_results(session, job_id, tracker.lease, artifacts, stage_timings=dict(tracker.timings))
+
+    if not with_db_retry(write, deadline_s=env.settings.transient_retry_s, what="record the job's results"):
+        tracker.lost = True
+        raise LeaseLost(f"job {job_id}: another worker holds it now, or it was finished")
+    tracker.results_ready = True
+    logger.info("job %s: results ready (%d artifacts); the Gaussian fit goes on", job_id, len(artifacts))
 
 
 def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
@@ -373,12 +437,14 @@ def merge_timings(measured: dict[str, float], reported: Any) -> dict[str, float]
     return out
 
 
-def collect_artifacts(job_id: uuid.UUID, out_dir: Path, storage: Storage) -> list[Artifact]:
-    """Artifact rows for the pipeline outputs present in ``out_dir``."""
+def collect_artifacts(
+    job_id: uuid.UUID, out_dir: Path, storage: Storage, *, exclude: frozenset[str] = frozenset()
+) -> list[Artifact]:
+    """Artifact rows for the pipeline outputs present in ``out_dir``, but those named in ``exclude``."""
     rows = []
     for name, media_type in ARTIFACTS.items():
         path = out_dir / name
-        if path.is_file():
+        if path.is_file() and name not in exclude:
             rows.append(
                 Artifact(
                     job_id=job_id,

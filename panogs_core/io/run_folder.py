@@ -114,10 +114,11 @@ VOCABULARY_NPY = RunFile(
 GAUSSIANS_PLY = RunFile(
     "gaussians.ply",
     BINARY,
-    "the Gaussian scene (fitted, else the initialisation) in the standard 3D Gaussian splatting layout (x, y, z, "
-    "nx, ny, nz, `f_dc_*`, `f_rest_*`, logit `opacity`, log `scale_*`, `rot_*`) plus `semantic` and `instance`; "
-    "opens in the common splat viewers",
-    _EXPORT,
+    "the Gaussian scene in the standard 3D Gaussian splatting layout (x, y, z, nx, ny, nz, `f_dc_*`, `f_rest_*`, "
+    "logit `opacity`, log `scale_*`, `rot_*`) plus `semantic` and `instance`; opens in the common splat viewers. "
+    "Written by the exporter with the results as the initialisation (the primitives' colours), replaced "
+    "atomically by the fitted scene when the fit ends: `report.json`'s `appearance.state` says which it holds",
+    _PIPELINE,
     ("panogs_core.gaussians.views", "service.viewer.scene", "service.render_child"),
     downloadable=True,
 )
@@ -134,7 +135,9 @@ REPORT_JSON = RunFile(
     JSON,
     "per stage: wall time, peak memory, device (`cpu`, `cuda`) and whether it came from a checkpoint; config, "
     "input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), and `unseen_primitives`: how "
-    "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`)",
+    "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`). Written when "
+    "the results are (`appearance.state` `running`), again when the fit ends (`succeeded`, `skipped`, `failed` "
+    "or `canceled`, with `error`)",
     _PIPELINE,
     ("bench.speed", "bench.service.bench_service"),
     downloadable=True,

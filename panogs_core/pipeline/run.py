@@ -23,8 +23,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from panogs_core import __version__
+from panogs_core.errors import Cancelled
 from panogs_core.io.bundle import Bundle, open_bundle
-from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER
+from panogs_core.io.run_folder import BUNDLE_FOLDER, GAUSSIANS_PLY, REPORT_JSON, STAGES_FOLDER
 from panogs_core.pipeline import stage_table as st
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
@@ -37,7 +38,6 @@ log = logging.getLogger(__name__)
 STAGES = (
     "validate",
     "primitives",
-    "appearance",
     "visibility",
     "fusion",
     "language_field",
@@ -47,7 +47,19 @@ STAGES = (
     "clustering",
     "labeling",
     "export",
+    "appearance",
 )
+# The results (labels, instances, queries, the point views) are written by "export"; the appearance fit comes after
+# them, since the labels do not depend on it, and replaces the initialisation's gaussians.ply when it ends.
+
+# report.json's ``appearance.state``: where the Gaussian fit stands (docs/gaussians.md, "Results before the fit").
+FIT_RUNNING = "running"  # the results are written; the fit goes on and gaussians.ply is the initialisation
+FIT_SUCCEEDED = "succeeded"  # gaussians.ply is the fitted scene
+FIT_SKIPPED = "skipped"  # no fit was made (appearance.enabled false, no colour frame); gaussians.ply is final
+FIT_FAILED = "failed"  # the fit raised; the results stand, gaussians.ply is the initialisation
+FIT_CANCELED = "canceled"  # the run was stopped during the fit; the results stand, a re-run resumes the fit
+FIT_STATES = (FIT_RUNNING, FIT_SUCCEEDED, FIT_SKIPPED, FIT_FAILED, FIT_CANCELED)
+ResultsFn = Callable[["PipelineResult"], None]
 
 StageProgressFn = Callable[[str, int, int], None]
 T = TypeVar("T")
@@ -66,7 +78,13 @@ class PipelineResult:
     metrics: dict[str, Any] | None = None
     files: dict[str, Path] = field(default_factory=dict)
     unseen: dict[str, int] = field(default_factory=dict)  # primitives no key frame saw, and how each was labelled
-    appearance: dict[str, Any] = field(default_factory=dict)  # the Gaussian scene's fit (PSNR before/after...)
+    appearance: dict[str, Any] = field(default_factory=dict)  # the Gaussian scene's fit: state, PSNR before/after
+    total_s: float = 0.0  # wall time of the run so far
+
+    @property
+    def fit_state(self) -> str:
+        """Where the Gaussian fit stands, one of ``FIT_STATES``."""
+        return str(self.appearance.get("state", FIT_RUNNING))
 
 
 def _hash_json(obj: Any) -> str:
@@ -222,8 +240,16 @@ def run_pipeline(
     vocabulary: str | Vocabulary | None = None,
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
+    on_results: ResultsFn | None = None,
 ) -> PipelineResult:
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
+
+    The results come first: every labelling stage runs, the label outputs, the initialisation's ``gaussians.ply``
+    and ``report.json`` (``appearance.state`` ``running``) are written, ``on_results`` is called, and only then
+    does the appearance fit run; its scene replaces ``gaussians.ply`` atomically and ``report.json`` is written
+    again. A fit that raises leaves the results as they are: an error is recorded (``appearance.state``
+    ``failed``, with ``error``) and the result returned; a stop (:class:`Cancelled`, Ctrl-C) is recorded as
+    ``canceled`` and raised.
 
     Args:
         bundle: Bundle folder or archive, or an already opened :class:`Bundle`.
@@ -233,9 +259,11 @@ def run_pipeline(
             CLI's ``--vocabulary FILE`` read by the CLI); overrides the bundle's. Never a path.
         on_progress: ``on_progress(stage, done, total)``; may raise :class:`Cancelled` to stop.
         resume: Reuse checkpoints whose keys match.
+        on_results: Called once the results are written, before the fit, with the result so far (its
+            ``fit_state`` is ``running``); may raise :class:`Cancelled` to stop.
 
     Returns:
-        The result summary; files are in ``out_dir``.
+        The result summary; files are in ``out_dir``. ``appearance["state"]`` says how the fit ended.
 
     Raises:
         BundleError: the bundle is invalid (every problem listed).
@@ -256,8 +284,6 @@ def run_pipeline(
     keys = st.stage_keys(input_hash, cfg, vocab)
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
-    fit_snapshot = runner.checkpoints.snapshot(st.APPEARANCE.name, keys[st.APPEARANCE.name])
-    gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p, fit_snapshot))
     vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
     fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
     field_ = None
@@ -275,9 +301,11 @@ def run_pipeline(
     def export(_: ProgressFn) -> PipelineResult:
         from panogs_core.stages.export import write_outputs
 
-        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=gaussians)
+        # gaussians.ply is the initialisation here (the labels with the primitives' colours and scales), so that the
+        # point views have what they read; the fit replaces it.
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=None)
         return PipelineResult(
-            appearance=gaussians.summary(),
+            appearance={"state": FIT_RUNNING},
             unseen=dict(labels.unseen),
             out_dir=out,
             scene_name=scene.name,
@@ -289,8 +317,44 @@ def run_pipeline(
         )
 
     result = runner.step("export", export)
-    _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, time.perf_counter() - t_start, result)
+
+    def report() -> None:
+        result.total_s = time.perf_counter() - t_start
+        _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, result.total_s, result)
+
+    report()
+    if on_results is not None:
+        on_results(result)
+
+    fit_snapshot = runner.checkpoints.snapshot(st.APPEARANCE.name, keys[st.APPEARANCE.name])
+    try:
+        gaussians = runner.stage(st.APPEARANCE, keys, lambda p: st.appearance(scene, prims, cfg, p, fit_snapshot))
+    except (Cancelled, KeyboardInterrupt) as exc:
+        if getattr(exc, "save_partial_work", True):  # a run that must write nothing more (lease lost) does not
+            result.appearance = {"state": FIT_CANCELED, "error": _error_text(exc)}
+            report()
+        raise
+    except Exception as exc:  # the fit's failure is the fit's: the results stand
+        log.exception("the appearance fit failed; the results stand, gaussians.ply keeps the initialisation")
+        result.appearance = {"state": FIT_FAILED, "error": _error_text(exc)}
+        report()
+        return result
+
+    from panogs_core.stages.export import primitive_colors, write_gaussians
+
+    path = GAUSSIANS_PLY.path(out)
+    tmp = path.with_name(f".{path.name}.tmp")
+    write_gaussians(tmp, prims, primitive_colors(prims, fused), labels.semantic, labels.instance, gaussians)
+    tmp.replace(path)  # atomic: a reader sees the initialisation or the fitted scene, never half of one
+    result.appearance = {**gaussians.summary(), "state": FIT_SUCCEEDED if gaussians.fitted else FIT_SKIPPED}
+    report()
     return result
+
+
+def _error_text(exc: BaseException) -> str:
+    """``Type: message`` of an exception, for report.json and the job's fit error."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _vocabulary_label(spec: str | Vocabulary | None, scene: Bundle) -> str:

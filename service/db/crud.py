@@ -12,11 +12,11 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any, TypeVar
 
-from sqlalchemy import ColumnElement, Connection, Result, Row, delete, func, or_, select, update
+from sqlalchemy import ColumnElement, Connection, Result, Row, case, delete, func, literal, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.db.base import Base, utcnow
-from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
+from service.db.models import Artifact, FitState, Job, JobState, Scene, Upload, UploadState
 
 M = TypeVar("M", bound=Base)
 
@@ -121,7 +121,13 @@ def request_cancel(session: Session, job: Job) -> Job:
         session.execute(
             update(Job)
             .where(Job.id == job.id, Job.state == JobState.QUEUED)
-            .values(state=JobState.CANCELED, cancel_requested=True, finished_at=now, updated_at=now)
+            .values(
+                state=JobState.CANCELED,
+                cancel_requested=True,
+                fit_state=_fit_ended(FitState.CANCELED),
+                finished_at=now,
+                updated_at=now,
+            )
         )
     elif job.state == JobState.RUNNING:
         session.execute(update(Job).where(Job.id == job.id).values(cancel_requested=True, updated_at=now))
@@ -174,6 +180,7 @@ def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: st
             state=JobState.FAILED,
             error_type=error_type,
             error_message=message,
+            fit_state=_fit_ended(FitState.FAILED),
             finished_at=now,
             updated_at=now,
         )
@@ -247,6 +254,47 @@ def release_job(session: Session, job_id: uuid.UUID, lease: str, **values: Any) 
     return _one_row(result)
 
 
+def record_results(
+    session: Session, job_id: uuid.UUID, lease: str, artifacts: Sequence[Artifact], **values: Any
+) -> bool:
+    """The results of a running job we hold are ready: ``results_at``, the fit running, and the results' artifact
+    rows (replacing any from an earlier attempt), in one transaction; False once the lease is lost."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
+        .values(
+            results_at=func.coalesce(Job.results_at, now),
+            fit_state=FitState.RUNNING,
+            fit_progress=0.0,
+            fit_error=None,
+            heartbeat_at=now,
+            updated_at=now,
+            **values,
+        )
+    )
+    if not _one_row(result):
+        session.rollback()
+        return False
+    _replace_artifacts(session, job_id, artifacts)
+    session.commit()
+    return True
+
+
+def _replace_artifacts(session: Session, job_id: uuid.UUID, artifacts: Sequence[Artifact]) -> None:
+    for old in session.scalars(select(Artifact).where(Artifact.job_id == job_id)):
+        session.delete(old)  # a re-run overwrites
+    session.flush()
+    session.add_all(artifacts)
+
+
+def _fit_ended(state: FitState) -> Any:
+    """``fit_state`` as a job that ends now leaves it: a fit still running takes ``state``, any other stays."""
+    return case(
+        (Job.fit_state == FitState.RUNNING, literal(state, Job.__table__.c.fit_state.type)), else_=Job.fit_state
+    )
+
+
 def cancel_requested(session: Session, job_id: uuid.UUID) -> bool:
     """True when the job's owner asked it to stop."""
     return bool(session.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
@@ -261,8 +309,12 @@ def finish_job(
     artifacts: Sequence[Artifact] = (),
     **values: Any,
 ) -> bool:
-    """Move a running job we hold to a terminal state (with its artifacts), in one transaction."""
+    """Move a running job we hold to a terminal state (with its artifacts), in one transaction. A job that ends
+    otherwise than succeeded during its fit keeps its results' artifacts, and its fit ends with it unless
+    ``values`` says how."""
     now = utcnow()
+    if state != JobState.SUCCEEDED and "fit_state" not in values:
+        values["fit_state"] = _fit_ended(FitState.CANCELED if state == JobState.CANCELED else FitState.FAILED)
     result = session.execute(
         update(Job)
         .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING)
@@ -271,10 +323,8 @@ def finish_job(
     if not _one_row(result):
         session.rollback()
         return False
-    for old in session.scalars(select(Artifact).where(Artifact.job_id == job_id)):
-        session.delete(old)  # a re-run overwrites
-    session.flush()
-    session.add_all(artifacts)
+    if artifacts or state == JobState.SUCCEEDED:  # a job that ends otherwise keeps the rows of its results
+        _replace_artifacts(session, job_id, artifacts)
     session.commit()
     return True
 
@@ -289,6 +339,7 @@ def fail_unclaimed(session: Session, job_id: uuid.UUID, error_type: str, message
             state=JobState.FAILED,
             error_type=error_type,
             error_message=message,
+            fit_state=_fit_ended(FitState.FAILED),
             finished_at=now,
             updated_at=now,
         )
@@ -307,7 +358,7 @@ def cancel_unclaimed(session: Session, job_id: uuid.UUID) -> None:
             Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
             Job.cancel_requested.is_(True),
         )
-        .values(state=JobState.CANCELED, finished_at=now, updated_at=now)
+        .values(state=JobState.CANCELED, fit_state=_fit_ended(FitState.CANCELED), finished_at=now, updated_at=now)
     )
     session.commit()
 

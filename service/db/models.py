@@ -55,6 +55,25 @@ class JobState(enum.StrEnum):
 TERMINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELED})
 
 
+class FitState(enum.StrEnum):
+    """Where a job's appearance fit stands once its results are recorded (the pipeline's ``appearance.state``).
+
+    The fit runs after the results: a job whose ``results_at`` is set serves its instances, queries and viewer scene
+    while the fit goes on; ``gaussians.ply`` and renders wait for ``succeeded`` or ``skipped``.
+    """
+
+    RUNNING = "running"  # the results are served; the fit goes on (or waits in the queue with its job)
+    SUCCEEDED = "succeeded"  # gaussians.ply is the fitted scene
+    SKIPPED = "skipped"  # no fit was made (turned off, or no colour frame); gaussians.ply is the initialisation
+    FAILED = "failed"  # the fit raised (or its job failed during it); the results stand
+    CANCELED = "canceled"  # the job was canceled during the fit; the results stand
+
+    @property
+    def scene_ready(self) -> bool:
+        """True when gaussians.ply is final and renders may be made from it."""
+        return self in (FitState.SUCCEEDED, FitState.SKIPPED)
+
+
 class ApiKey(IdMixin, TimestampedMixin, Base):
     """A tenant. Only the SHA-256 of the secret is stored; the prefix finds the row."""
 
@@ -132,6 +151,13 @@ class Job(IdMixin, TimestampedMixin, Base):
     worker: Mapped[str | None] = mapped_column(String(255))
     enqueued_at: Mapped[datetime | None] = mapped_column(UTCDateTime)  # NULL: not yet handed to the broker
     heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # The results come before the appearance fit: ``results_at`` is when the labels, instances and their artifacts
+    # were recorded (NULL: not yet), and from then on ``fit_state`` / ``fit_progress`` (0..1 over the fit alone) /
+    # ``fit_error`` follow the fit (docs/service.md, "Results before the fit").
+    results_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    fit_state: Mapped[FitState | None] = mapped_column(_str_enum(FitState))
+    fit_progress: Mapped[float | None] = mapped_column(Float)
+    fit_error: Mapped[str | None] = mapped_column(Text)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 

@@ -286,3 +286,119 @@ def test_run_pipeline_takes_names_not_paths(tiny_bundle: Path, tmp_path: Path) -
         run_pipeline(tiny_bundle, tmp_path / "out", vocabulary=str(vocabulary))
     assert str(vocabulary) not in str(caught.value)
     assert not (tmp_path / "out" / "labels.npz").exists()
+
+
+def _copy_checkpoints(run: Path, to: Path) -> None:
+    shutil.copytree(run / "stages", to / "stages")
+
+
+SHORT_FIT = PipelineConfig().with_overrides({"appearance": {"iterations": 2}})
+
+
+def test_the_results_are_written_before_the_fit_and_gaussians_ply_is_replaced_after(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
+) -> None:
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+    seen: list[str] = []
+    at_results: dict[str, object] = {}
+
+    def on_results(result: object) -> None:
+        at_results["report"] = json.loads((tmp_path / "report.json").read_text())
+        at_results["files"] = {p.name for p in tmp_path.iterdir()}
+        at_results["stages_seen"] = list(dict.fromkeys(seen))
+        at_results["result"] = result
+        at_results["gaussians"] = read_ply_vertices(tmp_path / "gaussians.ply")
+        assert load_result(tmp_path).instances  # queries work from here on
+
+    result = run_pipeline(
+        tiny_bundle, tmp_path, SHORT_FIT, on_progress=lambda s, d, t: seen.append(s), on_results=on_results
+    )
+    assert "appearance" not in at_results["stages_seen"], "the fit starts after the results"
+    assert at_results["stages_seen"][-1] == "export"
+    assert {"labels.npz", "instances.json", "panoptic.ply", "gaussians.ply", "report.json"} <= at_results["files"]
+    assert at_results["report"]["appearance"] == {"state": "running"}
+    assert at_results["result"].instances == first.instances == result.instances
+    initial = at_results["gaussians"]
+    assert np.all(initial["opacity"] == 0.0), "the initialisation's logit opacity"
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["appearance"]["state"] == "succeeded" == result.fit_state
+    assert report["appearance"]["iterations"] == 2
+    assert [s["stage"] for s in report["stages"]] == list(STAGES)
+    fitted = read_ply_vertices(tmp_path / "gaussians.ply")
+    assert not np.array_equal(fitted["opacity"], initial["opacity"])
+    assert np.array_equal(fitted["semantic"], initial["semantic"])
+    assert not list(tmp_path.glob(".*tmp")), "no temporary file is left"
+
+
+def test_a_fit_that_fails_leaves_the_results_and_says_so(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from panogs_core.errors import NumericalError
+    from panogs_core.pipeline import stage_table
+
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+
+    def broken_fit(*args: object, **kwargs: object) -> None:
+        raise NumericalError("the loss is NaN at iteration 1")
+
+    monkeypatch.setattr(stage_table, "appearance", broken_fit)
+    result = run_pipeline(tiny_bundle, tmp_path, SHORT_FIT)
+    assert result.fit_state == "failed"
+    assert result.instances == first.instances
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["appearance"] == {"state": "failed", "error": "NumericalError: the loss is NaN at iteration 1"}
+    assert load_result(tmp_path).instances
+    assert np.all(read_ply_vertices(tmp_path / "gaussians.ply")["opacity"] == 0.0), "the initialisation stays"
+
+
+def test_a_fit_cancelled_after_the_results_leaves_them_and_says_so(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
+) -> None:
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+
+    def stop_in_the_fit(stage: str, done: int, total: int) -> None:
+        if stage == "appearance" and done == 1:
+            raise Cancelled("canceled at the owner's request")
+
+    with pytest.raises(Cancelled):
+        run_pipeline(tiny_bundle, tmp_path, SHORT_FIT, on_progress=stop_in_the_fit)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["appearance"] == {"state": "canceled", "error": "Cancelled: canceled at the owner's request"}
+    assert [i.to_json()["id"] for i in load_result(tmp_path).instances] == [i["id"] for i in first.instances]
+    resumed = run_pipeline(tiny_bundle, tmp_path, SHORT_FIT)  # a re-run finishes the fit from the checkpoints
+    assert resumed.fit_state == "succeeded"
+    assert {t.name for t in resumed.timings if not t.cached} <= {"validate", "export", "appearance"}
+
+
+def test_the_cli_prints_the_results_before_the_fit(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import panogs_core.cli as cli
+
+    out = tmp_path / "cli-run"
+    _copy_checkpoints(tiny_run[0], out)
+    before_fit: list[str] = []
+
+    class Recorder:
+        """Takes what was printed when the fit reports its first progress."""
+
+        def __call__(self, stage: str, done: int, total: int) -> None:
+            if stage == "appearance" and not before_fit:
+                before_fit.append(capsys.readouterr().out)
+
+        def close(self) -> None:
+            return None
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cli, "stage_reporter", lambda quiet, stream: Recorder())
+        assert cli_main(["run", str(tiny_bundle), "--out", str(out), "--set", "appearance.iterations=2"]) == 0
+    after = capsys.readouterr().out
+    assert len(before_fit) == 1
+    assert "instances" in before_fit[0]
+    assert "mIoU" in before_fit[0]
+    assert "fitting the Gaussian scene" in before_fit[0]
+    assert "gaussians: PSNR" not in before_fit[0]
+    assert "gaussians: PSNR" in after

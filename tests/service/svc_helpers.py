@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.db.models import Job, JobState
+from service.db.base import utcnow
+from service.db.models import FitState, Job, JobState
 from service.db.session import get_session_factory, session_scope
 from service.storage import Storage
-from worker.runner import collect_artifacts
+from worker.runner import FITTED_FILES, collect_artifacts
 
 # Run a test on PostgreSQL and on the embedded SQLite (the ``settings`` fixture reads the parameter).
 BOTH_BACKENDS = pytest.mark.parametrize("settings", ["postgres", "sqlite"], indirect=True)
@@ -130,5 +131,27 @@ def mark_succeeded(settings: Any, job_id: uuid.UUID) -> None:
         job = session.get(Job, job_id)
         assert job is not None
         job.state = JobState.SUCCEEDED
+        job.results_at = job.finished_at = utcnow()
+        job.fit_state, job.fit_progress = FitState.SUCCEEDED, 1.0
+        job.artifacts.clear()  # the rows recorded with the results, if any: replaced as the worker does
+        session.flush()
         session.add_all(collect_artifacts(job_id, storage.job_dir(job_id), storage))
+        session.commit()
+
+
+def mark_results_ready(
+    settings: Any, job_id: uuid.UUID, *, fit_progress: float = 0.25, fit_state: Any = None, state: Any = None
+) -> None:
+    """Mark a job as the worker does once its results are written and its fit runs (or ended as ``fit_state``
+    says, the job then in ``state``): the result folder's artifacts but gaussians.ply."""
+    storage = Storage(settings.storage)
+    with session_scope(get_session_factory(settings.database)) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        job.state = state or JobState.RUNNING
+        job.results_at = utcnow()
+        job.fit_state, job.fit_progress = fit_state or FitState.RUNNING, fit_progress
+        if job.fit_state == FitState.FAILED:
+            job.fit_error = "NumericalError: the loss is NaN"
+        session.add_all(collect_artifacts(job_id, storage.job_dir(job_id), storage, exclude=FITTED_FILES))
         session.commit()

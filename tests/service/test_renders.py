@@ -111,7 +111,7 @@ def test_unfinished_and_foreign_jobs(
     running = _job(client, auth, tiny_zip, settings, finish=False)
     r = client.post(f"/v1/jobs/{running}/render", json=body, headers=auth)
     assert r.status_code == 409
-    assert "results exist once it has succeeded" in r.json()["message"]
+    assert "results exist once its labelling is done" in r.json()["message"]
     assert client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=other_auth).status_code == 404
 
 

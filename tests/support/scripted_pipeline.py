@@ -3,7 +3,8 @@
 Same signature and the same outputs' names, no torch, and a known duration: each stage takes
 ``PANOGS_SCRIPTED_STAGE_S`` seconds (default 0.2) in 5 progress steps, and leaves a checkpoint so that a
 resumed run skips it. The config overrides it accepts are ``{"fail_at": "<stage>"}`` (raise a
-``NumericalError`` there), ``{"stage_s": <seconds>}`` and, as the real config has it,
+``NumericalError`` there; in ``appearance`` the fit fails and the results stand), ``{"stage_s": <seconds>}``,
+``{"fit_s": <seconds>}`` (the fit's time, after the results) and, as the real config has it,
 ``{"language_field": {"device": ...}}`` (the worker sets it; report.json records it). ``pipeline_stand_in`` puts
 it in place of the pipeline (in a started process: ``PANOGS_TEST_PIPELINE=scripted_pipeline`` and
 ``tests/support`` on the Python path). A test double, not shipped: its outputs are placeholders (two instances,
@@ -27,7 +28,8 @@ import numpy as np
 from panogs_core.errors import ConfigError, NumericalError
 from panogs_core.types import Vocabulary
 
-STAGES = ("validate", "primitives", "fusion", "clustering", "labeling", "export")
+STAGES = ("validate", "primitives", "fusion", "clustering", "labeling", "export", "appearance")
+RESULTS_AFTER = "export"  # like the real pipeline: the results are written here, then the fit ("appearance") runs
 STEPS = 5
 INSTANCES = [
     {"id": 0, "class_name": "chair", "class_index": 1, "kind": "thing", "score": 0.9, "num_points": 2,
@@ -44,9 +46,10 @@ class ScriptedResult:
     out_dir: Path
     instances: list[dict[str, Any]]
     timings: dict[str, float] = field(default_factory=dict)
+    appearance: dict[str, Any] = field(default_factory=dict)  # the fit's ``state`` (and ``error``), as the real one
 
 
-KNOWN_KEYS = ("fail_at", "language_field", "stage_s")
+KNOWN_KEYS = ("fail_at", "language_field", "stage_s", "fit_s")
 
 
 def make_config(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -73,32 +76,61 @@ def run_pipeline(
     vocabulary: str | Vocabulary | None = None,
     on_progress: Callable[[str, int, int], None] | None = None,
     resume: bool = True,
+    on_results: Callable[[Any], None] | None = None,
 ) -> ScriptedResult:
-    """Walk the stages with progress and checkpoints, then write placeholder outputs."""
+    """Walk the stages with progress and checkpoints, writing the placeholder outputs after ``export`` and calling
+    ``on_results`` then, before the fit (``appearance``, ``fit_s`` seconds if given). ``fail_at: appearance`` makes
+    the fit fail as the real one does: the results stand and the result says ``appearance.state`` failed."""
     config = config or {}
     out = Path(out_dir)
     (out / "stages").mkdir(parents=True, exist_ok=True)
     stage_s = float(config.get("stage_s", os.environ.get("PANOGS_SCRIPTED_STAGE_S", "0.2")))
     timings: dict[str, float] = {}
+    result = ScriptedResult(out_dir=out, instances=[], timings=timings)
     for stage in STAGES:
-        marker = out / "stages" / f"{stage}.done"
-        start = time.perf_counter()
-        if resume and marker.exists():
-            if on_progress is not None:
-                on_progress(stage, 1, 1)
-            continue
-        for step in range(STEPS):
-            if on_progress is not None:
-                on_progress(stage, step, STEPS)
-            if config.get("fail_at") == stage:
-                raise NumericalError(f"{stage}: scripted failure (config fail_at={stage!r})")
-            time.sleep(stage_s / STEPS)
+        try:
+            _run_stage(stage, out, config, stage_s, timings, on_progress, resume)
+        except NumericalError as exc:
+            if stage != "appearance":
+                raise
+            result.appearance = {"state": "failed", "error": f"NumericalError: {exc}"}
+            return result
+        if stage == RESULTS_AFTER:
+            result.instances = _write_outputs(out, Path(bundle), vocabulary, device_of(config))
+            result.appearance = {"state": "running"}
+            if on_results is not None:
+                on_results(result)
+    (out / "gaussians.ply").write_text((out / "panoptic.ply").read_text())  # "fitted"
+    result.appearance = {"state": "succeeded"}
+    return result
+
+
+def _run_stage(
+    stage: str,
+    out: Path,
+    config: dict[str, Any],
+    stage_s: float,
+    timings: dict[str, float],
+    on_progress: Callable[[str, int, int], None] | None,
+    resume: bool,
+) -> None:
+    marker = out / "stages" / f"{stage}.done"
+    start = time.perf_counter()
+    if resume and marker.exists():
         if on_progress is not None:
-            on_progress(stage, STEPS, STEPS)
-        marker.write_text("done")
-        timings[stage] = time.perf_counter() - start
-    instances = _write_outputs(out, Path(bundle), vocabulary, device_of(config))
-    return ScriptedResult(out_dir=out, instances=instances, timings=timings)
+            on_progress(stage, 1, 1)
+        return
+    seconds = float(config.get("fit_s", stage_s)) if stage == "appearance" else stage_s
+    for step in range(STEPS):
+        if on_progress is not None:
+            on_progress(stage, step, STEPS)
+        if config.get("fail_at") == stage:
+            raise NumericalError(f"{stage}: scripted failure (config fail_at={stage!r})")
+        time.sleep(seconds / STEPS)
+    if on_progress is not None:
+        on_progress(stage, STEPS, STEPS)
+    marker.write_text("done")
+    timings[stage] = time.perf_counter() - start
 
 
 def _write_outputs(out: Path, bundle: Path, vocabulary: str | Vocabulary | None, device: str) -> list[dict[str, Any]]:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from tool_modules import load_tool
 
-from panogs_core.cli import StageLines, format_instances, format_metrics
+from panogs_core.cli import FITTING_LINE, StageLines, format_instances, format_metrics
 from panogs_core.pipeline.run import STAGES
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,10 +33,13 @@ PATTERNS = {
     "query": r"query 'chair': \d+ instance\(s\)",
     "hit": r"  instance +\d+  .{16} score \d\.\d{3}  box \[\S+ \S+ \S+\] - \[\S+ \S+ \S+\]",
     "gaussians": r"gaussians: PSNR \d+\.\d\d -> \d+\.\d\d dB on (training|held-out) frames \(\d+ iterations\)",
+    "fitting": re.escape(FITTING_LINE),
     "render": r"wrote (\w+\.png, )+\w+\.png to demo/render",
 }
 SHAPE = re.compile(
-    r"cmd_synth synth cmd_run (stage )+blank summary gaussians header (row )+(elided_row )?(row )?blank (metric ){2}"
+    # The results first (summary, instances, metrics), then the Gaussian fit's line: the fit runs after them.
+    r"cmd_synth synth cmd_run (stage )+blank summary header (row )+(elided_row )?(row )?blank (metric ){2}"
+    r"blank fitting gaussians "
     r"cmd_query query (hit )+(elided_hit )?cmd_render render "
 )
 

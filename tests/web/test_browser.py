@@ -29,6 +29,7 @@ JOB_TIMEOUT_MS = 300_000  # the tiny scene takes ~15 s alone; the machine may be
 SHORT_FIT = {"appearance": {"iterations": 2}}
 VIEWPORT = {"width": 1200, "height": 760}
 CSP_VIOLATIONS: list[str] = []  # what Chromium refused under the app's Content-Security-Policy, from every page
+WHILE_FITTING: dict[str, Any] = {}  # the job's row and its instances while its results are ready and its fit runs
 
 
 def _sign_in(context: Any, url: str, key: str) -> Any:
@@ -91,6 +92,21 @@ def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
     assert [set(body) for body in jobs_sent] == [{"scene_id"}], jobs_sent  # the form's job: no settings of its own
     ident = row.get_attribute("data-job-id")
     try:
+        # The results come before the Gaussian fit: the row says so while the job still runs (the tiny room's fit
+        # takes some 10-40 s, the table is polled every second).
+        fitting = f'tr[data-job-id="{ident}"][data-state=running][data-results=ready]'
+        done = f'tr[data-job-id="{ident}"][data-state=succeeded]'
+        page.wait_for_selector(f"{fitting}, {done}", timeout=JOB_TIMEOUT_MS)
+        if page.locator(fitting).count() == 1:  # else the fit ended between two polls (a fast machine)
+            WHILE_FITTING.update(
+                fit=page.locator(f"{fitting} td.pgs-fit").inner_text().strip(),
+                open=page.locator(f"{fitting} [data-action=open]").count(),
+                data_fit=page.locator(fitting).get_attribute("data-fit"),
+                instances=httpx.get(
+                    f"{served['url']}/v1/jobs/{ident}/instances",
+                    headers={"Authorization": f"Bearer {served['keys']['alice']}"},
+                ).status_code,
+            )
         page.wait_for_selector(f'tr[data-job-id="{ident}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
     except Exception:
         print(served["log"]())
@@ -112,11 +128,21 @@ def _open_viewer(page: Any, url: str, job_id: str, view: str = "") -> None:
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
 
 
+def test_the_results_answer_while_the_fit_runs(job_id: str) -> None:
+    if not WHILE_FITTING:
+        pytest.skip("the fit ended between two polls of the job table: nothing to see while it ran")
+    assert WHILE_FITTING["data_fit"] == "running"
+    assert WHILE_FITTING["fit"].startswith("fitting "), WHILE_FITTING
+    assert WHILE_FITTING["open"] == 1, "the viewer opens on the results"
+    assert WHILE_FITTING["instances"] == 200
+
+
 def test_upload_reaches_succeeded_and_opens_the_viewer(
     page: Any, job_id: str, served: dict[str, Any], artifacts: Path
 ) -> None:
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     assert row.locator("td").nth(2).inner_text() == "succeeded"
+    assert row.locator("td.pgs-fit").inner_text().strip() == "fitted"
     row.locator("[data-action=open]").click()
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
     assert page.locator(".pgs-instances li").count() > 3
@@ -152,6 +178,61 @@ def test_colour_modes_change_the_pixels_and_the_url_reopens_the_view(
     assert page.get_attribute(".pgs-viewer", "data-mode") == "instance"
     page.keyboard.press("?")
     assert page.locator(".pgs-help").is_visible()
+
+
+def _look_from_key_frame(page: Any, api: httpx.Client, job_id: str) -> str:
+    """Put the viewer's camera at the first key frame's pose and field of view (cameras.json); its frame id."""
+    cameras = api.get(f"/v1/jobs/{job_id}/artifacts/cameras.json").json()
+    frame = cameras["frames"][0]
+    page.evaluate(
+        """([pose, fy, height]) => {
+          const v = window.__panogs.viewer;
+          const cam = v.camera;
+          const at = (r, c) => pose[r][c];
+          cam.position.set(at(0, 3), at(1, 3), at(2, 3));
+          // OpenCV camera: +z looks forward; the orbit target one metre along it.
+          v.layer.controls.target.set(at(0, 3) + at(0, 2), at(1, 3) + at(1, 2), at(2, 3) + at(2, 2));
+          cam.fov = 2 * Math.atan(height / (2 * fy)) * 180 / Math.PI;
+          cam.near = 0.01;
+          cam.updateProjectionMatrix();
+          v.layer.controls.update();
+        }""",
+        [frame["T_world_cam"], cameras["camera"]["fy"], cameras["camera"]["height"]],
+    )
+    return str(frame["id"])
+
+
+def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, bundle_zip: Path, artifacts: Path
+) -> None:
+    _open_viewer(page, served["url"], job_id, "?mode=camera")
+    assert page.get_attribute(".pgs-viewer", "data-photo") == "off"
+    frame_id = _look_from_key_frame(page, api, job_id)
+    page.wait_for_timeout(300)
+    points = _canvas_pixels(page)
+    page.keyboard.press("p")
+    page.wait_for_selector(".pgs-viewer[data-photo=on]", timeout=120_000)
+    page.wait_for_timeout(1500)  # the splats' depth order comes from Spark's worker a few frames later
+    photo = _canvas_pixels(page, artifacts / "photo.png")
+    background = np.array([16, 20, 24])
+    covered = (np.abs(photo.astype(int) - background).sum(axis=2) > 12).mean()
+    assert covered > 0.3, f"the splats cover {covered:.0%} of the canvas"
+    assert (np.abs(photo.astype(int) - points).sum(axis=2) > 30).mean() > 0.05, "the photo is not the points"
+    page.keyboard.press("2")  # the class colours over the photo
+    page.wait_for_timeout(500)
+    over = _canvas_pixels(page, artifacts / "photo-semantic.png")
+    assert (np.abs(over.astype(int) - photo).sum(axis=2) > 30).mean() > 0.05
+    assert page.get_attribute(".pgs-viewer", "data-photo") == "on"
+    # The photo beside the key frame's colour image, seen from the same pose (the canvas's aspect differs).
+    folder = bundle_zip.with_suffix("")
+    scene = json.loads((folder / "scene.json").read_text())
+    color_path = next(f["color"] for f in scene["frames"] if f["id"] == frame_id)
+    colour = cv2.imread(str(folder / color_path))
+    height = photo.shape[0]
+    colour = cv2.resize(colour, (round(colour.shape[1] * height / colour.shape[0]), height))
+    cv2.imwrite(str(artifacts / "photo-beside-colour-frame.png"), np.hstack([photo[:, :, ::-1], colour]))
+    page.keyboard.press("p")
+    page.wait_for_selector(".pgs-viewer[data-photo=off]")
 
 
 def test_class_query_lights_exactly_the_instances_the_api_returns(

@@ -22,7 +22,7 @@ from wk_helpers import read_job, update_job
 from panogs_core.errors import InputError
 from panogs_core.io.run_folder import DOWNLOADABLE
 from service.db.base import utcnow
-from service.db.models import JobState
+from service.db.models import FitState, JobState
 from service.settings import Settings
 from worker import runner
 
@@ -79,7 +79,7 @@ class TestSuccess:
         assert _run(make_env(pipeline), job_id) == JobState.SUCCEEDED
         stages = [s for s, _ in seen]
         assert stages[0] == "validate"
-        assert stages[-1] == "export"
+        assert stages[-1] == "appearance"  # the fit, after the results
         progress = [p for _, p in seen]
         assert progress == sorted(progress)
         assert 0.0 < progress[len(progress) // 2] < 1.0
@@ -179,7 +179,7 @@ class TestClaimsAndResume:
             return result
 
         assert _run(make_env(record), job_id, lease="second") == JobState.SUCCEEDED
-        assert stages_run == ["clustering", "labeling", "export"]  # the first three were reused
+        assert stages_run == ["clustering", "labeling", "export", "appearance"]  # the first three were reused
         job = read_job(settings, job_id)
         assert job.attempts == 2
         assert job.stage_timings["validate"] == first.stage_timings["validate"]
@@ -329,3 +329,120 @@ class TestErrorMessages:
         message = read_job(settings, job_id).error_message or ""
         assert message == "scene.json: broken; see stages and ."
         assert str(settings.data_dir) not in message
+
+
+RESULT_FILES = {"panoptic.ply", "labels.npz", "instances.json", "report.json"}
+
+
+class TestResultsBeforeTheFit:
+    """The results are recorded when the pipeline has written them; the fit goes on and ends on its own."""
+
+    def _watch_the_fit(self, settings: Settings, on_fit: Callable[[Any, int], None]) -> Callable[..., Any]:
+        def pipeline(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            outer = kw["on_progress"]
+
+            def progress(stage: str, done: int, total: int) -> None:
+                outer(stage, done, total)
+                if stage == "appearance":
+                    on_fit(read_job(settings, out_dir.name and uuid.UUID(out_dir.name)), done)
+
+            return scripted.run_pipeline(bundle, out_dir, config, **{**kw, "on_progress": progress})
+
+        return pipeline
+
+    def test_the_results_are_recorded_before_the_fit_ends(
+        self, make_env: Env, make_job: MakeJob, settings: Settings
+    ) -> None:
+        job_id = make_job()
+        during: list[Any] = []
+        pipeline = self._watch_the_fit(settings, lambda job, done: during.append(job) if done == 3 else None)
+        assert _run(make_env(pipeline), job_id) == JobState.SUCCEEDED
+        job = during[0]
+        assert job.state == JobState.RUNNING
+        assert job.results_at is not None
+        assert job.fit_state == FitState.RUNNING
+        assert 0.0 < job.fit_progress < 1.0, "the fit's own progress is written while it runs"
+        assert {a.name for a in job.artifacts} == RESULT_FILES, "gaussians.ply waits for the fit"
+        done = read_job(settings, job_id)
+        assert done.fit_state == FitState.SUCCEEDED
+        assert done.fit_progress == 1.0
+        assert done.results_at == job.results_at
+        assert {a.name for a in done.artifacts} == {*RESULT_FILES, "gaussians.ply"}
+
+    def test_a_fit_that_fails_leaves_the_results(self, make_env: Env, make_job: MakeJob, settings: Settings) -> None:
+        job_id = make_job(config={"stage_s": 0.01, "fail_at": "appearance"})
+        assert _run(make_env(), job_id) == JobState.SUCCEEDED
+        job = read_job(settings, job_id)
+        assert job.results_at is not None
+        assert job.fit_state == FitState.FAILED
+        assert "scripted failure" in (job.fit_error or "")
+        assert job.error_type is None, "the job's labels succeeded"
+        assert {a.name for a in job.artifacts} == RESULT_FILES
+
+    def test_a_cancel_during_the_fit_keeps_the_results(
+        self, make_env: Env, make_job: MakeJob, settings: Settings
+    ) -> None:
+        job_id = make_job()
+
+        def cancel(job: Any, done: int) -> None:
+            if done == 1:
+                update_job(settings, job_id, cancel_requested=True)
+
+        assert _run(make_env(self._watch_the_fit(settings, cancel)), job_id) == JobState.CANCELED
+        job = read_job(settings, job_id)
+        assert job.results_at is not None
+        assert job.fit_state == FitState.CANCELED
+        assert {a.name for a in job.artifacts} == RESULT_FILES
+
+    def test_a_time_limit_in_the_fit_fails_the_job_and_keeps_the_results(
+        self, make_env: Env, make_job: MakeJob, settings: Settings
+    ) -> None:
+        job_id = make_job(config={"stage_s": 0.01, "fit_s": 1.0})
+        results_at: list[float] = []
+
+        def pipeline(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
+            on_results = kw["on_results"]
+
+            def record(result: Any) -> None:
+                on_results(result)
+                results_at.append(time.monotonic())
+
+            return scripted.run_pipeline(bundle, out_dir, config, **{**kw, "on_results": record})
+
+        limited = settings.model_copy(update={"job_time_limit_s": 0.5})
+        assert _run(make_env(pipeline, settings_=limited), job_id) == JobState.FAILED
+        job = read_job(settings, job_id)
+        assert results_at, "the results came before the limit"
+        assert job.error_type == "TimeLimitExceeded"
+        assert job.fit_state == FitState.FAILED
+        assert {a.name for a in job.artifacts} == RESULT_FILES
+
+    def test_a_worker_lost_for_good_during_the_fit_fails_the_fit(
+        self, make_env: Env, make_job: MakeJob, settings: Settings
+    ) -> None:
+        from service.db import crud
+        from service.db.session import get_session_factory, session_scope
+
+        job_id = make_job()
+        update_job(settings, job_id, state=JobState.RUNNING, lease="gone", heartbeat_at=utcnow() - timedelta(hours=1),
+                   results_at=utcnow(), fit_state=FitState.RUNNING, fit_progress=0.4)  # fmt: skip
+        with session_scope(get_session_factory(settings.database)) as session:
+            job = session.get(runner.Job, job_id)
+            assert crud.fail_lost(session, job, utcnow(), "WorkerLost", "lost")
+        job = read_job(settings, job_id)
+        assert job.state == JobState.FAILED
+        assert job.fit_state == FitState.FAILED
+        assert job.results_at is not None
+
+
+def test_fit_outcome_reads_the_pipeline_result() -> None:
+    class Result:
+        def __init__(self, appearance: dict[str, Any]) -> None:
+            self.appearance = appearance
+
+    assert runner.fit_outcome(Result({"state": "failed", "error": "NumericalError: NaN"})) == (
+        FitState.FAILED,
+        "NumericalError: NaN",
+    )
+    assert runner.fit_outcome(object()) == (FitState.SUCCEEDED, None)
+    assert runner.fit_outcome(Result({"state": "skipped"})) == (FitState.SKIPPED, None)

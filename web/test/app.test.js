@@ -6,9 +6,13 @@ import { parseRoute, routePath, viewerHash } from "../src/app/routes.js";
 import {
   POLL_IDLE_MS,
   POLL_LIVE_MS,
+  fitRunning,
+  fitText,
   jobProgressText,
   jobStateText,
   pollDelay,
+  resultsReady,
+  sceneFitted,
   vocabularyBody,
   vocabularyText,
 } from "../src/app/rules.js";
@@ -48,6 +52,36 @@ describe("job rows and polling", () => {
     assert.equal(jobStateText({ state: "canceled", cancel_requested: true }), "canceled");
     assert.equal(jobProgressText({ state: "running", progress: 0.426 }), "43%");
     assert.equal(jobProgressText({ state: "succeeded", progress: 1 }), "");
+  });
+});
+
+describe("results before the Gaussian fit", () => {
+  it("opens the viewer once the results are ready, the fit done or not", () => {
+    assert.equal(resultsReady({ state: "running", results_ready: false }), false);
+    assert.equal(resultsReady({ state: "running", results_ready: true }), true);
+    assert.equal(resultsReady({ state: "canceled", results_ready: true }), true);
+    assert.equal(resultsReady({ state: "succeeded" }), true); // a server from before the fit's own status
+  });
+
+  it("shows the fit's own progress while it runs, and how it ended", () => {
+    const running = { state: "running", fit: { state: "running", progress: 0.256 } };
+    assert.equal(fitRunning(running), true);
+    assert.equal(fitText(running), "fitting 26%");
+    assert.equal(fitText({ state: "running", fit: null }), "");
+    assert.equal(fitText({ state: "succeeded", fit: { state: "succeeded", progress: 1 } }), "fitted");
+    assert.equal(fitText({ state: "succeeded", fit: { state: "skipped", progress: 1 } }), "not fitted (off)");
+    const failed = { state: "succeeded", fit: { state: "failed", progress: 0.5, error: "NumericalError: NaN" } };
+    assert.equal(fitText(failed), "fit failed: NumericalError: NaN");
+    assert.equal(fitRunning(failed), false);
+    assert.equal(fitText({ state: "canceled", fit: { state: "canceled", progress: 0.5 } }), "fit canceled");
+  });
+
+  it("offers the photo view only once gaussians.ply is final", () => {
+    assert.equal(sceneFitted({ state: "running", fit: { state: "running", progress: 0.3 } }), false);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "succeeded", progress: 1 } }), true);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "skipped", progress: 1 } }), true);
+    assert.equal(sceneFitted({ state: "succeeded", fit: { state: "failed", progress: 0.4 } }), false);
+    assert.equal(sceneFitted({ state: "canceled", fit: { state: "canceled", progress: 0.4 } }), false);
   });
 });
 

@@ -79,13 +79,14 @@ describe("ViewState", () => {
 describe("keyCommand", () => {
   it("maps the shortcuts of the help", () => {
     const map = Object.fromEntries(
-      ["1", "2", "3", "m", "f", "[", "]", "/", "?", "Escape"].map((key) => [key, keyCommand({ key })]),
+      ["1", "2", "3", "m", "p", "f", "[", "]", "/", "?", "Escape"].map((key) => [key, keyCommand({ key })]),
     );
     assert.deepEqual(map, {
       1: "mode:camera",
       2: "mode:semantic",
       3: "mode:instance",
       m: "mode:next",
+      p: "photo",
       f: "fit",
       "[": "smaller",
       "]": "larger",

@@ -1,14 +1,19 @@
-"""``/v1/jobs/{id}/artifacts``: a finished job's downloadable files, listed and downloaded (with HTTP Range)."""
+"""``/v1/jobs/{id}/artifacts``: a job's downloadable files, listed and downloaded (with HTTP Range).
+
+They are there once the job's results are (before its appearance fit ends); ``gaussians.ply`` is listed and served
+once the fit is done, and answers 409 ``fit_not_ready`` with the fit's progress until then.
+"""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
-from panogs_core.io.run_folder import DOWNLOADABLE
+from panogs_core.io.run_folder import DOWNLOADABLE, GAUSSIANS_PLY
 from service.api.deps import JobDep, StorageDep
-from service.db.models import Job, JobState
+from service.db.models import Job
 from service.errors import Conflict, NotFound
+from service.job_results import check_fitted
 from service.schemas import ArtifactPublic, ArtifactsPublic, error_responses
 
 router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
@@ -16,8 +21,8 @@ _ERRORS = error_responses(404, 409)
 
 
 def _finished(job: Job) -> Job:
-    if job.state != JobState.SUCCEEDED:
-        raise Conflict(f"job {job.id} is {job.state.value}; results exist once it has succeeded")
+    if job.results_at is None:
+        raise Conflict(f"job {job.id} is {job.state.value}; results exist once its labelling is done")
     return job
 
 
@@ -52,6 +57,8 @@ def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileRespon
 
     Supports ``Range: bytes=start-end`` (206) to resume an interrupted download.
     """
+    if name == GAUSSIANS_PLY.name:
+        check_fitted(job)  # 409 fit_not_ready with the fit's progress until the fitted scene is there
     artifact = next((a for a in _finished(job).artifacts if a.name == name), None)
     if artifact is None or name not in DOWNLOADABLE:
         raise NotFound("artifact", name)

@@ -1,4 +1,5 @@
-"""``POST /v1/jobs/{id}/render``: a PNG of a finished job's Gaussian scene seen from the pose in the body."""
+"""``POST /v1/jobs/{id}/render``: a PNG of a job's Gaussian scene seen from the pose in the body, once its appearance
+fit is done (409 ``fit_not_ready`` with the fit's progress until then)."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ async def render(
     """One layer (colour, depth in mm as 16-bit PNG, semantic, instance, panoptic overlay, or a query's relevance)
     of the job's scene from ``T_world_cam``, at most ``MAX_RENDER_PIXELS`` pixels."""
     engine = get_read_engine(settings.database)
-    # the tenant's job, succeeded (404 / 409 otherwise)
-    await run_in_threadpool(job_results.finished, engine, request.app.state.results, storage, job_id, tenant.id)
+    # the tenant's job, its Gaussian scene fitted (404 / 409 otherwise; 409 fit_not_ready says how far the fit is)
+    await run_in_threadpool(job_results.fitted_scene, engine, job_id, tenant.id)
     png = await run_in_threadpool(render_child.render_layer, body, storage.job_dir(job_id))
     return Response(png, media_type="image/png")

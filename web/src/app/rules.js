@@ -26,6 +26,38 @@ export function jobProgressText(job) {
   return isTerminal(job.state) ? "" : `${Math.round(job.progress * 100)}%`;
 }
 
+// The results (labels, instances, queries, the viewer's point modes) come before the Gaussian fit, which goes on
+// after them with its own progress (docs/service.md, "Results before the fit").
+export function resultsReady(job) {
+  return Boolean(job.results_ready) || job.state === "succeeded";
+}
+
+export function fitRunning(job) {
+  return job.fit?.state === "running" && !isTerminal(job.state);
+}
+
+// gaussians.ply is final (the photo view and renders need it): fitted, or no fit made.
+export function sceneFitted(job) {
+  return job.fit ? ["succeeded", "skipped"].includes(job.fit.state) : job.state === "succeeded";
+}
+
+const FIT_TEXTS = {
+  succeeded: "fitted",
+  skipped: "not fitted (off)",
+  failed: "fit failed",
+  canceled: "fit canceled",
+};
+
+// What the job table's "Gaussian scene" cell says: nothing before the results, the fit's percentage while it runs.
+export function fitText(job) {
+  const fit = job.fit;
+  if (!fit) return "";
+  if (fit.state === "running")
+    return isTerminal(job.state) ? "fit stopped" : `fitting ${Math.round(fit.progress * 100)}%`;
+  const text = FIT_TEXTS[fit.state] || fit.state;
+  return fit.error && fit.state === "failed" ? `${text}: ${fit.error}` : text;
+}
+
 export function sceneText(scene) {
   return `${scene.name} (${(scene.size_bytes / 1e6).toFixed(1)} MB, ${scene.num_frames} frames) `;
 }

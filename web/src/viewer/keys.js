@@ -3,6 +3,7 @@
 export const SHORTCUTS = [
   ["1 / 2 / 3", "colour by camera / semantic class / instance"],
   ["m", "next colour mode"],
+  ["p", "photo: the fitted Gaussian scene, the colours of the mode over it (camera: only what is lit)"],
   ["f", "fit the scene in view"],
   ["[ / ]", "smaller / larger points"],
   ["/", "type a query"],
@@ -15,6 +16,7 @@ const COMMANDS = {
   2: "mode:semantic",
   3: "mode:instance",
   m: "mode:next",
+  p: "photo",
   f: "fit",
   "[": "smaller",
   "]": "larger",

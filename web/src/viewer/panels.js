@@ -79,6 +79,19 @@ export class Panels {
         tool("+", "larger points (])", "larger"),
         tool("?", "keyboard shortcuts (?)", "help"),
       ),
+      (this.photoButton = h(
+        "button",
+        {
+          type: "button",
+          class: "pgs-photo",
+          "data-action": "photo",
+          hidden: true,
+          title: "the fitted Gaussian scene under the colours (p)",
+          onclick: () => on.command("photo"),
+        },
+        "photo",
+      )),
+      (this.photoStatus = h("span", { class: "pgs-photo-status", "aria-live": "polite" })),
       queryForm,
       this.queryStatus,
       this.hitList,
@@ -104,6 +117,14 @@ export class Panels {
   showReady() {
     this.progress.hidden = true;
     this.root.dataset.state = "ready";
+  }
+
+  // The photo toggle: "unavailable" (no fitted scene: the button stays hidden), "off", "loading", "on", "error".
+  showPhoto(state, text = "") {
+    this.root.dataset.photo = state;
+    this.photoButton.hidden = state === "unavailable";
+    this.photoButton.setAttribute("aria-pressed", String(state === "on"));
+    this.photoStatus.textContent = text;
   }
 
   showMode(mode) {

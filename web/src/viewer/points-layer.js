@@ -6,29 +6,40 @@ import { FLAG, flagPoints, paintPoints } from "./colours.js";
 import { medianScale } from "./describe.js";
 
 // flag (colours.js FLAG): 2 hidden (moved off screen), 1 dimmed towards grey, 0 and 3 their own colour.
+// Over the photo (photo > 0.5: the splats drawn first): lit points opaque, the others at overlayAlpha when an
+// overlay shows (overlayAlpha > 0), dimmed and plain points off otherwise, so the photo shows around what is lit.
 const VERTEX_SHADER = `
 attribute vec3 rgb;
 attribute float scale;
 attribute float flag;
 uniform float sizeFactor;
 uniform float projScale;
+uniform float photo;
+uniform float overlayAlpha;
 varying vec3 vColor;
+varying float vAlpha;
 void main() {
-  if (flag > 1.5 && flag < 2.5) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 0.0; return; }
+  bool lit = flag > 2.5;
+  bool off = (flag > 1.5 && flag < 2.5) || (photo > 0.5 && !lit && (flag > 0.5 || overlayAlpha <= 0.0));
+  if (off) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 0.0; return; }
   vec4 mv = modelViewMatrix * vec4(position, 1.0);
   gl_Position = projectionMatrix * mv;
   float size = sizeFactor * scale * 2.0 * projScale / max(-mv.z, 1e-3);
   gl_PointSize = clamp(size, 1.5, 64.0);
   vColor = flag > 0.5 && flag < 1.5 ? mix(rgb, vec3(0.16), 0.82) : rgb;
+  vAlpha = photo > 0.5 && !lit ? overlayAlpha : 1.0;
 }`;
 
 const FRAGMENT_SHADER = `
 varying vec3 vColor;
+varying float vAlpha;
 void main() {
   vec2 d = gl_PointCoord - vec2(0.5);
   if (dot(d, d) > 0.25) discard;
-  gl_FragColor = vec4(vColor, 1.0);
+  gl_FragColor = vec4(vColor, vAlpha);
 }`;
+
+export const OVERLAY_ALPHA = 0.45; // the class or instance colours over the photo
 
 const BACKGROUND = 0x101418;
 const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize(); // from above, front left
@@ -50,11 +61,18 @@ export class PointsLayer {
     geometry.computeBoundingSphere();
     this.geometry = geometry;
     this.material = new THREE.ShaderMaterial({
-      uniforms: { sizeFactor: { value: size }, projScale: { value: 1 } },
+      uniforms: {
+        sizeFactor: { value: size },
+        projScale: { value: 1 },
+        photo: { value: 0 },
+        overlayAlpha: { value: 0 },
+      },
       vertexShader: VERTEX_SHADER,
       fragmentShader: FRAGMENT_SHADER,
     });
     this.points = new THREE.Points(geometry, this.material);
+    this.points.renderOrder = 1; // over the photo's splats
+    this.looping = false;
 
     this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
@@ -104,6 +122,21 @@ export class PointsLayer {
 
   renderNow() {
     this.renderer.render(this.three, this.camera);
+  }
+
+  // The photo under the points: overlayAlpha 0 shows only the lit points over it. While it shows, every frame is
+  // drawn (the splats' depth order is sorted in a worker and arrives frames later).
+  setPhoto(on, overlayAlpha) {
+    const u = this.material.uniforms;
+    u.photo.value = on ? 1 : 0;
+    u.overlayAlpha.value = overlayAlpha;
+    this.material.transparent = on;
+    this.material.depthWrite = !on;
+    this.material.needsUpdate = true;
+    this.looping = on;
+    if (on) this.renderer.setAnimationLoop(() => this.renderer.render(this.three, this.camera));
+    else this.renderer.setAnimationLoop(null);
+    this.render();
   }
 
   // The whole scene in view from above, front left; near and far planes from its size.
@@ -185,6 +218,7 @@ export class PointsLayer {
   }
 
   dispose() {
+    this.renderer.setAnimationLoop(null);
     this.resizeObserver.disconnect();
     if (this.frame) cancelAnimationFrame(this.frame);
     this.controls.dispose();

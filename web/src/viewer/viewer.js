@@ -6,12 +6,14 @@
 // three.js scene, input.js the pointer and keys. Every change goes state first, then what shows it.
 import { bindClicks, bindKeys } from "./input.js";
 import { Panels } from "./panels.js";
-import { PointsLayer } from "./points-layer.js";
+import { OVERLAY_ALPHA, PointsLayer } from "./points-layer.js";
 import { summaryText } from "./describe.js";
 import { SIZE_STEP, ViewState, nextMode } from "./state.js";
 
 export class Viewer {
-  // root: an empty element; options: { queryFn(text) -> Promise<{hits}>, state, onStateChange(state) }
+  // root: an empty element; options: { queryFn(text) -> Promise<{hits}>, state, onStateChange(state), photo? }
+  // photo: { load() -> Promise<photo.js module>, bytes() -> Promise<Uint8Array of gaussians.ply> }, given by a
+  // host that has a fitted scene (the app); without it the photo view is unavailable.
   constructor(root, options) {
     this.root = root;
     this.options = options;
@@ -26,6 +28,8 @@ export class Viewer {
     });
     this.layer = null; // once a scene is loaded
     this.ready = false;
+    this.photo = null; // the splats, once loaded (photo.js)
+    this.photoOn = false;
     this.unbind = [];
   }
 
@@ -72,6 +76,7 @@ export class Viewer {
     else this.layer.fit();
     this.setMode(this.state.mode, false);
     if (this.state.sel !== null && this.instanceById.has(this.state.sel)) this.select(this.state.sel, false);
+    this.panels.showPhoto(this.options.photo ? "off" : "unavailable");
     this.panels.showReady();
     this.ready = true;
     if (this.state.q) this.runQuery(this.state.q);
@@ -88,6 +93,7 @@ export class Viewer {
     else if (name === "larger") this.setSize(this.state.size * SIZE_STEP);
     else if (name === "query") this.panels.focusQuery();
     else if (name === "help") this.toggleHelp();
+    else if (name === "photo") this.togglePhoto();
     else if (name === "escape") {
       this.toggleHelp(false);
       this.clear();
@@ -117,7 +123,32 @@ export class Viewer {
     mode = this.store.setMode(mode);
     this.panels.showMode(mode);
     if (this.layer) this.layer.paint(mode);
+    if (this.photoOn) this.layer.setPhoto(true, this.overlayAlpha());
     if (notify) this.store.changed();
+  }
+
+  // Over the photo: the class or instance colours, half transparent; in camera mode only the lit instances.
+  overlayAlpha() {
+    return this.state.mode === "camera" ? 0 : OVERLAY_ALPHA;
+  }
+
+  // The photo view on or off (show: force one); the splats are fetched and built the first time.
+  async togglePhoto(show = !this.photoOn) {
+    if (!this.options.photo || !this.layer) return;
+    if (show && !this.photo) {
+      this.panels.showPhoto("loading", "loading the Gaussian scene ...");
+      try {
+        const [module, bytes] = await Promise.all([this.options.photo.load(), this.options.photo.bytes()]);
+        this.photo = await module.addSplats(this.layer, bytes);
+      } catch (err) {
+        this.panels.showPhoto("error", `photo unavailable: ${err.message}`);
+        return;
+      }
+    }
+    this.photoOn = show;
+    this.photo.setVisible(show);
+    this.layer.setPhoto(show, this.overlayAlpha());
+    this.panels.showPhoto(show ? "on" : "off");
   }
 
   setSize(size) {
@@ -192,6 +223,7 @@ export class Viewer {
   dispose() {
     for (const unbind of this.unbind) unbind();
     this.unbind = [];
+    if (this.photo) this.photo.dispose();
     if (this.layer) this.layer.dispose();
     this.panels.clear();
   }

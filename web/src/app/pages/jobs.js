@@ -1,11 +1,29 @@
-// The job table's rows: state, stage, progress, error, and the actions (open the viewer, cancel, re-run with other
-// settings, delete). A row's data-state is what the browser tests wait on.
+// The job table's rows: state, stage, progress, the Gaussian fit (after the results), error, and the actions (open
+// the viewer once the results are ready, cancel, re-run with other settings, delete). A row's data-state,
+// data-results and data-fit are what the browser tests wait on.
 import { h } from "../../dom.js";
 import { api } from "../api-client.js";
 import { showError } from "../messages.js";
-import { isTerminal, jobProgressText, jobStateText, shortId, vocabularyBody, vocabularyText } from "../rules.js";
+import {
+  fitRunning,
+  fitText,
+  isTerminal,
+  jobProgressText,
+  jobStateText,
+  resultsReady,
+  shortId,
+  vocabularyBody,
+  vocabularyText,
+} from "../rules.js";
 
-export const JOB_COLUMNS = ["job", "scene", "state", "stage", "progress", "", ""];
+export const JOB_COLUMNS = ["job", "scene", "state", "stage", "progress", "Gaussian scene", "", ""];
+
+function fitCell(job) {
+  const cell = h("td", { class: "pgs-fit" });
+  if (fitRunning(job)) cell.append(h("progress", { max: 1, value: job.fit.progress }), " ");
+  cell.append(fitText(job));
+  return cell;
+}
 
 // scenes: Map id -> scene; refresh(): reload the table after an action
 export function jobRow(job, scenes, refresh) {
@@ -29,7 +47,7 @@ export function jobRow(job, scenes, refresh) {
       label,
     );
   const actions = h("td", {});
-  if (job.state === "succeeded")
+  if (resultsReady(job))
     actions.append(h("a", { href: `#/jobs/${job.id}`, "data-action": "open" }, "Open viewer"), " ");
   if (!isTerminal(job.state))
     actions.append(
@@ -49,12 +67,18 @@ export function jobRow(job, scenes, refresh) {
   const terminal = isTerminal(job.state);
   return h(
     "tr",
-    { "data-job-id": job.id, "data-state": job.state },
+    {
+      "data-job-id": job.id,
+      "data-state": job.state,
+      "data-results": resultsReady(job) ? "ready" : "pending",
+      "data-fit": job.fit?.state || "",
+    },
     h("td", {}, h("code", {}, shortId(job.id))),
     h("td", {}, sceneName),
     h("td", { class: `pgs-state-${job.state}` }, jobStateText(job)),
     h("td", {}, job.stage || ""),
     h("td", {}, terminal ? "" : h("progress", { max: 1, value: job.progress }), " ", jobProgressText(job)),
+    fitCell(job),
     h(
       "td",
       {},
