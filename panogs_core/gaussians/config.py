@@ -70,6 +70,10 @@ class AppearanceConfig:
     device: str = "auto"  # auto: CUDA when torch sees it (decided when the stage runs), else cpu
     backend: str = "auto"  # auto | torch | gsplat (backends.resolve_backend)
     seed: int = 0  # frame order
+    # surface: flat Gaussians from the local spacing, opacity 0.9, colours from the frames that see them
+    # (panogs_core.gaussians.surface_init.py); reference: isotropic at sqrt(0.05) x the spacing, opacity 0.5, the
+    # primitives' colours (the reference's initialisation)
+    initialisation: str = "surface"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
@@ -98,6 +102,8 @@ class AppearanceConfig:
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         if re.fullmatch(r"auto|cpu|cuda(:\d+)?", self.device) is None:
             raise ConfigError(f"appearance.device: expected auto, cpu or cuda[:N], got {self.device!r}")
+        if self.initialisation not in ("surface", "reference"):
+            raise ConfigError(f"appearance.initialisation: expected surface or reference, got {self.initialisation!r}")
         if self.backend not in ("auto", "torch", "gsplat"):
             raise ConfigError(f"appearance.backend: expected auto, torch or gsplat, got {self.backend!r}")
 

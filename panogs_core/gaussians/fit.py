@@ -14,7 +14,7 @@ from panogs_core.errors import Cancelled
 from panogs_core.gaussians.backends import Backend, render
 from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera
-from panogs_core.gaussians.spherical_harmonics import num_coefficients, rgb_to_dc, sh_to_color
+from panogs_core.gaussians.spherical_harmonics import num_coefficients, sh_to_color
 from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.progress import ProgressFn, report
@@ -29,29 +29,25 @@ ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen G
 class Fitter:
     """Parameters, optimiser and target images of one appearance fit."""
 
-    def __init__(
-        self, bundle: Bundle, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule
-    ) -> None:
+    def __init__(self, bundle: Bundle, init: GaussianScene, cfg: AppearanceConfig, schedule: Schedule) -> None:
         self.bundle = bundle
         self.cfg = cfg
         self.schedule = schedule
         self.device = torch.device(schedule.device)
         dev = self.device
-        n = prims.points.shape[0]
+        n = init.means.shape[0]
         height = max(1, round(bundle.camera.height * schedule.fit_width / bundle.camera.width))
         self.size = (schedule.fit_width, height)
-        self.anchor = torch.as_tensor(np.asarray(prims.points, np.float32), device=dev)
+        self.anchor = torch.as_tensor(init.means, device=dev)
         sh = torch.zeros(n, num_coefficients(cfg.sh_degree), 3, device=dev)
-        sh[:, 0] = rgb_to_dc(torch.as_tensor(np.asarray(colors, np.float32), device=dev))
+        sh[:, 0] = torch.as_tensor(init.sh[:, 0], device=dev)
         self.sh_dc = sh[:, :1].clone().requires_grad_(True)
         self.sh_rest = sh[:, 1:].clone().requires_grad_(True)
-        self.opacity = torch.as_tensor(np.asarray(prims.opacities, np.float32), device=dev).clone().requires_grad_()
-        self.log_scales = torch.as_tensor(np.asarray(prims.scales, np.float32), device=dev).clone().requires_grad_()
+        self.opacity = torch.as_tensor(init.opacity_logits, device=dev).clone().requires_grad_()
+        self.log_scales = torch.as_tensor(init.log_scales, device=dev).clone().requires_grad_()
         self.max_log_scales = self.log_scales.detach() + float(np.log(cfg.max_scale_growth))
         self.seconds_per_iteration: list[float] = []
-        quats = torch.zeros(n, 4, device=dev)
-        quats[:, 0] = 1.0
-        self.quats = quats.requires_grad_(True)
+        self.quats = torch.as_tensor(init.quats, device=dev).clone().requires_grad_(True)
         self.offsets = torch.zeros(n, 3, device=dev, requires_grad=cfg.move_centres)
         s = schedule.lr_scale
         groups = [
