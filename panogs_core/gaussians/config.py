@@ -59,6 +59,9 @@ class AppearanceConfig:
     # sit on vertices a few cm apart, so larger Gaussians add nothing the neighbours cannot, and they make every
     # tile's list longer (the CPU fit slowed down 10x in 60 iterations without a cap; docs/benchmarks.md).
     max_scale_growth: float = 4.0
+    # Ours: a per-frame gain and bias per colour channel, learned with the Gaussians (docs/gaussians.md)
+    exposure_compensation: bool = True
+    lr_exposure: float = 0.001
     move_centres: bool = False  # reference fix_ply: centres stay on the geometry
     max_centre_offset: float = 0.01  # m, how far a centre may move when move_centres is on
     max_frames: int = _MAX_FRAMES_DEFAULT  # key frames used at most (evenly spaced)
@@ -91,6 +94,7 @@ class AppearanceConfig:
         rates = {n: getattr(self, n) for n in ("lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scale_log")}
         rates |= {"lr_rotation": self.lr_rotation, "lr_position": self.lr_position}
         rates["max_centre_offset"] = self.max_centre_offset
+        rates["lr_exposure"] = self.lr_exposure
         rates["max_scale_growth"] = self.max_scale_growth
         if self.lr_scale is not None:
             rates["lr_scale"] = self.lr_scale

@@ -49,6 +49,10 @@ class Fitter:
         self.seconds_per_iteration: list[float] = []
         self.quats = torch.as_tensor(init.quats, device=dev).clone().requires_grad_(True)
         self.offsets = torch.zeros(n, 3, device=dev, requires_grad=cfg.move_centres)
+        # Per-frame exposure (an affine map per colour channel: gain 1 + g, bias b) of the training frames, so that
+        # the Gaussians do not chase each frame's exposure; renders for evaluation and export use none.
+        self.frame_index = {f.id: i for i, f in enumerate(bundle.frames)}
+        self.exposure = torch.zeros(len(bundle.frames), 2, 3, device=dev, requires_grad=cfg.exposure_compensation)
         s = schedule.lr_scale
         groups = [
             {"params": [self.sh_dc], "lr": cfg.lr_sh_dc * s},
@@ -57,6 +61,8 @@ class Fitter:
             {"params": [self.log_scales], "lr": cfg.lr_scale_log * s},
             {"params": [self.quats], "lr": cfg.lr_rotation * s},
         ]
+        if cfg.exposure_compensation:
+            groups.append({"params": [self.exposure], "lr": cfg.lr_exposure * s})
         if cfg.move_centres:
             groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _bundle_extent(bundle)})
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
@@ -77,6 +83,7 @@ class Fitter:
             "log_scales": self.log_scales,
             "quats": self.quats,
             "offsets": self.offsets,
+            "exposure": self.exposure,
         }
 
     def state(self) -> dict[str, Any]:
@@ -168,7 +175,11 @@ class Fitter:
         start = time.perf_counter()
         frame = frames[self.order.pop()]
         degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
-        loss = photometric_loss(self.render(frame, degree), self.target(frame), self.cfg.dssim_weight)
+        image = self.render(frame, degree)
+        if self.cfg.exposure_compensation:
+            gain_bias = self.exposure[self.frame_index[frame.id]]
+            image = image * (1.0 + gain_bias[0]) + gain_bias[1]
+        loss = photometric_loss(image, self.target(frame), self.cfg.dssim_weight)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

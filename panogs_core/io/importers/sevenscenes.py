@@ -21,18 +21,12 @@ import logging
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.io.importers.common import (
-    ImportReport,
-    _read_image,
-    is_rigid,
-    read_matrix,
-    require_empty,
-)
-from panogs_core.io.importers.scannet import _first_existing
+from panogs_core.io.importers.common import ImportReport, is_rigid, read_matrix, require_empty
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Vocabulary
 
@@ -88,7 +82,7 @@ def import_sevenscenes(
     mask_dir = Path(masks) if masks is not None else None
 
     def optional(folder: Path | None, index: int, exts: tuple[str, ...]) -> Path | None:
-        return None if folder is None else _first_existing(folder, str(index), index, exts)
+        return None if folder is None else _first_file(folder, (str(index), f"{index:06d}"), exts)
 
     feature_files = {i: optional(feature_dir, i, (".npy",)) for i, _ in picked}
     present = [p for p in feature_files.values() if p is not None]
@@ -127,7 +121,7 @@ def import_sevenscenes(
             if raw.ndim != 2 or raw.dtype != np.uint16 or raw.shape != (cam.height, cam.width):
                 raise InputError(f"import_sevenscenes: {depth_path}: expected a {cam.width}x{cam.height} 16-bit PNG")
             raw = np.where(raw == _NO_DEPTH, 0, raw)
-            color = _first_existing(src, f"frame-{index:06d}.color", index, (".jpg", ".png"))
+            color = _first_file(src, (f"frame-{index:06d}.color",), (".jpg", ".png"))
             feat_path, mask_path = feature_files[index], optional(mask_dir, index, (".png",))
             feat = None if feat_path is None else np.load(feat_path, allow_pickle=False).astype(np.float32)
             mask = None if mask_path is None else _read_image(mask_path).astype(np.int64)
@@ -163,3 +157,18 @@ def _read_intrinsics(src: Path, first_depth: Path) -> Camera:
     height, width = depth.shape[:2]
     fx, fy, cx, cy = (float(K[r, c]) for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))
     return Camera(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy)
+
+
+def _first_file(folder: Path, stems: tuple[str, ...], exts: tuple[str, ...]) -> Path | None:
+    for stem in stems:
+        for ext in exts:
+            if (folder / f"{stem}{ext}").is_file():
+                return folder / f"{stem}{ext}"
+    return None
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"import_sevenscenes: {path}: does not decode as an image")
+    return image
