@@ -59,8 +59,9 @@ class AppearanceConfig:
     # sit on vertices a few cm apart, so larger Gaussians add nothing the neighbours cannot, and they make every
     # tile's list longer (the CPU fit slowed down 10x in 60 iterations without a cap; docs/benchmarks.md).
     max_scale_growth: float = 4.0
-    # Ours: a per-frame gain and bias per colour channel, learned with the Gaussians (docs/gaussians.md)
-    exposure_compensation: bool = True
+    # Ours: a per-frame gain and bias per colour channel, learned with the Gaussians; off by default, it did not
+    # help on the CPU schedule (docs/gaussians.md, "Exposure")
+    exposure_compensation: bool = False
     lr_exposure: float = 0.001
     move_centres: bool = False  # reference fix_ply: centres stay on the geometry
     max_centre_offset: float = 0.01  # m, how far a centre may move when move_centres is on

@@ -214,8 +214,8 @@ def test_the_surface_initialisation_scores_higher_at_zero_iterations(wall_bundle
 
 
 def test_exposure_compensation_is_learned_per_frame_and_left_out_of_the_result(wall_bundle: Path) -> None:
-    with_it = _fit(wall_bundle, iterations=12)  # every frame seen twice: its gain acts on the second visit
-    without = _fit(wall_bundle, iterations=12, exposure_compensation=False)
+    with_it = _fit(wall_bundle, iterations=12, exposure_compensation=True)  # each frame seen twice
+    without = _fit(wall_bundle, iterations=12)
     assert with_it.means.shape == without.means.shape
     assert not np.array_equal(with_it.sh, without.sh)  # the per-frame gains changed what the Gaussians learned
 
