@@ -11,9 +11,8 @@
   occluded), and its colour is the median of those samples (robust to the frames' exposure changes and motion
   blur); Gaussians no frame sees keep the given colour (vertex colour, else fused, else grey).
 
-DEPARTURE (initialisation, docs/gaussians.md "Where panogs departs"): the reference initialises 3DGS isotropically
-at ``sqrt(0.05)`` x the neighbour distance with opacity 0.1-0.5; on a real capture that leaves black gaps that a
-CPU-budget fit cannot close.
+The reference's isotropic start leaves black gaps on a real capture that a CPU-budget fit cannot close.
+DEPARTURE (initialisation): docs/gaussians.md, "Where panogs departs" and "The initialisation".
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ from panogs_core.types import Frame
 @dataclass(frozen=True, kw_only=True)
 class SurfaceInit:
     neighbors: int = 8  # points in the PCA of the local surface
-    tangent_factor: float = 0.6  # std along the surface, x the mean 3-NN distance
+    tangent_factor: float = 0.7  # std along the surface, x the mean 3-NN distance
     normal_factor: float = 0.15  # std along the normal on flat surfaces, x the same
     flatness: float = 0.1  # flat where the smallest PCA eigenvalue < flatness x the middle one
     opacity: float = 0.9
