@@ -1,9 +1,20 @@
 """The Gaussian scene: fit quality on held-out frames, and the cost of the CPU rasteriser and fit.
 
 Usage:
+    python bench/gaussians.py photometric [--sevenscenes DIR] [--stride 10] [--schedules zero cpu gpu]
+        [--eval-width 320] [--renders DIR] [--json FILE]
     python bench/gaussians.py quality [--work bench/results/gaussians] [--threads 1] [--json FILE]
     python bench/gaussians.py cost [--threads 1] [--iterations 5] [--json FILE]
     python bench/gaussians.py stage [--threads 1]          # the stage's wall time at its default schedule
+
+photometric: held-out views (every 8th colour frame left out of the fit) of a real capture and of the synthetic
+rooms, side by side: PSNR and SSIM at zero iterations (the initialisation), after the CPU default and after the GPU
+schedule (only where torch sees CUDA; otherwise the row says "not run"), each case in its own child process with
+the fit's wall time and the process's peak RSS (and CUDA peak). All renders are scored at ``--eval-width`` (the
+camera scaled, 320 x 240 by default) whatever the fit's width, so that the schedules compare. The real capture is
+a 7-Scenes sequence (``--sevenscenes``, e.g. tsdf-fusion-python's ``data/``; never in this repository, its licence
+is non-commercial) imported with ``--stride`` and placeholder feature maps (docs/gaussians.md). ``--renders``
+writes, per scene and case, the first held-out frame's render beside its colour frame.
 
 quality: for each scene, the primitives' initialisation and the fitted scene (default CPU schedule, every 8th
 colour frame held out of the fit) are rendered at the fit resolution on the held-out frames; PSNR and SSIM are
@@ -164,7 +175,10 @@ def cost_case(work: Path, copies: int, width: int, iterations: int, render_only:
     scene, prims = _room_primitives(work, copies)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     cfg = AppearanceConfig(fit_width=width, iterations=iterations, device="cpu")
-    fitter = Fitter(scene, prims, prims.colors, cfg, resolve_schedule(cfg, scene.camera.width, False))
+    from panogs_core.gaussians import initial_gaussians
+
+    start = initial_gaussians(prims, prims.colors)
+    fitter = Fitter(scene, start, cfg, resolve_schedule(cfg, scene.camera.width, False))
     # the fit clamps its width to the camera's (320 here); a render may be larger, at the same field of view
     fitter.size = (width, round(scene.camera.height * width / scene.camera.width))
     frames = [f for f in scene.frames if f.color is not None]
@@ -244,9 +258,143 @@ def stage_time(work: Path) -> dict[str, Any]:
     return row
 
 
+def _sevenscenes_bundle(work: Path, src: Path, stride: int) -> Path:
+    from panogs_core.io.importers.sevenscenes import import_sevenscenes
+
+    bundle = work / f"sevenscenes-{src.resolve().parent.name}-stride{stride}"
+    if not (bundle / "scene.json").is_file():
+        if bundle.exists():
+            shutil.rmtree(bundle)
+        import_sevenscenes(src, bundle, stride=stride, placeholder_maps=True, name=src.resolve().parent.name)
+    return bundle
+
+
+def photometric_case(bundle: Path, schedule: str, init: str, eval_width: int, renders: Path | None) -> dict[str, Any]:
+    """One (scene, schedule) case in this process: held-out PSNR / SSIM at ``eval_width``, fit time, peak memory."""
+    import cv2
+    import torch
+
+    from panogs_core.gaussians import split_frames
+    from panogs_core.gaussians.config import Schedule
+    from panogs_core.gaussians.fit import Fitter
+
+    scene = open_bundle(bundle)
+    prims = build_primitives(scene, PrimitivesConfig())
+    colors = _initial_colors(scene, prims)
+    iterations = {"zero": None, "cpu": None, "gpu": None}[schedule]
+    cfg = AppearanceConfig(
+        held_out_every=HELD_OUT_EVERY,
+        cpu_threads=None,
+        initialisation=init,
+        device="cuda" if schedule == "gpu" else "cpu",
+        iterations=iterations,
+        enabled=schedule != "zero",
+    )
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0, c0 = time.perf_counter(), time.process_time()
+    fitted = fit_appearance(scene, prims, colors, cfg)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    _, held, _ = split_frames(scene, cfg)
+    device = "cuda" if schedule == "gpu" else "cpu"
+    width = min(eval_width, scene.camera.width)
+    judge = Fitter(scene, fitted, AppearanceConfig(sh_degree=fitted.sh_degree), Schedule(0, width, 1.0, device))
+    scores = []
+    with torch.no_grad():
+        for frame in held:
+            img = judge.render(frame, fitted.sh_degree).clamp(0, 1)
+            target = judge.target(frame)
+            from panogs_core.gaussians.photometric import psnr, ssim
+
+            scores.append((psnr(img, target), float(ssim(img, target)), frame.id))
+            if renders is not None and frame is held[0]:
+                renders.mkdir(parents=True, exist_ok=True)
+                pair = torch.cat([target, img], dim=1).mul(255).round().byte().cpu().numpy()
+                cv2.imwrite(str(renders / f"{schedule}-{init}-{frame.id}.png"), pair[:, :, ::-1])
+    return {
+        "schedule": schedule,
+        "init": init,
+        "gaussians": int(prims.points.shape[0]),
+        "iterations": fitted.iterations,
+        "held_out_frames": len(held),
+        "eval_size": list(judge.size),
+        "fit_size": list(fitted.extra.get("fit_size", ())),
+        "psnr": round(float(np.mean([s[0] for s in scores])), 2),
+        "ssim": round(float(np.mean([s[1] for s in scores])), 3),
+        "fit_wall_s": round(wall, 1),
+        "fit_cpu_s": round(cpu, 1),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "peak_rss_before_fit_mb": round(rss_before, 1),
+        "cuda_peak_mb": round(torch.cuda.max_memory_allocated() / 2**20, 1) if torch.cuda.is_available() else None,
+    }
+
+
+def photometric(
+    work: Path,
+    sevenscenes: Path | None,
+    stride: int,
+    schedules: list[str],
+    inits: list[str],
+    eval_width: int,
+    threads: int,
+    renders: Path | None,
+    scan: bool = False,
+) -> list[dict[str, Any]]:
+    import torch
+
+    scenes: dict[str, Path] = {}
+    if sevenscenes is not None:
+        scenes[f"7-Scenes {sevenscenes.resolve().parent.name} (stride {stride}, TSDF)"] = _sevenscenes_bundle(
+            work, sevenscenes, stride
+        )
+    scenes["synthetic small default seed 0"] = _rooms_small(work)
+    if scan:
+        path = work / "scan-0"
+        if not (path / "scene.json").is_file():
+            make_scene(path, preset="scan", difficulty="default", seed=0)
+        scenes["synthetic scan seed 0 (80k vertices)"] = path
+    rows = []
+    for name, bundle in scenes.items():
+        for schedule in schedules:
+            for init in inits if schedule != "gpu" else inits[:1]:
+                if schedule == "gpu" and not torch.cuda.is_available():
+                    row: dict[str, Any] = {"scene": name, "schedule": "gpu", "init": init, "note": "not run: no CUDA"}
+                    rows.append(row)
+                    print(f"{name}: gpu: not run (torch sees no CUDA device)", flush=True)
+                    continue
+                argv = [sys.executable, __file__, "_photometric-case", "--bundle", str(bundle)]
+                argv += ["--schedule", schedule, "--init", init, "--eval-width", str(eval_width)]
+                argv += ["--threads", str(threads), "--work", str(work)]
+                if renders is not None:
+                    argv += ["--renders", str(renders / bundle.name)]
+                done = subprocess.run(argv, check=True, capture_output=True, text=True, cwd=ROOT)
+                row = {"scene": name, **json.loads(done.stdout.strip().splitlines()[-1])}
+                rows.append(row)
+                print(
+                    f"{name}: {schedule} ({init} init): {row['gaussians']} Gaussians, {row['iterations']} iterations, "
+                    f"held-out PSNR {row['psnr']} dB, SSIM {row['ssim']} at {row['eval_size']} "
+                    f"({row['held_out_frames']} frames); fit {row['fit_wall_s']} s wall, {row['fit_cpu_s']} s CPU, "
+                    f"peak RSS {row['peak_rss_mb']} MB (before the fit {row['peak_rss_before_fit_mb']}), "
+                    f"CUDA peak {row['cuda_peak_mb']} MB",
+                    flush=True,
+                )
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", choices=["quality", "cost", "stage", "_cost-case"])
+    ap.add_argument("what", choices=["photometric", "quality", "cost", "stage", "_cost-case", "_photometric-case"])
+    ap.add_argument("--sevenscenes", help="photometric: a 7-Scenes sequence folder (frame-*.color.jpg ...)")
+    ap.add_argument("--stride", type=int, default=10, help="photometric: keep every n-th 7-Scenes frame")
+    ap.add_argument("--schedules", nargs="+", default=["zero", "cpu", "gpu"], choices=["zero", "cpu", "gpu"])
+    ap.add_argument("--inits", nargs="+", default=["surface"], choices=["surface", "reference"])
+    ap.add_argument("--eval-width", type=int, default=320, help="photometric: px, width of the scored renders")
+    ap.add_argument("--renders", help="photometric: write the first held-out render beside its frame here")
+    ap.add_argument("--scan", action="store_true", help="photometric: add the synthetic scan room (80k vertices)")
+    ap.add_argument("--bundle", help=argparse.SUPPRESS)
+    ap.add_argument("--schedule", help=argparse.SUPPRESS)
+    ap.add_argument("--init", help=argparse.SUPPRESS)
     ap.add_argument("--work", default=str(WORK))
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     ap.add_argument("--iterations", type=int, default=5)
@@ -264,7 +412,23 @@ def main() -> None:
     if args.what == "_cost-case":
         print(json.dumps(cost_case(work, args.copies, args.width, args.iterations, args.render_only)))
         return
-    if args.what == "quality":
+    if args.what == "_photometric-case":
+        renders = Path(args.renders) if args.renders else None
+        print(json.dumps(photometric_case(Path(args.bundle), args.schedule, args.init, args.eval_width, renders)))
+        return
+    if args.what == "photometric":
+        result = photometric(
+            work,
+            Path(args.sevenscenes) if args.sevenscenes else None,
+            args.stride,
+            args.schedules,
+            args.inits,
+            args.eval_width,
+            args.threads,
+            Path(args.renders) if args.renders else None,
+            args.scan,
+        )
+    elif args.what == "quality":
         result = quality(work)
     elif args.what == "cost":
         result = cost(work, args.threads, args.iterations)

@@ -55,6 +55,21 @@ def _cmd_import(args: argparse.Namespace) -> int:
         from panogs_core.io.importers.scannet import import_scannet
 
         report = import_scannet(args.src, args.dst, **common)
+    elif args.layout == "sevenscenes":
+        from panogs_core.io.importers.sevenscenes import import_sevenscenes
+
+        if args.geometry or args.gt:
+            raise SystemExit("import sevenscenes: --geometry and --gt are not read for this layout")
+        report = import_sevenscenes(
+            args.src,
+            args.dst,
+            stride=args.stride,
+            vocabulary=vocabulary,
+            feature_space=args.feature_space,
+            features=args.features,
+            masks=args.masks,
+            placeholder_maps=args.placeholder_maps,
+        )
     else:
         from panogs_core.io.importers.replica import import_replica
 
@@ -405,8 +420,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-geometry", action="store_true", help="omit geometry.ply (primitives by TSDF)")
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("import", help="convert a ScanNet or Replica capture to a bundle")
-    p.add_argument("layout", choices=["scannet", "replica"])
+    p = sub.add_parser("import", help="convert a ScanNet, Replica or 7-Scenes capture to a bundle")
+    p.add_argument("layout", choices=["scannet", "replica", "sevenscenes"])
     p.add_argument("src")
     p.add_argument("dst")
     p.add_argument("--stride", type=int, default=1, help="keep every n-th frame")
@@ -414,6 +429,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry", help="mesh or point cloud whose vertices become the primitives")
     p.add_argument("--feature-space", default="clip-vit-b32")
     p.add_argument("--depth-scale", type=float, default=6553.5, help="replica only")
+    p.add_argument("--features", help="sevenscenes only: folder of <i>.npy feature maps")
+    p.add_argument("--masks", help="sevenscenes only: folder of <i>.png instance masks")
+    p.add_argument(
+        "--placeholder-maps",
+        action="store_true",
+        help="sevenscenes only, without --features: a constant feature map and a one-segment mask on the first "
+        "frame, enough to open the bundle for the photometric benchmark (no meaningful labels)",
+    )
     p.add_argument(
         "--gt",
         metavar="FILE",

@@ -48,6 +48,7 @@ __all__ = [
     "Schedule",
     "fit_appearance",
     "initial_gaussians",
+    "initialise",
     "resolve_schedule",
     "split_frames",
 ]
@@ -96,8 +97,9 @@ def fit_appearance(
     import torch
 
     fit_frames, held, no_color = split_frames(bundle, cfg)
+    start = initialise(bundle, prims, colors, fit_frames, cfg)
     if not cfg.enabled:
-        return initial_gaussians(prims, colors, note="appearance fitting is turned off (appearance.enabled: false)")
+        return _with(start, note="appearance fitting is turned off (appearance.enabled: false)")
     if not fit_frames:
         note = (
             f"appearance fitting skipped: none of the {len(bundle.frames)} frames has a colour image"
@@ -105,7 +107,7 @@ def fit_appearance(
             else "appearance fitting skipped: every colour frame is held out"
         )
         log.warning("%s", note)
-        return _with(initial_gaussians(prims, colors, note=note), skipped_frames=tuple(no_color))
+        return _with(start, note=note, skipped_frames=tuple(no_color))
     if no_color:
         log.info("appearance: %d frame(s) without colour skipped", len(no_color))
     schedule = resolve_schedule(cfg, bundle.camera.width, torch.cuda.is_available(), len(prims.points))
@@ -115,7 +117,7 @@ def fit_appearance(
     if cfg.cpu_threads is not None and schedule.device == "cpu":
         torch.set_num_threads(cfg.cpu_threads)
     try:
-        fitter = Fitter(bundle, prims, colors, cfg, schedule)
+        fitter = Fitter(bundle, start, cfg, schedule)
         eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
         saved = snapshot.load() if snapshot is not None else None
         if saved is not None and fitter.restore(saved):
@@ -149,6 +151,31 @@ def fit_appearance(
         evaluated_on="held-out" if held else "training",
         skipped_frames=tuple(no_color),
         note=note,
+    )
+
+
+def initialise(
+    bundle: Bundle, prims: Any, colors: np.ndarray, frames: list[Frame], cfg: AppearanceConfig
+) -> GaussianScene:
+    """The fit's starting point (``cfg.initialisation``): ``surface`` (:mod:`panogs_core.gaussians.surface_init`:
+    flat Gaussians from the local spacing, opacity 0.9, colours from the fit frames) or ``reference`` (the
+    primitives' isotropic scales, opacity 0.5, the given colours)."""
+    start = initial_gaussians(prims, colors)
+    if cfg.initialisation == "reference":
+        return start
+    from panogs_core.gaussians.surface_init import SurfaceInit, frame_colors, surface_shapes
+
+    init = SurfaceInit()
+    log_scales, quats = surface_shapes(start.means, init)
+    rgb = np.asarray(colors, np.float32)
+    if frames:
+        rgb, _ = frame_colors(bundle, frames, start.means, rgb, init)
+    logit = float(np.log(init.opacity / (1.0 - init.opacity)))
+    return _with(
+        initial_gaussians(prims, rgb),
+        log_scales=log_scales,
+        quats=quats,
+        opacity_logits=np.full(len(start.means), logit, np.float32),
     )
 
 

@@ -59,6 +59,10 @@ class AppearanceConfig:
     # sit on vertices a few cm apart, so larger Gaussians add nothing the neighbours cannot, and they make every
     # tile's list longer (the CPU fit slowed down 10x in 60 iterations without a cap; docs/benchmarks.md).
     max_scale_growth: float = 4.0
+    # Ours: a per-frame gain and bias per colour channel, learned with the Gaussians; off by default, it did not
+    # help on the CPU schedule (docs/gaussians.md, "Exposure")
+    exposure_compensation: bool = False
+    lr_exposure: float = 0.001
     move_centres: bool = False  # reference fix_ply: centres stay on the geometry
     max_centre_offset: float = 0.01  # m, how far a centre may move when move_centres is on
     max_frames: int = _MAX_FRAMES_DEFAULT  # key frames used at most (evenly spaced)
@@ -70,6 +74,10 @@ class AppearanceConfig:
     device: str = "auto"  # auto: CUDA when torch sees it (decided when the stage runs), else cpu
     backend: str = "auto"  # auto | torch | gsplat (backends.resolve_backend)
     seed: int = 0  # frame order
+    # surface: flat Gaussians from the local spacing, opacity 0.9, colours from the frames that see them
+    # (panogs_core.gaussians.surface_init.py); reference: isotropic at sqrt(0.05) x the spacing, opacity 0.5, the
+    # primitives' colours (the reference's initialisation)
+    initialisation: str = "surface"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
@@ -87,6 +95,7 @@ class AppearanceConfig:
         rates = {n: getattr(self, n) for n in ("lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scale_log")}
         rates |= {"lr_rotation": self.lr_rotation, "lr_position": self.lr_position}
         rates["max_centre_offset"] = self.max_centre_offset
+        rates["lr_exposure"] = self.lr_exposure
         rates["max_scale_growth"] = self.max_scale_growth
         if self.lr_scale is not None:
             rates["lr_scale"] = self.lr_scale
@@ -98,6 +107,8 @@ class AppearanceConfig:
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         if re.fullmatch(r"auto|cpu|cuda(:\d+)?", self.device) is None:
             raise ConfigError(f"appearance.device: expected auto, cpu or cuda[:N], got {self.device!r}")
+        if self.initialisation not in ("surface", "reference"):
+            raise ConfigError(f"appearance.initialisation: expected surface or reference, got {self.initialisation!r}")
         if self.backend not in ("auto", "torch", "gsplat"):
             raise ConfigError(f"appearance.backend: expected auto, torch or gsplat, got {self.backend!r}")
 

@@ -14,7 +14,7 @@ from panogs_core.errors import Cancelled
 from panogs_core.gaussians.backends import Backend, render
 from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera
-from panogs_core.gaussians.spherical_harmonics import num_coefficients, rgb_to_dc, sh_to_color
+from panogs_core.gaussians.spherical_harmonics import num_coefficients, sh_to_color
 from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.progress import ProgressFn, report
@@ -29,30 +29,30 @@ ADAM_EPS = 1e-15  # 3DGS: tiny epsilon, so that small gradients of rarely seen G
 class Fitter:
     """Parameters, optimiser and target images of one appearance fit."""
 
-    def __init__(
-        self, bundle: Bundle, prims: Any, colors: np.ndarray, cfg: AppearanceConfig, schedule: Schedule
-    ) -> None:
+    def __init__(self, bundle: Bundle, init: GaussianScene, cfg: AppearanceConfig, schedule: Schedule) -> None:
         self.bundle = bundle
         self.cfg = cfg
         self.schedule = schedule
         self.device = torch.device(schedule.device)
         dev = self.device
-        n = prims.points.shape[0]
+        n = init.means.shape[0]
         height = max(1, round(bundle.camera.height * schedule.fit_width / bundle.camera.width))
         self.size = (schedule.fit_width, height)
-        self.anchor = torch.as_tensor(np.asarray(prims.points, np.float32), device=dev)
+        self.anchor = torch.as_tensor(init.means, device=dev)
         sh = torch.zeros(n, num_coefficients(cfg.sh_degree), 3, device=dev)
-        sh[:, 0] = rgb_to_dc(torch.as_tensor(np.asarray(colors, np.float32), device=dev))
+        sh[:, 0] = torch.as_tensor(init.sh[:, 0], device=dev)
         self.sh_dc = sh[:, :1].clone().requires_grad_(True)
         self.sh_rest = sh[:, 1:].clone().requires_grad_(True)
-        self.opacity = torch.as_tensor(np.asarray(prims.opacities, np.float32), device=dev).clone().requires_grad_()
-        self.log_scales = torch.as_tensor(np.asarray(prims.scales, np.float32), device=dev).clone().requires_grad_()
+        self.opacity = torch.as_tensor(init.opacity_logits, device=dev).clone().requires_grad_()
+        self.log_scales = torch.as_tensor(init.log_scales, device=dev).clone().requires_grad_()
         self.max_log_scales = self.log_scales.detach() + float(np.log(cfg.max_scale_growth))
         self.seconds_per_iteration: list[float] = []
-        quats = torch.zeros(n, 4, device=dev)
-        quats[:, 0] = 1.0
-        self.quats = quats.requires_grad_(True)
+        self.quats = torch.as_tensor(init.quats, device=dev).clone().requires_grad_(True)
         self.offsets = torch.zeros(n, 3, device=dev, requires_grad=cfg.move_centres)
+        # Per-frame exposure (an affine map per colour channel: gain 1 + g, bias b) of the training frames, so that
+        # the Gaussians do not chase each frame's exposure; renders for evaluation and export use none.
+        self.frame_index = {f.id: i for i, f in enumerate(bundle.frames)}
+        self.exposure = torch.zeros(len(bundle.frames), 2, 3, device=dev, requires_grad=cfg.exposure_compensation)
         s = schedule.lr_scale
         groups = [
             {"params": [self.sh_dc], "lr": cfg.lr_sh_dc * s},
@@ -61,6 +61,8 @@ class Fitter:
             {"params": [self.log_scales], "lr": cfg.lr_scale_log * s},
             {"params": [self.quats], "lr": cfg.lr_rotation * s},
         ]
+        if cfg.exposure_compensation:
+            groups.append({"params": [self.exposure], "lr": cfg.lr_exposure * s})
         if cfg.move_centres:
             groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _bundle_extent(bundle)})
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
@@ -81,6 +83,7 @@ class Fitter:
             "log_scales": self.log_scales,
             "quats": self.quats,
             "offsets": self.offsets,
+            "exposure": self.exposure,
         }
 
     def state(self) -> dict[str, Any]:
@@ -172,7 +175,11 @@ class Fitter:
         start = time.perf_counter()
         frame = frames[self.order.pop()]
         degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
-        loss = photometric_loss(self.render(frame, degree), self.target(frame), self.cfg.dssim_weight)
+        image = self.render(frame, degree)
+        if self.cfg.exposure_compensation:
+            gain_bias = self.exposure[self.frame_index[frame.id]]
+            image = image * (1.0 + gain_bias[0]) + gain_bias[1]
+        loss = photometric_loss(image, self.target(frame), self.cfg.dssim_weight)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

@@ -119,7 +119,7 @@ def test_the_fit_raises_psnr_and_skips_frames_without_colour(wall_bundle: Path) 
     assert len(steps) == 40
     assert np.allclose(fitted.means, points)  # centres fixed by default
     assert np.allclose(np.linalg.norm(fitted.quats, axis=1), 1.0, atol=1e-5)
-    assert float(fitted.opacity_logits.mean()) > 0.5  # the wall is opaque: opacities rose from 0.5
+    assert float(fitted.opacity_logits.mean()) > 0.5  # the wall is opaque: opacities stay high
 
 
 def test_the_cpu_fit_runs_on_its_threads_and_restores_them(wall_bundle: Path) -> None:
@@ -184,11 +184,52 @@ def test_a_bundle_without_colour_skips_the_stage_with_a_message(tmp_path: Path) 
 
 def test_turned_off_returns_the_initialisation(wall_bundle: Path) -> None:
     points, _ = _wall()
-    fitted = _fit(wall_bundle, enabled=False)
+    fitted = _fit(wall_bundle, enabled=False, initialisation="reference")
     assert not fitted.fitted
     assert "turned off" in fitted.note
     assert np.allclose(fitted.sh[:, 0], 0.0)  # grey: DC coefficient (0.5 - 0.5) / C0
     assert np.allclose(fitted.log_scales, gaussian_log_scales(points))
+
+
+def test_the_surface_initialisation_is_flat_covering_and_takes_the_frames_colours(wall_bundle: Path) -> None:
+    _, colors = _wall()
+    start = _fit(wall_bundle, enabled=False)  # the default: surface
+    assert not start.fitted
+    scales = np.exp(start.log_scales)
+    rot = np.stack([_rotation(q) for q in start.quats])
+    assert np.allclose(np.abs(rot[:, 2, 2]), 1.0, atol=1e-3)  # the third axis is the wall's normal (z)
+    assert np.all(scales[:, 2] < 0.3 * scales[:, 0])  # flat along the normal
+    assert np.all(scales[:, 0] > 0.5 * SPACING)  # wide enough to cover the gaps
+    assert float(1 / (1 + np.exp(-start.opacity_logits.min()))) > 0.85
+    # the grey given colours are replaced by what the frames show (the truth up to the renders' blending)
+    error = np.abs(start.dc_colors() - colors).mean()
+    assert error < 0.1 < np.abs(0.5 - colors).mean()
+
+
+def test_the_surface_initialisation_scores_higher_at_zero_iterations(wall_bundle: Path) -> None:
+    surface = _fit(wall_bundle, iterations=1)
+    reference = _fit(wall_bundle, iterations=1, initialisation="reference")
+    assert surface.psnr_before is not None
+    assert reference.psnr_before is not None
+    assert surface.psnr_before > reference.psnr_before + 5.0
+
+
+def test_exposure_compensation_is_learned_per_frame_and_left_out_of_the_result(wall_bundle: Path) -> None:
+    with_it = _fit(wall_bundle, iterations=12, exposure_compensation=True)  # each frame seen twice
+    without = _fit(wall_bundle, iterations=12)
+    assert with_it.means.shape == without.means.shape
+    assert not np.array_equal(with_it.sh, without.sh)  # the per-frame gains changed what the Gaussians learned
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def test_checkpoint_round_trip(wall_bundle: Path, tmp_path: Path) -> None:
