@@ -203,7 +203,7 @@ def _look_from_key_frame(page: Any, api: httpx.Client, job_id: str) -> str:
 
 
 def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
-    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, bundle_zip: Path, artifacts: Path
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, synth_tiny: Path, artifacts: Path
 ) -> None:
     _open_viewer(page, served["url"], job_id, "?mode=camera")
     assert page.get_attribute(".pgs-viewer", "data-photo") == "off"
@@ -224,7 +224,7 @@ def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
     assert (np.abs(over.astype(int) - photo).sum(axis=2) > 30).mean() > 0.05
     assert page.get_attribute(".pgs-viewer", "data-photo") == "on"
     # The photo beside the key frame's colour image, seen from the same pose (the canvas's aspect differs).
-    folder = bundle_zip.with_suffix("")
+    folder = synth_tiny  # the bundle the job's zip was made from
     scene = json.loads((folder / "scene.json").read_text())
     color_path = next(f["color"] for f in scene["frames"] if f["id"] == frame_id)
     colour = cv2.imread(str(folder / color_path))
