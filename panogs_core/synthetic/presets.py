@@ -228,6 +228,14 @@ PRESETS: dict[str, SyntheticSpec] = {
         room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",
         realistic=True, dense_factor=10, unannotated_stuff=0.22,
     ),
+    # The scan room at the real capture's size, for the speed benchmark: 640x480 depth and masks, feature maps a
+    # quarter of that (160x120), 2000 dense poses of which 200 are written and 100 are key frames, 135k surface
+    # samples of which about 80k are observed (docs/synthetic.md, "The scannet-size preset").
+    "scannet-size": SyntheticSpec(
+        name="scannet-size", width=640, height=480, hfov_deg=58.0, num_frames=200, key_frame_stride=2,
+        num_points=135_000, room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7),
+        feature_space="clip-vit-b32", realistic=True, dense_factor=10, unannotated_stuff=0.22,
+    ),
 }  # fmt: skip
 
 DIFFICULTIES: dict[str, Difficulty] = {
