@@ -108,7 +108,6 @@ def to_scannet20(sem: np.ndarray, vocab: Vocabulary, target: Vocabulary) -> np.n
 
 def steps(ps, pi, gs, gi, vocab: Vocabulary) -> list[float]:
     """PRQ(T) after each step of :data:`STEPS`."""
-    things_std = [c for c in range(len(vocab.names)) if vocab.is_thing[c]]
     excluded = {i for i, n in enumerate(vocab.names) if n.lower() in ("other", "otherfurniture")}
     things_paper, _ = _paper_split(vocab, excluded)
     out = [evaluate(ps, pi, gs, gi, vocab).prq_thing, _standard_pq(ps, pi, gs, gi, things_paper, 0.25, thing=True).pq]
