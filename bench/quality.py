@@ -30,6 +30,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - vote-none / vote-reference: no vote, or the reference's vote of the whole super-primitive (purity 0.5)
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority
+- unseen-checked: the super-primitive's majority, except where the nearest seen primitive along the graph is of
+  another class, the field agrees with it and both surfaces face the same way (``labeling.unseen``)
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
 - field-steps-0 / -300 / -600: the language field trained for its epochs alone, or at least 300 / 600 steps
   (the default's floor is ``language_field.min_steps``)
@@ -79,6 +81,7 @@ VARIANTS: dict[str, dict] = {
     "vote-reference": {"labeling": {"vote": "superprimitive"}},
     "unseen-field": {"labeling": {"unseen": "field"}},
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
+    "unseen-checked": {"labeling": {"unseen": "segment-checked"}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
     "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
