@@ -47,8 +47,8 @@ class SyntheticSpec:
             subset are exported; written frames are every ``dense_factor``-th pose.
         unannotated_stuff: Fraction of the wall and floor points whose ground truth is left unannotated
             (-1), in blobs, as annotators of a real capture skip segments (realistic only).
-        high_windows: Thin windows set into the walls near the ceiling, which the downward-looking key frames
-            rarely see (realistic only; 0 = none, and the room is drawn as without the field).
+        high_windows: Thin windows set into the walls at 1.5-2.1 m, above most views of the downward-looking key
+            frames (realistic only; 0 = none, and the room is drawn as without the field).
     """
 
     name: str
@@ -242,7 +242,7 @@ PRESETS: dict[str, SyntheticSpec] = {
         feature_space="clip-vit-b32", realistic=True, dense_factor=10, unannotated_stuff=0.22,
     ),
     # The scan room with thin objects in the walls mostly outside every key view: 3 windows set flush into the walls
-    # just under the ceiling (docs/synthetic.md, "Thin objects in walls"); the rest of the room as `scan` draws it.
+    # at 1.5-2.1 m (docs/synthetic.md, "Thin objects in walls"); the rest of the room as `scan` draws it.
     "scan-walls": SyntheticSpec(
         name="scan-walls", hfov_deg=58.0, num_frames=140, key_frame_stride=2, num_points=80_000,
         room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",

@@ -17,6 +17,7 @@ def label_unseen(
     neighbors: np.ndarray,  # (N, K) kNN (self excluded)
     segments: np.ndarray,  # (N,) int64 super-primitive
     mode: str,
+    is_thing: np.ndarray | None = None,  # (L,) bool; ``segment-checked`` overrules only stuff segments
     min_normal_cos: float = 0.8,
 ) -> tuple[np.ndarray, dict[str, int]]:  # (N,) int64 classes, how many unseen were labelled how
     """A class for every primitive no key frame saw, and how many were labelled by each rule.
@@ -24,14 +25,15 @@ def label_unseen(
     ``segment``: the majority class of the seen primitives of its super-primitive (the graph cut follows the geometry,
     so an unseen patch of floor under a table is in a floor segment), then ``propagate`` for segments no key frame saw
     at all. ``segment-checked``: the same, except where the segment's seen part and the unseen primitive are
-    different surfaces: it takes the class of the seen primitive nearest along the kNN graph instead when that class
-    is not the segment's, the field's own argmax there agrees with it, and the two primitives face the same way
-    (normals within ``min_normal_cos``; a thin object set into a wall, whose seen part is its own, not the floor
-    under a table beside a leg). ``propagate``: the class of the seen primitive nearest along the kNN graph (edge
-    length = distance), so the floor under a bed takes the floor's class across the floor, not the class of the bed
-    10 cm above it; primitives in parts of the graph with no seen primitive take the Euclidean nearest seen one's
-    class. ``field``: the argmax of the field's features there (the reference: the field extrapolates). DEPARTURE
-    (the segment's seen majority, checked, not the field): docs/method.md §7.5.
+    different surfaces: in a segment of a stuff class, it takes the class of the seen primitive nearest along the
+    kNN graph instead when that is a thing class, the field's own argmax there agrees with it, and the two
+    primitives face the same way (normals within ``min_normal_cos``): a thin object set into a wall, whose seen
+    part is its own, but not the floor under a table beside a leg, nor a sink whose segment is right.
+    ``propagate``: the class of the seen primitive nearest along the kNN graph (edge length = distance), so the floor
+    under a bed takes the floor's class across the floor, not the class of the bed 10 cm above it; primitives in
+    parts of the graph with no seen primitive take the Euclidean nearest seen one's class. ``field``: the argmax of
+    the field's features there (the reference: the field extrapolates). DEPARTURE (the segment's seen majority, not
+    the field): docs/method.md §7.5.
     """
     unseen = classes < 0
     counts = {"unseen": int(unseen.sum()), "field": 0, "segment": 0, "graph": 0, "nearest": 0}
@@ -49,7 +51,14 @@ def label_unseen(
         by_segment = unseen & (filled >= 0)
         out[by_segment] = filled[by_segment]
         if mode == "segment-checked":
-            overrule = _other_surface(out, classes, source, by_segment, field_sims, points, neighbors, min_normal_cos)
+            stuff_segment = by_segment.copy()
+            if is_thing is not None:
+                stuff_segment &= ~np.asarray(is_thing, bool)[np.maximum(out, 0)]
+            overrule = _other_surface(
+                out, classes, source, stuff_segment, field_sims, points, neighbors, min_normal_cos
+            )
+            if is_thing is not None:
+                overrule &= np.asarray(is_thing, bool)[np.maximum(classes[source], 0)] & (source >= 0)
             out[overrule] = classes[source[overrule]]
             counts["graph"] += int(overrule.sum())
             by_segment &= ~overrule
