@@ -44,13 +44,13 @@ def label_unseen(
         out[unseen] = np.argmax(field_sims[unseen], axis=1)
         counts["field"] = counts["unseen"]
         return out, counts
-    source = _nearest_seen_along_graph(points, neighbors, unseen)  # (N,) the seen primitive reached, -1 none
     out = classes.copy()
     if mode in ("segment", "segment-checked"):
         filled = vote_in_segments(classes, segments)
         by_segment = unseen & (filled >= 0)
         out[by_segment] = filled[by_segment]
         if mode == "segment-checked":
+            source = _nearest_seen_along_graph(points, neighbors, unseen)  # from what a key frame saw only
             stuff_segment = by_segment.copy()
             if is_thing is not None:
                 stuff_segment &= ~np.asarray(is_thing, bool)[np.maximum(out, 0)]
@@ -66,8 +66,9 @@ def label_unseen(
         unseen = out < 0
         if not unseen.any():
             return out, counts
+    source = _nearest_seen_along_graph(points, neighbors, unseen)  # labelled primitives are the seeds
     reached = unseen & (source >= 0)
-    out[reached] = classes[source[reached]]
+    out[reached] = out[source[reached]]
     counts["graph"] += int(reached.sum())
     counts["nearest"] = int((out < 0).sum())
     return fill_nearest_seen(points, out), counts
