@@ -302,8 +302,8 @@ class _FeatureSum:
 class _CellBuffers:
     """The (C, D) float32 rows of one feature map, and its raw float16 copy, kept from frame to frame.
 
-    A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself:
-    reused buffers convert 3x faster.
+    A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself
+    (docs/benchmarks.md, "Speed at ScanNet size").
     """
 
     def __init__(self) -> None:
@@ -428,7 +428,8 @@ def _pool_cells(
     """Weighted mean of the unit cells under each mask (weights of :func:`mask_pooled_features`).
 
     One sparse (M + 1) x C product with one term per (mask, cell) pair that shares a pixel, about one per cell,
-    each weight times the cell's ``1 / |f_c|``. Torch's CPU ``index_add_`` of the same terms took 20x longer.
+    each weight times the cell's ``1 / |f_c|``. Torch's CPU ``index_add_`` of the same terms adds them one row at a
+    time and was most of the stage at ScanNet size (docs/benchmarks.md, "Speed at ScanNet size").
     """
     hf, wf = feature_hw
     hm, wm = mask_hw
