@@ -30,7 +30,12 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - vote-none / vote-reference: no vote, or the reference's vote of the whole super-primitive (purity 0.5)
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority
+- unseen-checked: the super-primitive's majority, except where the nearest seen primitive along the graph is of
+  another class, the field agrees with it and both surfaces face the same way (``labeling.unseen``)
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
+- field-steps-0 / -300 / -600: the language field trained for its epochs alone, or at least 300 / 600 steps
+  (the default's floor is ``language_field.min_steps``); field-batch-2048: 300 steps of 2048 primitives (the
+  same primitives visited, half the steps)
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
@@ -77,9 +82,14 @@ VARIANTS: dict[str, dict] = {
     "vote-reference": {"labeling": {"vote": "superprimitive"}},
     "unseen-field": {"labeling": {"unseen": "field"}},
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
+    "unseen-checked": {"labeling": {"unseen": "segment-checked"}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
     "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
+    "field-steps-0": {"language_field": {"min_steps": 0}},
+    "field-steps-300": {"language_field": {"min_steps": 300}},
+    "field-steps-600": {"language_field": {"min_steps": 600}},
+    "field-batch-2048": {"language_field": {"min_steps": 300, "batch_size": 2048}},
     "lang-affinity": {"affinity": {"mode": "language"}},
     "no-lang-cut": {"superprimitives": {"use_language": False}},
     "fused-features": {"features_source": "fused"},

@@ -2,14 +2,17 @@
 # Side-by-side speed of two commits on one bundle, alternating, in one sitting (shared machines are noisy:
 # compare within a run). Prints each run's total, peak RSS, per-stage seconds and standard metrics.
 #
-# Usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS]
+# Usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS] [RUN_ARGS ...]
 #   BUNDLE defaults to bench/results/speed/large-0 (make it with `panogs synth ... --preset large` or
-#   `python bench/speed.py` once). The old commit is checked out in a temporary git worktree.
+#   `python bench/speed.py` once). The old commit is checked out in a temporary git worktree. RUN_ARGS go to
+#   both sides' `panogs run`, e.g. the ScanNet-size case without the appearance fit:
+#   bench/speed_ab.sh OLD_REV bench/results/speed/scannet-size-0 2 --set appearance.enabled=false
 set -euo pipefail
 cd "$(dirname "$0")/.."
 old_rev=${1:?usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS]}
 bundle=$(realpath "${2:-bench/results/speed/large-0}")
 rounds=${3:-2}
+run_args=("${@:4}")
 py="$PWD/.venv/bin/python"  # not realpath: the venv link must stay a venv
 work=$(mktemp -d)
 git worktree add -q "$work/old" "$old_rev"
@@ -19,7 +22,7 @@ for round in $(seq "$rounds"); do
   for side in old new; do
     if [ "$side" = old ]; then src="$work/old"; else src="$PWD"; fi
     (cd "$src" && "$py" -c "import sys; sys.path.insert(0, '.'); from panogs_core.cli import main; main()" \
-      run "$bundle" --out "$work/run-$side" --no-resume > "$work/$side.log" 2>&1)
+      run "$bundle" --out "$work/run-$side" --no-resume "${run_args[@]}" > "$work/$side.log" 2>&1)
     "$py" - "$work/run-$side" "$side" "$round" <<'PY'
 import json, sys
 run, side, rnd = sys.argv[1:]

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from scipy import sparse
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
@@ -51,8 +52,8 @@ log = logging.getLogger(__name__)
 
 ConfidenceMode = Literal["code", "paper", "none"]
 _CONFIDENCE_MODES = ("code", "paper", "none")
-# Seen primitives accumulated per step: the reused (chunk, D) float32 gather buffer (16 MB at D = 512); a
-# cache-sized chunk measured ~2x faster than one whole-frame gather.
+# Primitives accumulated per step: the reused (chunk, D) float32 gather buffer (16 MB at D = 512). Torch's
+# index_add_ from it: numpy's ``sum[idx] += rows`` was 10-20x slower into a large (N, D) sum.
 _CHUNK = 8192
 
 
@@ -260,9 +261,8 @@ def _frames_by_id(bundle: Bundle, visibility: Visibility) -> list[Frame]:
 class _FeatureSum:
     """Running per-primitive sum of unit pixel features and observation count.
 
-    Accumulates with torch's ``index_add_`` on a view of the numpy sum (no copy): it adds each gathered row in
-    place, where numpy's ``sum[idx] += rows`` reads, adds and writes back whole (T_v, D) temporaries
-    (measured ~5x slower at D = 512). Gathered rows go through one reused (chunk, D) buffer.
+    Each frame builds one unit row per (cell, mask) pair in use and adds each primitive's row with torch's
+    ``index_add_`` on a view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
     """
 
     def __init__(self, num_points: int, dim: int) -> None:
@@ -272,6 +272,7 @@ class _FeatureSum:
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
         self._total_t = torch.from_numpy(self.total)  # shares memory with self.total
         self._buffer = torch.empty((_CHUNK, dim), dtype=torch.float32)  # (chunk, D)
+        self._buffers = _CellBuffers()
 
     def add(
         self,
@@ -291,72 +292,102 @@ class _FeatureSum:
         if fmap.ndim != 3 or fmap.shape[2] != d:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
         image_hw = (bundle.camera.height, bundle.camera.width)
-        src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) row of `table` for each primitive
+        src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) cell of each primitive
+        cells, inv_norm = _cells_and_inverse_norms(fmap, min_norm, self._buffers)  # (C, D) as read, (C,) 1 / |f_c|
         if mask_pooling > 0.0:
             masks = bundle.read_masks(frame)
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
-            table, valid, src = _cells_blended_with_masks(fmap, src, masks, mask_pixel, mask_pooling, min_norm)
+            table, index = _rows_blended_with_masks(
+                cells, inv_norm, src, masks, mask_pixel, fmap.shape[:2], mask_pooling
+            )
         else:
-            table, valid = _unit_cells(fmap, min_norm)
-        keep = valid[src]  # a zero feature is no observation
-        targets, src = point_index[keep].astype(np.int64), src[keep]
+            cell, index = np.unique(src, return_inverse=True)  # the cells in use, and each primitive's
+            table = cells[cell] * inv_norm[cell, None]  # (U, D) unit cells, zero where no feature
+        valid = _unit_rows_(table, min_norm)  # a zero feature is no observation
+        keep = np.flatnonzero(valid[index])
+        targets, rows = point_index[keep].astype(np.int64), index[keep]
         self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
+        table_t = torch.from_numpy(table)
         for lo in range(0, targets.size, _CHUNK):
             n = min(_CHUNK, targets.size - lo)
             gathered = self._buffer[:n]
-            torch.index_select(table, 0, torch.from_numpy(src[lo : lo + n]), out=gathered)
+            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
             self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
 
 
-def _unit_cells(fmap: np.ndarray, min_norm: float, extra_rows: int = 0) -> tuple[Any, np.ndarray]:
-    """Every cell of a feature map as a unit float32 row (zero rows where the cell holds no feature).
+class _CellBuffers:
+    """The (C, D) float32 rows of one feature map, and its raw float16 copy, kept from frame to frame.
 
-    Returns ``(C + extra_rows, D)`` rows, the extra ones left for the caller to fill, and the (C,) validity.
-    The whole map is read once: nearly every cell is used by some primitive or some mask, and torch converts
-    float16 to float32 several times faster than numpy's ``astype`` (measured on the large preset's maps).
+    A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself
+    (docs/benchmarks.md, "Speed at ScanNet size").
     """
-    import torch
 
-    hf, wf, d = fmap.shape
-    raw = np.array(fmap.reshape(hf * wf, d))  # (C, D) a private copy of the memory-mapped map, as stored
-    if raw.dtype.kind != "f" or not raw.dtype.isnative:  # torch takes native floats
-        raw = raw.astype(np.float32)
-    table = torch.empty((hf * wf + extra_rows, d), dtype=torch.float32)
-    table[: hf * wf].copy_(torch.from_numpy(raw))  # converts float16 in the copy
-    valid = _normalise_rows_(table[: hf * wf], min_norm).numpy()  # (C,) bool
-    return table, valid
+    def __init__(self) -> None:
+        self.cells: np.ndarray | None = None  # (C, D) float32
+        self.raw: np.ndarray | None = None  # (C, D) float16
+
+    def read(self, fmap: np.ndarray) -> np.ndarray:  # (C, D) float32, valid until the next call
+        """The map's cells as float32 rows (a private copy: callers may write into it)."""
+        import torch
+
+        hf, wf, d = fmap.shape
+        flat = fmap.reshape(hf * wf, d)
+        if self.cells is None or self.cells.shape != flat.shape:
+            self.cells, self.raw = np.empty(flat.shape, dtype=np.float32), None
+        if flat.dtype == np.dtype(np.float16):  # torch converts float16 several times faster than numpy
+            if self.raw is None:
+                self.raw = np.empty(flat.shape, dtype=np.float16)
+            np.copyto(self.raw, flat)  # reads the memory-mapped file once
+            torch.from_numpy(self.cells).copy_(torch.from_numpy(self.raw))
+        else:
+            np.copyto(self.cells, flat, casting="unsafe")
+        return self.cells
 
 
-def _cells_blended_with_masks(
-    fmap: np.ndarray,  # (Hf, Wf, D)
+def _cells_and_inverse_norms(
+    fmap: np.ndarray, min_norm: float, buffers: _CellBuffers | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell of a feature map as a float32 row, and ``1 / |f_c|`` (0 where the cell holds no feature).
+
+    ``(C, D)`` and ``(C,)``. The rows stay as read: the unit scale is folded into whatever reads them (the pooling
+    weights, the primitives' rows), which saves a pass over the map. The whole map is read once: nearly every cell
+    is used by some primitive or some mask.
+    """
+    cells = (buffers or _CellBuffers()).read(fmap)
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm = np.sqrt(np.einsum("cd,cd->c", cells, cells))  # (C,)
+    valid = np.isfinite(norm) & (norm > min_norm)
+    inv_norm = np.zeros(len(norm), dtype=np.float32)
+    inv_norm[valid] = 1.0 / norm[valid]
+    if not valid.all():
+        cells[~valid] = 0.0  # a non-finite cell would turn its products into NaN
+    return cells, inv_norm
+
+
+def _rows_blended_with_masks(
+    cells: np.ndarray,  # (C, D) float32 cells as read
+    inv_norm: np.ndarray,  # (C,) 1 / |f_c|, 0 where no feature
     src: np.ndarray,  # (T_v,) int64 cell of each primitive
     masks: np.ndarray,  # (Hm, Wm) int mask ids, 0 = no mask
     mask_pixel: np.ndarray,  # (T_v,) int64 flat mask pixel of each primitive
+    feature_hw: tuple[int, int],
     weight: float,
-    min_norm: float,
-) -> tuple[Any, np.ndarray, np.ndarray]:  # (C + P, D) torch rows, (C + P,) bool, (T_v,) int64 new src
-    """Unit cell rows, then one blended row per (cell, mask) pair in use; primitives in a mask read theirs.
+) -> tuple[np.ndarray, np.ndarray]:  # (U, D) float32 rows (not yet unit), (T_v,) int64 each primitive's row
+    """One row per (cell, mask) pair in use: the unit cell, blended towards the mask's pooled feature.
 
-    The blend of cell c with mask m is ``unit((1 - weight) f_c + weight pool_m)``. A mask without a pooled
-    feature has ``pool_m = 0``, so its pairs come out as the plain unit cell: the same as not blending.
+    The blend of cell c with mask m is ``(1 - weight) f_c / |f_c| + weight pool_m`` (made unit by the caller); the
+    pairs without a mask (m = 0) and masks without a pooled feature have ``pool_m = 0``: the plain unit cell. Rows
+    are per pair, not per primitive: many primitives share a cell when the maps are coarse.
     """
-    import torch
-
     dense, mask_values = _dense_mask_ids(masks)  # (Hm Wm,) ids renumbered 0..M (0 stays "no mask")
     num_masks = len(mask_values)
-    mask_of = dense[mask_pixel]  # (T_v,)
-    in_mask = mask_of > 0
-    pairs, number = np.unique(src[in_mask] * num_masks + mask_of[in_mask], return_inverse=True)  # (P,), (T_in,)
-    cells = fmap.shape[0] * fmap.shape[1]
-    table, valid = _unit_cells(fmap, min_norm, extra_rows=len(pairs))  # blended rows go after the C cells
-    pooled = _pool_unit_cells(table[:cells], valid, dense, num_masks, masks.shape, fmap.shape[:2], min_norm)
-    blend = table[cells:]  # (P, D) view
-    torch.index_select(pooled, 0, torch.from_numpy(pairs % num_masks), out=blend)
-    blend.mul_(weight).add_(table[torch.from_numpy(pairs // num_masks)], alpha=1.0 - weight)
-    blend_valid = _normalise_rows_(blend, min_norm).numpy()
-    src = src.copy()
-    src[in_mask] = cells + number.reshape(-1)
-    return table, np.r_[valid, blend_valid], src
+    pair, index = np.unique(src * num_masks + dense[mask_pixel], return_inverse=True)  # (U,), (T_v,)
+    cell, mask = pair // num_masks, pair % num_masks
+    pooled = _pool_cells(cells, inv_norm, dense, num_masks, masks.shape, feature_hw)  # (M + 1, D), row 0 zero
+    table = cells[cell]  # (U, D)
+    table *= ((1.0 - weight) * inv_norm[cell])[:, None]
+    table += weight * pooled[mask]
+    return table, index.reshape(-1)
 
 
 def mask_pooled_features(
@@ -378,15 +409,14 @@ def mask_pooled_features(
         >>> pooled.astype(float).round(3).tolist(), has.tolist()
         ([[0.0, 0.0], [0.97, 0.243], [0.0, 1.0]], [False, True, True])
     """
-    import torch
-
-    table, valid = _unit_cells(np.asarray(fmap), min_norm)
+    fmap = np.asarray(fmap)
+    cells, inv_norm = _cells_and_inverse_norms(fmap, min_norm)
     dense, mask_values = _dense_mask_ids(masks)
-    pooled = _pool_unit_cells(table, valid, dense, len(mask_values), masks.shape, fmap.shape[:2], min_norm)
-    has = torch.linalg.vector_norm(pooled, dim=1).numpy() > 0.5  # unit rows, or zero
+    pooled = _pool_cells(cells, inv_norm, dense, len(mask_values), masks.shape, fmap.shape[:2])
+    has = np.linalg.norm(pooled, axis=1) > 0.5  # unit rows, or zero
     top = int(mask_values[-1])
     by_id = np.zeros((top + 1, fmap.shape[2]), dtype=np.float32)
-    by_id[mask_values] = pooled.numpy()
+    by_id[mask_values] = pooled
     has_by_id = np.zeros(top + 1, dtype=bool)
     has_by_id[mask_values] = has
     return by_id, has_by_id
@@ -405,50 +435,49 @@ def _dense_mask_ids(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (Hm 
     return number[ids], np.flatnonzero(present)
 
 
-def _pool_unit_cells(
-    table: Any,  # (C, D) torch float32 unit cell rows (zero where no feature)
-    valid: np.ndarray,  # (C,) bool
+def _pool_cells(
+    cells: np.ndarray,  # (C, D) float32 cells as read
+    inv_norm: np.ndarray,  # (C,) 1 / |f_c|, 0 where no feature
     dense: np.ndarray,  # (Hm Wm,) int64 dense mask number of every mask pixel
     num_masks: int,  # M + 1
     mask_hw: tuple[int, int],
     feature_hw: tuple[int, int],
-    min_norm: float,
-) -> Any:  # (M + 1, D) torch float32: unit rows, zero for "no mask" (row 0) and masks without a feature
+    min_norm: float = 1e-6,
+) -> np.ndarray:  # (M + 1, D) float32: unit rows, zero for "no mask" (row 0) and masks without a feature
     """Weighted mean of the unit cells under each mask (weights of :func:`mask_pooled_features`).
 
-    One weighted term per (mask, cell) pair that shares a pixel, about one per cell: a dense (M + 1) x C
-    weight matrix times the map did M + 1 times the work.
+    One sparse (M + 1) x C product with one term per (mask, cell) pair that shares a pixel, about one per cell,
+    each weight times the cell's ``1 / |f_c|``. Torch's CPU ``index_add_`` of the same terms adds them one row at a
+    time and was most of the stage at ScanNet size (docs/benchmarks.md, "Speed at ScanNet size").
     """
-    import torch
-
     hf, wf = feature_hw
     hm, wm = mask_hw
-    cells = hf * wf
+    num_cells = hf * wf
     # Feature cell of every mask pixel: the cell rows and columns of the pixel rows and columns (separable).
     row_cell = feature_cells(np.arange(hm), np.zeros(hm, np.int64), (hm, wm), (hf, wf)) // wf  # (Hm,)
     col_cell = feature_cells(np.zeros(wm, np.int64), np.arange(wm), (hm, wm), (hf, wf))  # (Wm,)
     cell = (row_cell[:, None] * wf + col_cell[None, :]).reshape(-1)  # (Hm Wm,)
-    pixels_in_cell = np.bincount(cell, minlength=cells)  # (C,)
-    n_mc = np.bincount(dense * cells + cell, minlength=num_masks * cells)  # (M + 1) C pixel counts
-    pair = np.flatnonzero(n_mc[cells:]) + cells  # sorted by mask, then cell; pixels in no mask pool nothing
-    mask_of, cell_of = pair // cells, pair % cells
-    weight = np.where(valid[cell_of], n_mc[pair].astype(np.float32) ** 2 / pixels_in_cell[cell_of], 0.0)
-    pooled = torch.zeros((num_masks, table.shape[1]), dtype=torch.float32)
-    terms = table[torch.from_numpy(cell_of)].mul_(torch.from_numpy(weight.astype(np.float32)).unsqueeze(1))
-    pooled.index_add_(0, torch.from_numpy(mask_of), terms)  # (M + 1, D)
-    _normalise_rows_(pooled, min_norm)
+    pixels_in_cell = np.bincount(cell, minlength=num_cells)  # (C,)
+    n_mc = np.bincount(dense * num_cells + cell, minlength=num_masks * num_cells)  # (M + 1) C pixel counts
+    pair = np.flatnonzero(n_mc[num_cells:]) + num_cells  # sorted by mask, then cell; no mask pools nothing
+    mask_of, cell_of = pair // num_cells, pair % num_cells
+    weight = (n_mc[pair].astype(np.float64) ** 2 / pixels_in_cell[cell_of] * inv_norm[cell_of]).astype(np.float32)
+    indptr = np.searchsorted(mask_of, np.arange(num_masks + 1))  # (M + 1 + 1,) rows of the sorted pairs
+    pooling = sparse.csr_matrix((weight, cell_of, indptr), shape=(num_masks, num_cells))
+    pooled = np.ascontiguousarray(pooling @ cells, dtype=np.float32)  # (M + 1, D)
+    _unit_rows_(pooled, min_norm)
     return pooled
 
 
-def _normalise_rows_(table: Any, min_norm: float) -> Any:  # (U,) torch bool: rows that are a feature
-    """Scale each row of a (U, D) float32 tensor to unit length in place; zero rows that are no feature."""
-    import torch
-
-    norm = torch.linalg.vector_norm(table, dim=1)  # (U,)
-    valid = torch.isfinite(norm) & (norm > min_norm)
-    table.mul_(torch.where(valid, 1.0 / norm, torch.zeros_like(norm)).unsqueeze(1))
-    if not bool(valid.all()):
-        table[~valid] = 0.0  # NaN * 0 is NaN: clear invalid rows explicitly
+def _unit_rows_(rows: np.ndarray, min_norm: float) -> np.ndarray:  # (U,) bool: rows that are a feature
+    """Scale each row of a (U, D) float32 array to unit length in place; zero the rows that are no feature."""
+    norm = np.sqrt(np.einsum("ud,ud->u", rows, rows))  # (U,) no (U, D) temporary
+    valid = np.isfinite(norm) & (norm > min_norm)
+    scale = np.zeros(len(norm), dtype=np.float32)
+    scale[valid] = 1.0 / norm[valid]
+    rows *= scale[:, None]
+    if not valid.all():
+        rows[~valid] = 0.0  # NaN * 0 is NaN: clear invalid rows explicitly
     return valid
 
 

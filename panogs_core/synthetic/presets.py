@@ -47,6 +47,8 @@ class SyntheticSpec:
             subset are exported; written frames are every ``dense_factor``-th pose.
         unannotated_stuff: Fraction of the wall and floor points whose ground truth is left unannotated
             (-1), in blobs, as annotators of a real capture skip segments (realistic only).
+        high_windows: Thin windows set into the walls at 1.5-2.1 m, above most views of the downward-looking key
+            frames (realistic only; 0 = none, and the room is drawn as without the field).
     """
 
     name: str
@@ -65,6 +67,7 @@ class SyntheticSpec:
     realistic: bool = False
     dense_factor: int = 1
     unannotated_stuff: float = 0.0
+    high_windows: int = 0
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -86,6 +89,8 @@ class SyntheticSpec:
             raise ConfigError(f"dense_factor: expected >= 1, got {self.dense_factor}")
         if not 0.0 <= self.unannotated_stuff < 1.0:
             raise ConfigError(f"unannotated_stuff: expected a fraction in [0, 1), got {self.unannotated_stuff}")
+        if not 0 <= self.high_windows <= 8:
+            raise ConfigError(f"high_windows: expected 0-8, got {self.high_windows}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -227,6 +232,21 @@ PRESETS: dict[str, SyntheticSpec] = {
         name="scan", hfov_deg=58.0, num_frames=140, key_frame_stride=2, num_points=80_000,
         room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",
         realistic=True, dense_factor=10, unannotated_stuff=0.22,
+    ),
+    # The scan room at the real capture's size, for the speed benchmark: 640x480 depth and masks, feature maps a
+    # quarter of that (160x120), 2000 dense poses of which 200 are written and 100 are key frames, 135k surface
+    # samples of which about 80k are observed (docs/synthetic.md, "The scannet-size preset").
+    "scannet-size": SyntheticSpec(
+        name="scannet-size", width=640, height=480, hfov_deg=58.0, num_frames=200, key_frame_stride=2,
+        num_points=135_000, room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7),
+        feature_space="clip-vit-b32", realistic=True, dense_factor=10, unannotated_stuff=0.22,
+    ),
+    # The scan room with thin objects in the walls mostly outside every key view: 3 windows set flush into the walls
+    # at 1.5-2.1 m (docs/synthetic.md, "Thin objects in walls"); the rest of the room as `scan` draws it.
+    "scan-walls": SyntheticSpec(
+        name="scan-walls", hfov_deg=58.0, num_frames=140, key_frame_stride=2, num_points=80_000,
+        room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",
+        realistic=True, dense_factor=10, unannotated_stuff=0.22, high_windows=3,
     ),
 }  # fmt: skip
 

@@ -99,6 +99,15 @@ def _window(rng: np.random.Generator, room_height: float) -> tuple[Model, float]
     return Model("window", np.array(parts)), w
 
 
+def _high_window(rng: np.random.Generator, room_height: float) -> Group:
+    """A thin window strip flush with the wall, set high (1.5-2.1 m): a thin object in a wall above most key views
+    (the camera at 1.45 m looks down), glimpsed by some dense poses."""
+    w = rng.uniform(0.9, 1.6)
+    z0 = rng.uniform(1.5, 1.65)
+    z1 = min(z0 + rng.uniform(0.3, 0.45), room_height - 0.1)
+    return groups.single(Model("window", np.array([[-w / 2, w / 2, 0.0, 0.02, z0, z1, 1.0]])))
+
+
 def _lamp(rng: np.random.Generator) -> Model:
     """A floor lamp: base, pole and shade (clutter)."""
     h = rng.uniform(1.2, 1.6)
@@ -385,6 +394,8 @@ def build_scan_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
     _surface_clutter(b, int(rng.integers(30, 40)))
     _floor_clutter(b, int(rng.integers(18, 26)))
     _wall_clutter(b, int(rng.integers(1, 4)))
+    for _ in range(spec.high_windows):  # no draw when there are none: the other rooms stay as they were
+        place_on_wall(b, _high_window(rng, float(room[2])), whole)
     layout = finish_layout(b, families)
     annotated = np.ones(len(layout.instance_class), dtype=bool)
     annotated[sorted(b.unannotated)] = False

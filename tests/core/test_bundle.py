@@ -714,25 +714,36 @@ class TestArchives:
 # -- limits (hostile input) ----------------------------------------------------------------------------------
 
 
-def test_images_over_a_limit_are_refused_without_being_decoded(
-    bundle_dir: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_images_over_a_limit_are_refused_without_being_read(bundle_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     (bundle_dir / "masks/000000.png").write_bytes(_declared_png(20_000, 20_000))
     (bundle_dir / "depth/000001.png").write_bytes(_declared_png(640, 480))
-    decoded: list[str] = []
-    real_decode = panogs_core.io.bundle.validation._decode
+    read: list[str] = []
+    real_check = panogs_core.io.bundle.validation._data_problem
 
-    def recording_decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
-        decoded.append(rel)
-        return real_decode(root, rel, problems)
+    def recording_check(root: Path, rel: str) -> str | None:
+        read.append(rel)
+        return real_check(root, rel)
 
-    monkeypatch.setattr(panogs_core.io.bundle.validation, "_decode", recording_decode)
+    monkeypatch.setattr(panogs_core.io.bundle.validation, "_data_problem", recording_check)
     problems = _problems(bundle_dir)
     assert "masks/000000.png: 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000" in problems
     assert "depth/000001.png: 640x480, expected 64x48 (camera)" in problems
-    assert "masks/000000.png" not in decoded
-    assert "depth/000001.png" not in decoded
-    assert "depth/000000.png" in decoded  # the others are still decoded (a truncated file shows only then)
+    assert "masks/000000.png" not in read
+    assert "depth/000001.png" not in read
+    assert "depth/000000.png" in read  # the others' data is still checked (a truncated file shows only then)
+
+
+def test_validation_decodes_no_image_and_finds_altered_png_data(
+    bundle_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    data = bytearray((bundle_dir / "depth/000002.png").read_bytes())
+    data[-20] ^= 0xFF  # a byte of the last IDAT's data: the file is whole, its chunk's CRC no longer matches
+    (bundle_dir / "depth/000002.png").write_bytes(bytes(data))
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: pytest.fail("validation decoded an image"))
+    monkeypatch.setattr(cv2, "imread", lambda *a: pytest.fail("validation decoded an image"))
+    problems = _problems(bundle_dir)
+    assert problems == ["depth/000002.png: does not decode as an image (corrupt PNG: the CRC of its 'IDAT' chunk does "
+                        "not match)"]  # fmt: skip
 
 
 def test_limits_are_parameters(bundle_dir: Path) -> None:

@@ -491,6 +491,45 @@ class TestLabellingRules:
         assert (label_unseen(cls, np.eye(4, dtype=np.float32)[np.full(len(points), WALL)], points, nbr, segs,
                              "field")[0] != FLOOR).any()  # fmt: skip
 
+    def test_checked_unseen_rule_keeps_a_thin_object_out_of_its_wall(self) -> None:
+        from panogs_core.stages.labeling import label_unseen
+        from panogs_core.stages.neighbors import build_knn
+
+        # A wall (plane x = 0, 4 cm grid) with a thin object (class TABLE standing in for a window) set into it at
+        # the top: the wall's lower half and the object's lowest rows are seen, the rest of both is not, and the
+        # graph cut put the object into the wall's segment. The floor under a table (plane z = 0) beside a seen
+        # leg (vertical) is the other case: its nearest seen primitive is the leg's, but the surfaces differ.
+        ys, zs = np.meshgrid(np.arange(0, 2.0, 0.04), np.arange(0, 2.0, 0.04))
+        wall = np.stack([np.zeros(ys.size), ys.ravel(), zs.ravel()], 1)
+        thin = (wall[:, 1] > 0.6) & (wall[:, 1] < 1.4) & (wall[:, 2] > 1.5)
+        seen = (wall[:, 2] < 1.0) | (thin & (wall[:, 2] < 1.6))
+        cls = np.where(seen, np.where(thin, TABLE, WALL), -1).astype(np.int64)
+        wall_sims = np.eye(4, dtype=np.float32)[np.where(thin, TABLE, WALL)]  # the field: the object where it is
+        nbr = build_knn(wall.astype(np.float32), 6).neighbors
+        segs = np.zeros(len(wall), np.int64)  # one segment: the wall's
+        plain, _ = label_unseen(cls, wall_sims, wall, nbr, segs, "segment")
+        is_thing = np.array([False, False, True, True])  # WALL, FLOOR, CHAIR, TABLE
+        checked, counts = label_unseen(cls, wall_sims, wall, nbr, segs, "segment-checked", is_thing)
+        assert (plain[thin & ~seen] == WALL).all()  # the segment rule hands the object the wall's class
+        assert (checked[thin & ~seen] == TABLE).mean() > 0.8
+        assert (checked[~thin & ~seen] == WALL).mean() > 0.95
+        assert sum(counts[k] for k in ("segment", "graph", "nearest", "field")) == counts["unseen"]
+        # A thing segment is never overruled: the wall case with the object's class as the segment's.
+        flipped = np.where(cls == WALL, TABLE, np.where(cls == TABLE, WALL, cls))
+        out, _ = label_unseen(flipped, wall_sims, wall, nbr, np.zeros(len(wall), np.int64), "segment-checked", is_thing)
+        assert (out[~seen] == TABLE).all()
+        # The floor beside a leg: nearest seen is the leg, the field says table, but the normals differ.
+        xs, ys2 = np.meshgrid(np.arange(0, 1.0, 0.04), np.arange(0, 1.0, 0.04))
+        floor = np.stack([xs.ravel(), ys2.ravel(), np.zeros(xs.size)], 1)
+        leg = np.stack([np.full(20, 0.5), np.full(20, 0.5), np.arange(1, 21) * 0.04], 1)
+        points = np.concatenate([floor, leg]).astype(np.float32)
+        under = np.r_[np.hypot(floor[:, 0] - 0.5, floor[:, 1] - 0.5) < 0.3, np.zeros(20, bool)]
+        cls = np.r_[np.where(under[: len(floor)], -1, FLOOR), np.full(20, TABLE)].astype(np.int64)
+        sims = np.eye(4, dtype=np.float32)[np.full(len(points), TABLE)]
+        segs = np.r_[np.zeros(len(floor)), np.ones(20)].astype(np.int64)
+        out, _ = label_unseen(cls, sims, points, build_knn(points, 6).neighbors, segs, "segment-checked", is_thing)
+        assert (out[under] == FLOOR).all()
+
     def test_components_split_only_by_large_clusters(self) -> None:
         # Three touching chairs in a row (one class component), each its own cluster, and a fourth cluster
         # that is a small part (a leg) of the first chair.

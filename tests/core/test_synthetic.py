@@ -418,6 +418,21 @@ class TestScanPreset:
         seen[vis.point_index] = True
         assert 0.1 < 1.0 - seen.mean() < 0.9
 
+    def test_high_windows_sit_high_in_the_walls_and_leave_the_rest_as_drawn(self) -> None:
+        from panogs_core.synthetic.catalog import CLASS_ID
+
+        plain = build_layout(PRESETS["scan"], np.random.default_rng(0))
+        walls = build_layout(PRESETS["scan-walls"], np.random.default_rng(0))
+        n = len(plain.instance_class)
+        np.testing.assert_array_equal(walls.instance_class[:n], plain.instance_class)  # drawn after all the rest
+        added = np.arange(n, len(walls.instance_class))
+        assert len(added) >= 2
+        assert (walls.instance_class[added] == CLASS_ID["window"]).all()
+        boxes = np.flatnonzero(np.isin(walls.box_instance, added))
+        bottom = walls.boxes.centers[boxes, 2] - walls.boxes.half[boxes, 2]
+        assert (bottom >= 1.5 - 1e-6).all()
+        assert (walls.boxes.half[boxes].min(axis=1) <= 0.011).all()
+
     def test_layout(self) -> None:
         from panogs_core.synthetic.catalog import CLASS_ID
 

@@ -1,8 +1,9 @@
 """Validation of a bundle folder: every rule of docs/scene_format.md checked at once, one problem line each.
 
 Validation reads each image's header first (size, channels, bit depth: ``panogs_core.io.image_header``) and
-compares it with the camera and the pixel limit; only an image that passes is decoded, once (a truncated file is
-only found by decoding it), one file at a time. Feature maps are read by their headers only, and the JSON files
+compares it with the camera and the pixel limit; only an image that passes is read, to check the framing of its
+compressed data (PNG chunk lengths and CRC-32 up to IEND, a JPEG's end marker), one file at a time; no image is
+decoded here (the stages decode what they use). Feature maps are read by their headers only, and the JSON files
 through the bounded reader (``panogs_core.io.bounded_json``). Each check appends problem lines of the form
 ``<file>: <what was found>, expected <what>`` to one list, so that a broken bundle is reported in one go; every
 path in them is relative to the bundle root.
@@ -20,7 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from panogs_core.errors import BundleError, InputError
@@ -293,40 +293,37 @@ def _check_rel_path(root: Path, value: Any, where: str, exts: tuple[str, ...], p
 
 
 def _check_frame_files(root: Path, frame: Frame, header: _Header, limits: BundleLimits, problems: list[str]) -> None:
-    """Check each file of one frame, one at a time: the image's header first, then decode it only if that passes."""
-    depth = _checked_decode(root, frame.depth, "depth", header.size, limits, problems)
-    if depth is not None:
-        if depth.dtype != np.uint16 or depth.ndim != 2:
-            problems.append(f"{frame.depth}: {_describe(depth)}, expected 16-bit single channel")
-        size = header.size
-        if size is not None and depth.shape[:2] != size:
-            problems.append(f"{frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {size[1]}x{size[0]} (camera)")
+    """Check each file of one frame, one at a time: the image's header, then the framing of its compressed data."""
+    _check_image(root, frame.depth, "depth", header.size, limits, problems)
     if frame.color is not None:
-        color = _checked_decode(root, frame.color, "color", header.size, limits, problems)
-        if color is not None and (color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] != 3):
-            problems.append(f"{frame.color}: {_describe(color)}, expected 8-bit 3 channels")
+        _check_image(root, frame.color, "color", header.size, limits, problems)
     if frame.masks is not None:
-        masks = _checked_decode(root, frame.masks, "masks", header.size, limits, problems)
-        if masks is not None and (masks.dtype not in (np.uint8, np.uint16) or masks.ndim != 2):
-            problems.append(f"{frame.masks}: {_describe(masks)}, expected 8- or 16-bit single channel")
+        _check_image(root, frame.masks, "masks", header.size, limits, problems)
     if frame.features is not None:
         _check_features(root, frame.features, header.feature_dim, limits, problems)
 
 
-def _checked_decode(
+def _check_image(
     root: Path, rel: str, kind: str, camera_size: tuple[int, int] | None, limits: BundleLimits, problems: list[str]
-) -> np.ndarray | None:
-    """Decode ``rel`` only when its header passes :func:`_header_problem`; None (and a problem) otherwise."""
+) -> None:
+    """The header's rules (:func:`_header_problem`), then the data's framing (:func:`_data_problem`).
+
+    No image is decoded here (docs/scene_format.md §5): the header already fixes size, channels and bit depth,
+    and a truncated or altered file breaks the framing (a PNG chunk's length or CRC-32, its IEND; a JPEG's end
+    marker). An image well framed that still fails to decode is refused by the stage that reads it, naming the
+    file. The stages decode each image they use anyway; decoding all of them here was most of the validation's
+    time (docs/benchmarks.md, "Speed at ScanNet size").
+    """
     try:
         info = read_image_header(root / rel, name=rel)
     except InputError as exc:
         problems.append(str(exc))
-        return None
+        return
     problem = _header_problem(rel, kind, info, camera_size, limits.max_image_pixels)
+    if problem is None:
+        problem = _data_problem(root, rel)
     if problem is not None:
         problems.append(problem)
-        return None
-    return _decode(root, rel, problems)
 
 
 def _header_problem(
@@ -357,21 +354,46 @@ def _header_problem(
     return None
 
 
-def _decode(root: Path, rel: str, problems: list[str]) -> np.ndarray | None:
-    """Fully decode an image (only decoding finds truncated data); None and a problem when it fails."""
+def _data_problem(root: Path, rel: str) -> str | None:
+    """What breaks the framing of an image's data (truncation, altered bytes), or None."""
     try:
         data = (root / rel).read_bytes()
     except OSError as exc:
-        problems.append(f"{rel}: cannot be read ({_reason(exc)})")
+        return f"{rel}: cannot be read ({_reason(exc)})"
+    if rel.lower().endswith((".jpg", ".jpeg")):
+        if not _jpeg_complete(data):
+            # libjpeg decodes a truncated JPEG with only a warning and grey fill: look for the end marker instead.
+            return f"{rel}: truncated JPEG (no end-of-image marker after the image data)"
         return None
-    if rel.lower().endswith((".jpg", ".jpeg")) and not _jpeg_complete(data):
-        # libjpeg decodes a truncated JPEG with only a warning and grey fill: look for the end marker instead.
-        problems.append(f"{rel}: truncated JPEG (no end-of-image marker after the image data)")
-        return None
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        problems.append(f"{rel}: does not decode as an image (corrupt, truncated or not an image)")
-    return image
+    problem = _png_framing_problem(data)
+    return None if problem is None else f"{rel}: does not decode as an image ({problem})"
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_framing_problem(data: bytes) -> str | None:
+    """Why a PNG's chunks are not whole (a length past the end, a CRC-32 that does not match, no IEND), or None.
+
+    Every byte of a PNG after its signature is inside a chunk whose CRC covers its type and data, so a truncated
+    or altered file fails here without inflating the image.
+    """
+    if not data.startswith(_PNG_SIGNATURE):
+        return "not a PNG signature"
+    view = memoryview(data)
+    pos = len(_PNG_SIGNATURE)
+    while pos + 12 <= len(data):
+        length = int.from_bytes(data[pos : pos + 4], "big")
+        kind = bytes(data[pos + 4 : pos + 8])
+        end = pos + 12 + length
+        if end > len(data):
+            return f"truncated PNG: its {kind.decode('latin-1')!r} chunk runs past the end of the file"
+        if zlib.crc32(view[pos + 4 : end - 4]) != int.from_bytes(data[end - 4 : end], "big"):
+            return f"corrupt PNG: the CRC of its {kind.decode('latin-1')!r} chunk does not match"
+        if kind == b"IEND":
+            return None
+        pos = end
+    return "truncated PNG: no IEND chunk"
 
 
 def _jpeg_complete(data: bytes) -> bool:
@@ -647,11 +669,6 @@ def _reason(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
     return str(exc)
-
-
-def _describe(image: np.ndarray) -> str:
-    channels = 1 if image.ndim == 2 else image.shape[2]
-    return f"{image.dtype.itemsize * 8}-bit {channels} channel(s)"
 
 
 def _short(value: Any) -> str:

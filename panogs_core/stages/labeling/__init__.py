@@ -122,7 +122,8 @@ def assign_panoptic(
             margin = (cfg.score_temperature or default_temperature(None, emb)) * np.log(1.0 / cfg.vote_max_ratio)
         cls = vote_islands(cls, segments, nbr, cfg.island_points, cfg.vote_min_fraction, scores, margin)
     if fused is not None and nbr is not None:
-        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen)
+        is_thing = np.asarray(vocabulary.is_thing)
+        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, is_thing)
     if cfg.instances != "clusters" and nbr is not None:
         semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg)
     elif cfg.split_classes and nbr is not None:

@@ -10,6 +10,8 @@ import numpy as np
 
 from panogs_core.errors import ConfigError
 
+_UNSEEN_MODES = ("segment", "segment-checked", "propagate", "field")
+
 
 @dataclass(frozen=True, kw_only=True)
 class LabelingConfig:
@@ -34,8 +36,10 @@ class LabelingConfig:
             class is at least this share of its own class's (0 = always).
         evidence_fused_weight: Class evidence of a seen primitive: this weight on the fused feature's
             cosines, the rest on the field's (1 = fused only).
-        unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``propagate`` (the nearest
-            seen class along the kNN graph) or ``field`` (the field's extrapolation, the reference).
+        unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``segment-checked`` (the same, but
+            the nearest seen class along the kNN graph where it differs from the segment's, the field agrees with
+            it and the two surfaces face the same way), ``propagate`` (the nearest seen class along the kNN graph)
+            or ``field`` (the field's extrapolation, the reference).
         instances: ``hybrid`` (class components split by large clusters), ``components`` or ``clusters``
             (the SAM-guided clusters, split by class: the earlier rule).
         component_radius: Longest kNN edge that joins two primitives of one class into a component, metres.
@@ -60,7 +64,7 @@ class LabelingConfig:
     # (``instances.assemble_components``). The reference's labelling: evidence_fused_weight=0, unseen="field",
     # vote="superprimitive", instances="clusters".
     evidence_fused_weight: float = 0.5
-    unseen: Literal["segment", "propagate", "field"] = "segment"
+    unseen: Literal["segment", "segment-checked", "propagate", "field"] = "segment"
     island_points: int = 150
     vote_max_ratio: float = 0.1
     instances: Literal["clusters", "components", "hybrid"] = "hybrid"
@@ -73,8 +77,8 @@ class LabelingConfig:
     def __post_init__(self) -> None:
         if self.vote not in ("superprimitive", "islands", "none"):
             raise ConfigError(f"labeling.vote: expected 'superprimitive', 'islands' or 'none', found {self.vote!r}")
-        if self.unseen not in ("segment", "propagate", "field"):
-            raise ConfigError(f"labeling.unseen: expected 'segment', 'propagate' or 'field', found {self.unseen!r}")
+        if self.unseen not in _UNSEEN_MODES:
+            raise ConfigError(f"labeling.unseen: expected one of {_UNSEEN_MODES}, found {self.unseen!r}")
         if self.instances not in ("clusters", "components", "hybrid"):
             raise ConfigError(
                 f"labeling.instances: expected 'clusters', 'components' or 'hybrid', found {self.instances!r}"

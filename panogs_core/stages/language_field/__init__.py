@@ -138,20 +138,18 @@ def fit_language_field(
     import torch
 
     from panogs_core.stages.language_field.triplane import (
+        TrainingSet,
         decode_features,
         init_model,
         state_of,
         train_model,
-        training_set,
     )
 
     points, features, weights = _check_inputs(points, fused)
     device = torch.device(cfg.device)
     bounds = field_bounds(points, cfg.bound_padding)  # (2, 3) float32
     model = init_model(plane_resolutions(bounds, cfg), features.shape[1], cfg)
-    coords, targets, w = training_set(points, features, weights, bounds, device)
-    train_model(model, coords, targets, w, cfg, on_progress)
-    del coords, targets, w  # (M, D) targets: freed before the (N, D) decode, which is the stage's peak
+    train_model(model, TrainingSet(points, features, weights, bounds, device), cfg, on_progress)
     model.eval()
     decoded = decode_features(model, points, bounds)  # (N, D)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))

@@ -114,21 +114,35 @@ def decode_features(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndar
     return out
 
 
-def training_set(
-    points: np.ndarray, features: np.ndarray, weights: np.ndarray, bounds: np.ndarray, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Coordinates in [-1, 1], unit targets and weights of the primitives with weight > 0 only.
+class TrainingSet:
+    """The primitives with weight > 0: coordinates in [-1, 1], weights, and their targets read per batch.
 
     DEPARTURE (minor, docs/method.md §3.3): zero-weight (unseen) primitives, which add exactly 0 to the loss, are
-    left out of the batches.
+    left out of the batches. The targets are the fused features' rows scaled to unit length when a batch reads
+    them: no (M, D) copy of the features is made (it was the stage's largest array).
     """
-    keep = np.flatnonzero(weights > 0)
-    coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds))  # (M, 3)
-    targets = torch.from_numpy(np.asarray(features[keep], dtype=np.float32))  # (M, D), a copy
-    if not torch.isfinite(targets).all():
-        raise InputError("fused.features: contains NaN or infinite values where the weight is > 0")
-    targets /= targets.norm(dim=1, keepdim=True).clamp_min(1e-12)  # cosine loss: only the direction matters
-    return coords.to(device), targets.to(device), torch.from_numpy(weights[keep]).to(device)
+
+    def __init__(
+        self, points: np.ndarray, features: np.ndarray, weights: np.ndarray, bounds: np.ndarray, device: torch.device
+    ) -> None:
+        keep = np.flatnonzero(weights > 0)
+        features = np.asarray(features, dtype=np.float32)  # (N, D), no copy when it is float32 already
+        if not np.isfinite(np.einsum("nd,nd->n", features, features)[keep]).all():  # no (N, D) temporary
+            raise InputError("fused.features: contains NaN or infinite values where the weight is > 0")
+        self.coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds)).to(device)  # (M, 3)
+        self.weights = torch.from_numpy(weights[keep]).to(device)  # (M,)
+        self._rows = torch.from_numpy(keep).to(device)  # (M,) row of each kept primitive in `features`
+        if not features.flags.writeable:  # torch.from_numpy warns on read-only memory
+            features = features.copy()
+        self._features = torch.from_numpy(features).to(device)  # (N, D) shares memory on the CPU
+
+    def __len__(self) -> int:
+        return int(self._rows.shape[0])
+
+    def targets(self, idx: torch.Tensor) -> torch.Tensor:  # (B, D) unit rows of the kept primitives idx
+        """Unit targets of a batch (cosine loss: only the direction matters)."""
+        rows = self._features[self._rows[idx]]  # (B, D)
+        return rows / rows.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
 # Device types with torch's fused Adam kernel (torch 2.13: cpu, cuda, mps, xpu); elsewhere the per-tensor loop.
@@ -172,23 +186,22 @@ def _cosine_to_targets(
 
 def train_model(
     model: _TriplaneDecoder,
-    coords: torch.Tensor,  # (M, 3) in [-1, 1]
-    targets: torch.Tensor,  # (M, D) unit rows
-    weights: torch.Tensor,  # (M,) > 0
+    data: TrainingSet,
     cfg: LanguageFieldConfig,
     on_progress: ProgressFn | None,
 ) -> None:
     """Mini-batch Adam over shuffled primitives; the shuffle uses its own generator (seeded, reproducible)."""
     optimizer = _optimizer(model, cfg)
     gen = torch.Generator().manual_seed(cfg.seed + 1)
-    count = coords.shape[0]
+    coords, weights = data.coords, data.weights  # (M, 3) in [-1, 1], (M,) > 0
+    count = len(data)
     steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
     epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
     for epoch in range(epochs):
         order = torch.randperm(count, generator=gen).to(coords.device)
         for start in range(0, count, cfg.batch_size):
             idx = order[start : start + cfg.batch_size]
-            cos = _cosine_to_targets(model, coords[idx], targets[idx])  # (B,)
+            cos = _cosine_to_targets(model, coords[idx], data.targets(idx))  # (B,)
             loss = (weights[idx] * (1.0 - cos)).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
