@@ -72,6 +72,7 @@ def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> 
     assert {"f_dc_0", "opacity", "scale_0", "rot_0", "semantic"} <= set(gauss)
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_the_run_folder_holds_what_its_declaration_lists(tiny_run: tuple[Path, object, list]) -> None:
     """Every file the exporter and the pipeline write is declared, and every file a run always has is there."""
     out, result, _ = tiny_run
