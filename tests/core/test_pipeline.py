@@ -296,6 +296,7 @@ def _copy_checkpoints(run: Path, to: Path) -> None:
 SHORT_FIT = PipelineConfig().with_overrides({"appearance": {"iterations": 2}})
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_the_results_are_written_before_the_fit_and_gaussians_ply_is_replaced_after(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
 ) -> None:
@@ -332,6 +333,7 @@ def test_the_results_are_written_before_the_fit_and_gaussians_ply_is_replaced_af
     assert not list(tmp_path.glob(".*tmp")), "no temporary file is left"
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_a_fit_that_fails_leaves_the_results_and_says_so(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -354,6 +356,7 @@ def test_a_fit_that_fails_leaves_the_results_and_says_so(
     assert np.all(read_ply_vertices(tmp_path / "gaussians.ply")["opacity"] == 0.0), "the initialisation stays"
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_a_fit_cancelled_after_the_results_leaves_them_and_says_so(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path
 ) -> None:
@@ -374,6 +377,7 @@ def test_a_fit_cancelled_after_the_results_leaves_them_and_says_so(
     assert {t.name for t in resumed.timings if not t.cached} <= {"validate", "export", "appearance"}
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_the_cli_prints_the_results_before_the_fit(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
