@@ -42,7 +42,7 @@ class AppearanceConfig:
         ConfigError: naming the field, when a value is out of range.
     """
 
-    enabled: bool = True  # False: gaussians.ply keeps the initialisation (vertex colour, opacity 0.5, isotropic)
+    enabled: bool = True  # False: gaussians.ply keeps the initialisation (``initialisation``), not fitted
     sh_degree: int = 1  # final spherical-harmonics degree, 0..3 (3DGS: 3)
     sh_increase_every: int = 1000  # iterations per SH degree step (3DGS: 1000)
     iterations: int | None = None  # None: CPU_ITERATIONS on the CPU, GPU_ITERATIONS on CUDA
