@@ -33,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from panogs_core.evaluation.metrics import _paper_split, _standard_pq, evaluate
+from panogs_core.evaluation.metrics import _paper_split, _standard_pq, evaluate, paper_class_match
 from panogs_core.io.bundle import open_bundle
 from panogs_core.pipeline.run import resolve_scene_vocabulary
 from panogs_core.types import Vocabulary
@@ -46,7 +46,6 @@ STEPS = (
     "+ no void",
     "+ cumulative counters (paper)",
 )
-_NONE = np.iinfo(np.int64).min
 
 
 def paper_like_pq(
@@ -74,27 +73,8 @@ def paper_like_pq(
         if not cumulative:
             tp = fn = 0
             iou_sum = 0.0
-        g_ids, p_ids = np.where(gs == c, gi, _NONE), np.where(ps == c, pi, _NONE)
-        g_u, g_size = np.unique(g_ids[gs == c], return_counts=True)
-        p_u, p_size = np.unique(p_ids[ps == c], return_counts=True)
-        both = (gs == c) & (ps == c)
-        inter = np.zeros((len(g_u), len(p_u)))
-        if both.any():
-            pair, count = np.unique(np.stack([g_ids[both], p_ids[both]], 1), axis=0, return_counts=True)
-            inter[np.searchsorted(g_u, pair[:, 0]), np.searchsorted(p_u, pair[:, 1])] = count
-        union = g_size[:, None] + p_size[None, :] - inter
-        iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
-        remaining = np.ones(len(p_u), bool)
-        for row in iou:
-            masked = np.where(remaining, row, -1.0)
-            best = int(np.argmax(masked)) if len(masked) else -1
-            if best >= 0 and masked[best] > threshold:
-                tp += 1
-                iou_sum += float(masked[best])
-                remaining[best] = False
-            else:
-                fn += 1
-        fp = int(remaining.sum())
+        c_tp, fp, c_fn, c_iou = paper_class_match(ps, pi, gs, gi, c, threshold)
+        tp, fn, iou_sum = tp + c_tp, fn + c_fn, iou_sum + c_iou
         if tp + fp + fn > 0:
             terms.append(iou_sum / (tp + 0.5 * fp + 0.5 * fn))
     return float(np.mean(terms)) if terms else float("nan")

@@ -322,6 +322,30 @@ def _iou_matrix(
     return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
 
 
+def paper_class_match(
+    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, c: int, threshold: float
+) -> tuple[int, int, int, float]:  # TP, FP, FN, sum of matched IoUs
+    """The reference's matching of one class (docs/method.md §8.2): each ground-truth instance, in ascending id
+    order, takes the first unmatched prediction of highest IoU when it is over ``threshold``; -1 is a real id."""
+    g_ids, p_ids = np.where(gs == c, gi, _NONE), np.where(ps == c, pi, _NONE)
+    g_u, g_size = np.unique(g_ids[gs == c], return_counts=True)
+    p_u, p_size = np.unique(p_ids[ps == c], return_counts=True)
+    iou = _iou_matrix(g_ids, p_ids, (gs == c) & (ps == c), g_u, g_size, p_u, p_size)
+    tp = fn = 0
+    iou_sum = 0.0
+    remaining = np.ones(len(p_u), bool)
+    for row in iou:
+        masked = np.where(remaining, row, -1.0)
+        best = int(np.argmax(masked)) if len(masked) else -1  # first of the highest: strict > in a loop
+        if best >= 0 and masked[best] > threshold:
+            tp += 1
+            iou_sum += float(masked[best])
+            remaining[best] = False
+        else:
+            fn += 1
+    return tp, int(remaining.sum()), fn, iou_sum
+
+
 def _paper_pq(
     ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float
 ) -> _PQ:
@@ -331,21 +355,8 @@ def _paper_pq(
     iou_sum = pq = sq = rq = 0.0
     per_class: dict[int, float] = {}
     for c in classes:
-        g_ids, p_ids = np.where(gs == c, gi, _NONE), np.where(ps == c, pi, _NONE)
-        g_u, g_size = np.unique(g_ids[gs == c], return_counts=True)
-        p_u, p_size = np.unique(p_ids[ps == c], return_counts=True)
-        iou = _iou_matrix(g_ids, p_ids, (gs == c) & (ps == c), g_u, g_size, p_u, p_size)
-        remaining = np.ones(len(p_u), bool)
-        for row in iou:  # ground-truth instances in ascending id order
-            masked = np.where(remaining, row, -1.0)
-            best = int(np.argmax(masked)) if len(masked) else -1  # first of the highest: strict > in a loop
-            if best >= 0 and masked[best] > threshold:
-                tp += 1
-                iou_sum += float(masked[best])
-                remaining[best] = False
-            else:
-                fn += 1
-        fp = int(remaining.sum())
+        c_tp, fp, c_fn, c_iou = paper_class_match(ps, pi, gs, gi, c, threshold)
+        tp, fn, iou_sum = tp + c_tp, fn + c_fn, iou_sum + c_iou  # cumulative over classes: the reference's quirk
         den = tp + 0.5 * fp + 0.5 * fn
         if tp + fp + fn > 0:
             per_class[c] = iou_sum / den
