@@ -6,7 +6,8 @@ Usage:
 
 Prints markdown tables (mean and standard deviation over seeds, standard-mode metrics): mIoU, mAcc, PRQ(T),
 PRQ(S), and mIoU on the primitives some key frame sees (``miou_seen``) and on those none sees
-(``miou_unseen``). With ``--per-class``, a per-class IoU table of ``full`` against the fused-argmax baseline.
+(``miou_unseen``). With ``--per-class``, a per-class IoU table (mean ± std over seeds) of ``full`` (and of
+``unseen-segment`` and ``previous`` when run) against the fused-argmax-fill baseline.
 For each scene it prints the realised capture statistics (share of primitives no key frame sees, key views
 per seen primitive, class shares) next to those of the held-out real ScanNet room.
 
@@ -29,9 +30,9 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   features alone (full: half each)
 - vote-none / vote-reference: no vote, or the reference's vote of the whole super-primitive (purity 0.5)
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
-  nearest seen primitive along the kNN graph, instead of their super-primitive's majority
-- unseen-checked: the super-primitive's majority, except where the nearest seen primitive along the graph is of
-  another class, the field agrees with it and both surfaces face the same way (``labeling.unseen``)
+  nearest seen primitive along the kNN graph, instead of their super-primitive's majority checked by the field
+- unseen-segment: the super-primitive's majority alone (full: the majority, except where the nearest seen
+  primitive along the graph is of another class and the field picks that class, ``labeling.unseen``)
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
 - field-steps-0 / -300 / -600: the language field trained for its epochs alone, or at least 300 / 600 steps
   (the default's floor is ``language_field.min_steps``); field-batch-2048: 300 steps of 2048 primitives (the
@@ -82,7 +83,7 @@ VARIANTS: dict[str, dict] = {
     "vote-reference": {"labeling": {"vote": "superprimitive"}},
     "unseen-field": {"labeling": {"unseen": "field"}},
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
-    "unseen-checked": {"labeling": {"unseen": "segment-checked"}},
+    "unseen-segment": {"labeling": {"unseen": "segment"}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
     "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
@@ -101,8 +102,8 @@ VARIANTS: dict[str, dict] = {
 NO_FIT = {"appearance": {"enabled": False}}
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
 DEFAULT_VARIANTS = ["full", "vote-none", "vote-reference", "vote-any-island", "vote-small-islands",
-                    "evidence-fused", "unseen-field", "unseen-propagate", "inst-clusters", "inst-components",
-                    "previous", "no-pool", "spacing-as-given"]  # fmt: skip
+                    "evidence-fused", "unseen-segment", "unseen-field", "unseen-propagate", "inst-clusters",
+                    "inst-components", "previous", "no-pool", "spacing-as-given"]  # fmt: skip
 METRICS = ("miou", "macc", "prq_thing", "prq_stuff", "miou_seen", "miou_unseen")
 
 # The held-out real ScanNet room (81,369 mesh vertices, 100 key frames).
@@ -187,13 +188,14 @@ def class_table(results, difficulties, rows) -> str:
     out = ""
     for difficulty in difficulties:
         names = sorted({n for row in rows for r in results.get((difficulty, row), []) for n in r["class_iou"]})
-        out += f"\n{difficulty}: per-class IoU (mean over seeds)\n\n| class | " + " | ".join(rows) + " |\n"
+        out += f"\n{difficulty}: per-class IoU (mean ± std over seeds)\n\n| class | " + " | ".join(rows) + " |\n"
         out += "|---|" + "---|" * len(rows) + "\n"
         for n in names:
             cells = []
             for row in rows:
                 vals = [r["class_iou"][n] for r in results.get((difficulty, row), []) if n in r["class_iou"]]
-                cells.append(f"{statistics.mean(vals):.3f}" if vals else "-")
+                sd = f" ± {statistics.pstdev(vals):.3f}" if len(vals) > 1 else ""
+                cells.append(f"{statistics.mean(vals):.3f}{sd}" if vals else "-")
             out += f"| {n} | " + " | ".join(cells) + " |\n"
     return out
 
@@ -248,7 +250,8 @@ def main() -> None:
     )
     print(table(results, args.difficulties, list(BASELINES) + args.variants, METRICS))
     if args.per_class:
-        print(class_table(results, args.difficulties, ["fused-argmax-fill", "full", "previous"]))
+        rows = ["fused-argmax-fill", *(v for v in args.variants if v in ("full", "unseen-segment", "previous"))]
+        print(class_table(results, args.difficulties, rows))
 
 
 if __name__ == "__main__":

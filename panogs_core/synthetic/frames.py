@@ -43,11 +43,13 @@ def write_frames(
     writer: BundleWriter, scene: o3d.t.geometry.RaycastingScene, layout: Layout, features: FeatureFn,
     poses: np.ndarray, spec: SyntheticSpec, level: Difficulty, seeds: list[np.random.SeedSequence],
     surface: SurfacePoints, on_progress: ProgressFn | None, written_poses: np.ndarray | None = None,
+    dropped: frozenset[int] = frozenset(),
 ) -> np.ndarray:  # fmt: skip
     """Render, degrade and write every frame; key frames also get features and masks.
 
     ``features(instance, view, pose, rng)`` makes a key frame's feature map. Frames are rendered at
-    ``poses``; ``written_poses`` (default: the same) are the poses the bundle records.
+    ``poses``; ``written_poses`` (default: the same) are the poses the bundle records. Frames whose index is in
+    ``dropped`` are not written (an importer drops frames with invalid poses); the others keep their ids and draws.
 
     Returns which surface points any frame observes: a real capture's geometry holds only surfaces the
     camera saw, so the scene keeps only those (floor under a cabinet, the back of a bookshelf against a wall,
@@ -60,6 +62,9 @@ def write_frames(
     observed = np.zeros(surface.points.shape[0], dtype=bool)
     written_poses = poses if written_poses is None else written_poses
     for i, (pose, seq) in enumerate(zip(poses, seeds)):
+        if i in dropped:
+            report(on_progress, i + 1, len(poses))
+            continue
         rng = np.random.default_rng(seq)
         view = render_view(scene, layout, camera, pose)
         observed[observed_in_view(surface, layout, camera, pose, view)] = True

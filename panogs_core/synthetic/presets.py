@@ -49,6 +49,13 @@ class SyntheticSpec:
             (-1), in blobs, as annotators of a real capture skip segments (realistic only).
         high_windows: Thin windows set into the walls at 1.5-2.1 m, above most views of the downward-looking key
             frames (realistic only; 0 = none, and the room is drawn as without the field).
+        room_kind: What the realistic room is furnished as: ``studio`` (``scan_layout.build_scan_layout``'s
+            three zones) or ``bathroom`` (a small room crowded with fixtures and cabinets, each seen by few key
+            frames).
+        invalid_poses: Key frames lost as a real capture loses them (realistic only): a run of this many
+            consecutive key frames, and the frames between them, whose tracking failed; an importer drops a frame
+            with a non-finite pose (``io.importers.common``), so the bundle holds none of them, while the mesh,
+            fused from every frame, keeps what they saw.
     """
 
     name: str
@@ -68,6 +75,8 @@ class SyntheticSpec:
     dense_factor: int = 1
     unannotated_stuff: float = 0.0
     high_windows: int = 0
+    room_kind: str = "studio"
+    invalid_poses: int = 0
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -91,6 +100,11 @@ class SyntheticSpec:
             raise ConfigError(f"unannotated_stuff: expected a fraction in [0, 1), got {self.unannotated_stuff}")
         if not 0 <= self.high_windows <= 8:
             raise ConfigError(f"high_windows: expected 0-8, got {self.high_windows}")
+        if self.room_kind not in ("studio", "bathroom"):
+            raise ConfigError(f"room_kind: expected 'studio' or 'bathroom', got {self.room_kind!r}")
+        key_frames = -(-self.num_frames // self.key_frame_stride)
+        if not 0 <= self.invalid_poses < key_frames:
+            raise ConfigError(f"invalid_poses: expected 0 to {key_frames - 1} (key frames), got {self.invalid_poses}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -247,6 +261,14 @@ PRESETS: dict[str, SyntheticSpec] = {
         name="scan-walls", hfov_deg=58.0, num_frames=140, key_frame_stride=2, num_points=80_000,
         room_length=(7.0, 7.8), room_width=(5.4, 6.2), room_height=(2.5, 2.7), feature_space="clip-vit-b32",
         realistic=True, dense_factor=10, unannotated_stuff=0.22, high_windows=3,
+    ),
+    # A bathroom like the held-out real one (docs/synthetic.md, "The bathroom"): a 3.0-3.6 x 2.5-2.8 m room with a
+    # bathtub, toilet, vanity, sink, cabinets and shelves (10-13 objects), 40 written frames of which 20 are key
+    # frames, two of them lost to invalid poses; the surface at the scan room's spacing.
+    "scan-bath": SyntheticSpec(
+        name="scan-bath", hfov_deg=58.0, num_frames=40, key_frame_stride=2, num_points=26_000,
+        room_length=(3.0, 3.6), room_width=(2.5, 2.8), room_height=(2.4, 2.6), feature_space="clip-vit-b32",
+        realistic=True, dense_factor=10, unannotated_stuff=0.22, room_kind="bathroom", invalid_poses=2,
     ),
 }  # fmt: skip
 

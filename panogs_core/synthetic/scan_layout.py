@@ -1,5 +1,9 @@
 """A furnished studio like a scanned apartment (realistic specs, preset ``scan``; docs/synthetic.md).
 
+A ``bathroom`` room (``SyntheticSpec.room_kind``) is one small zone instead: a door, a high window, a bathtub with
+a shower curtain, a toilet, a vanity with a mirror cabinet above and a second sink, a linen cabinet, a shelf and a
+hamper cabinet, as many as fit, with towels and bottles as clutter.
+
 The room is cut along its long side into three zones in random order: ``service`` (a kitchen run of base
 cabinets under a counter top with a sink on it, wall cabinets above and a refrigerator at its end; a toilet and
 a vanity cabinet with a sink), ``living`` (a sofa pulled a little off the wall with a coffee table in front, a
@@ -287,6 +291,41 @@ def _fill_sleeping(b: _ScanBuilder, zone: Zone, rng: np.random.Generator) -> Non
 _FILLERS = {"service": _fill_service, "living": _fill_living, "sleeping": _fill_sleeping}
 
 
+def _bath(rng: np.random.Generator) -> Group:
+    """A bathtub (its long side on the wall) with a shower curtain drawn back to one end of its front."""
+    tub = shapes.bathtub(rng)
+    (x0, x1), (_, y1), (_, z1) = tub.bounds
+    reach = rng.uniform(0.35, 0.6)
+    x = (x0, x0 + reach) if rng.random() < 0.5 else (x1 - reach, x1)
+    curtain = Model("curtain", np.array([[x[0], x[1], y1 - 0.04, y1 - 0.02, z1 + 0.1, rng.uniform(1.85, 2.0), 1.0]]))
+    return Group([tub, curtain], [(0, 1)])
+
+
+def _mirrored_vanity(rng: np.random.Generator, room_height: float) -> Group:
+    """A vanity (cabinet and sink) with a shallow mirror cabinet on the wall above it."""
+    vanity = _vanity(rng)
+    w = vanity.models[0].bounds[0, 1] - vanity.models[0].bounds[0, 0]
+    z0 = rng.uniform(1.35, 1.5)
+    mirror = shapes.cabinet(rng, w * rng.uniform(0.7, 1.0), 0.14, min(rng.uniform(0.5, 0.7), room_height - 0.1 - z0))
+    return Group([*vanity.models, mirror.moved(dy=0.07, dz=z0)], [*vanity.contacts])
+
+
+def _fill_bathroom(b: _ScanBuilder, rng: np.random.Generator) -> None:
+    """A bathroom's fixtures and furniture, each on a wall: a crowded room whose objects few key frames see."""
+    whole, height = (0.0, float(b.room[0])), float(b.room[2])
+    place_on_wall(b, groups.door(rng), whole)
+    place_on_wall(b, _high_window(rng, height), whole)
+    _retry(b, lambda: _bath(rng), whole, corner=True)
+    _retry(b, lambda: groups.single(shapes.toilet(rng)), whole, corner=True)
+    _retry(b, lambda: _mirrored_vanity(rng, height), whole)
+    _retry(b, lambda: groups.vanity(rng), whole)  # a second sink: on a short counter, or a pedestal
+    place_on_wall(b, _pantry(rng, height) if rng.random() < 0.5 else _storage(rng), whole)  # linen cabinet
+    shelf = shapes.bookshelf(rng, rng.uniform(0.45, 0.7), rng.uniform(0.25, 0.32), rng.uniform(1.1, 1.7))
+    place_on_wall(b, groups.single(shelf), whole)
+    hamper = shapes.cabinet(rng, rng.uniform(0.35, 0.5), rng.uniform(0.3, 0.4), rng.uniform(0.5, 0.75))
+    place_on_wall(b, groups.single(hamper.moved(dy=-hamper.bounds[1, 0])), whole)
+
+
 # -- clutter --
 
 
@@ -379,6 +418,8 @@ def build_scan_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
     """
     room = np.array([rng.uniform(*spec.room_length), rng.uniform(*spec.room_width),
                      rng.uniform(*spec.room_height)])  # fmt: skip
+    if spec.room_kind == "bathroom":
+        return _bathroom_layout(room, rng)
     edges = np.linspace(0.0, room[0], len(_ZONES) + 1)
     zones = [(float(edges[i]), float(edges[i + 1])) for i in range(len(_ZONES))]
     families = _ZONES if rng.random() < 0.5 else _ZONES[::-1]  # the kitchen at one end: it needs the end wall
@@ -397,6 +438,19 @@ def build_scan_layout(spec: SyntheticSpec, rng: np.random.Generator) -> Layout:
     for _ in range(spec.high_windows):  # no draw when there are none: the other rooms stay as they were
         place_on_wall(b, _high_window(rng, float(room[2])), whole)
     layout = finish_layout(b, families)
+    annotated = np.ones(len(layout.instance_class), dtype=bool)
+    annotated[sorted(b.unannotated)] = False
+    return replace(layout, annotated=annotated)
+
+
+def _bathroom_layout(room: np.ndarray, rng: np.random.Generator) -> Layout:
+    """A bathroom (``_fill_bathroom``) with towels, bottles and bins as unannotated clutter."""
+    b = _ScanBuilder(room, rng)
+    _fill_bathroom(b, rng)
+    _surface_clutter(b, int(rng.integers(8, 13)))
+    _floor_clutter(b, int(rng.integers(2, 5)))
+    _wall_clutter(b, int(rng.integers(0, 2)))
+    layout = finish_layout(b, ("bathroom",))
     annotated = np.ones(len(layout.instance_class), dtype=bool)
     annotated[sorted(b.unannotated)] = False
     return replace(layout, annotated=annotated)

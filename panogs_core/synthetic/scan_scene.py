@@ -10,6 +10,8 @@
 4. Features: the instance model of ``features.py`` with related-class confusions, clutter features and
    world-anchored confusion regions (``anchored.py``).
 5. The written poses are off the rendered ones by ``pose_error_m`` / ``pose_error_deg`` (registration error).
+6. ``invalid_poses`` consecutive key frames (and the frames between them) are not written, as an importer drops
+   the frames whose tracking failed; the geometry keeps what they saw.
 """
 
 from __future__ import annotations
@@ -84,8 +86,19 @@ def write_scan_scene(
         return synthesize_anchored_features(model, anchors, annotated, instance, world, shape, frame_rng)
 
     written = perturb_poses(poses, level.trajectory, poses_rng)
-    write_frames(writer, scene, layout, features, poses, spec, level, rng.frames, surface, on_progress, written)
+    lost = lost_frames(len(poses), spec.key_frame_stride, spec.invalid_poses, rng.realism)
+    write_frames(writer, scene, layout, features, poses, spec, level, rng.frames, surface, on_progress, written, lost)
     write_static(writer, kept, embeddings, with_geometry)
+
+
+def lost_frames(num_frames: int, key_stride: int, count: int, rng: np.random.Generator) -> frozenset[int]:
+    """Indices of the written frames a tracking failure loses: ``count`` consecutive key frames and the frames
+    between them, at a random place in the capture (none when ``count`` is 0, and no draw then)."""
+    if count <= 0:
+        return frozenset()
+    keys = np.arange(0, num_frames, key_stride)
+    first = int(rng.integers(0, len(keys) - count + 1))
+    return frozenset(range(int(keys[first]), int(keys[first + count - 1]) + 1))
 
 
 def observe_dense(

@@ -81,7 +81,8 @@ class TestLabelingConfig:
         cfg = LabelingConfig()
         assert cfg.vote == "islands"  # the vote restricted to small islands (see LabelingConfig)
         assert cfg.instances == "hybrid"
-        assert cfg.unseen == "segment"
+        assert cfg.unseen == "segment-field"
+        assert cfg.unseen_field_ratio >= 1.0
         assert 0.0 <= cfg.vote_min_fraction <= 1.0
 
     @pytest.mark.parametrize(
@@ -92,6 +93,7 @@ class TestLabelingConfig:
             ({"min_instance_points": 0}, "min_instance_points"),
             ({"score_temperature": 0.0}, "score_temperature"),
             ({"split_neighbors": 0}, "split_neighbors"),
+            ({"unseen_field_ratio": 0.5}, "unseen_field_ratio"),
         ],
     )
     def test_exception(self, kwargs: dict[str, object], match: str) -> None:
@@ -491,44 +493,59 @@ class TestLabellingRules:
         assert (label_unseen(cls, np.eye(4, dtype=np.float32)[np.full(len(points), WALL)], points, nbr, segs,
                              "field")[0] != FLOOR).any()  # fmt: skip
 
-    def test_checked_unseen_rule_keeps_a_thin_object_out_of_its_wall(self) -> None:
+    def test_field_checked_unseen_rule_keeps_a_thin_object_out_of_its_wall(self) -> None:
         from panogs_core.stages.labeling import label_unseen
         from panogs_core.stages.neighbors import build_knn
 
         # A wall (plane x = 0, 4 cm grid) with a thin object (class TABLE standing in for a window) set into it at
         # the top: the wall's lower half and the object's lowest rows are seen, the rest of both is not, and the
-        # graph cut put the object into the wall's segment. The floor under a table (plane z = 0) beside a seen
-        # leg (vertical) is the other case: its nearest seen primitive is the leg's, but the surfaces differ.
+        # graph cut put the object into the wall's segment. The field says the object where it is.
         ys, zs = np.meshgrid(np.arange(0, 2.0, 0.04), np.arange(0, 2.0, 0.04))
-        wall = np.stack([np.zeros(ys.size), ys.ravel(), zs.ravel()], 1)
+        wall = np.stack([np.zeros(ys.size), ys.ravel(), zs.ravel()], 1).astype(np.float32)
         thin = (wall[:, 1] > 0.6) & (wall[:, 1] < 1.4) & (wall[:, 2] > 1.5)
         seen = (wall[:, 2] < 1.0) | (thin & (wall[:, 2] < 1.6))
         cls = np.where(seen, np.where(thin, TABLE, WALL), -1).astype(np.int64)
-        wall_sims = np.eye(4, dtype=np.float32)[np.where(thin, TABLE, WALL)]  # the field: the object where it is
-        nbr = build_knn(wall.astype(np.float32), 6).neighbors
+        sims = 0.2 * np.eye(4, dtype=np.float32)[np.where(thin, TABLE, WALL)]
+        nbr = build_knn(wall, 6).neighbors
         segs = np.zeros(len(wall), np.int64)  # one segment: the wall's
-        plain, _ = label_unseen(cls, wall_sims, wall, nbr, segs, "segment")
-        is_thing = np.array([False, False, True, True])  # WALL, FLOOR, CHAIR, TABLE
-        checked, counts = label_unseen(cls, wall_sims, wall, nbr, segs, "segment-checked", is_thing)
+        plain, _ = label_unseen(cls, sims, wall, nbr, segs, "segment")
+        checked, counts = label_unseen(cls, sims, wall, nbr, segs, "segment-field", 0.04)
         assert (plain[thin & ~seen] == WALL).all()  # the segment rule hands the object the wall's class
         assert (checked[thin & ~seen] == TABLE).mean() > 0.8
-        assert (checked[~thin & ~seen] == WALL).mean() > 0.95
+        assert (checked[~thin & ~seen] == WALL).all()  # the wall's nearest seen primitive is wall, or the field
+        assert counts["field"] == int(((checked != plain) & ~seen).sum()) > 0
         assert sum(counts[k] for k in ("segment", "graph", "nearest", "field")) == counts["unseen"]
-        # A thing segment is never overruled: the wall case with the object's class as the segment's.
-        flipped = np.where(cls == WALL, TABLE, np.where(cls == TABLE, WALL, cls))
-        out, _ = label_unseen(flipped, wall_sims, wall, nbr, np.zeros(len(wall), np.int64), "segment-checked", is_thing)
-        assert (out[~seen] == TABLE).all()
-        # The floor beside a leg: nearest seen is the leg, the field says table, but the normals differ.
-        xs, ys2 = np.meshgrid(np.arange(0, 1.0, 0.04), np.arange(0, 1.0, 0.04))
-        floor = np.stack([xs.ravel(), ys2.ravel(), np.zeros(xs.size)], 1)
+        # The other way round (a door's segment holding unseen wall beside it): the same rule, classes swapped.
+        swap = np.array([TABLE, FLOOR, CHAIR, WALL])
+        out, _ = label_unseen(np.where(cls >= 0, swap[np.maximum(cls, 0)], -1), sims[:, swap], wall, nbr, segs,
+                              "segment-field", 0.04)  # fmt: skip
+        assert (out[~thin & ~seen] == TABLE).all()
+        assert (out[thin & ~seen] == WALL).mean() > 0.8
+        # A field that leads by less than the margin, or whose argmax is a third class, leaves the segment's class.
+        assert (label_unseen(cls, sims, wall, nbr, segs, "segment-field", 0.5)[0] == plain).all()
+        third = sims.copy()
+        third[:, CHAIR] = 0.3
+        assert (label_unseen(cls, third, wall, nbr, segs, "segment-field", 0.04)[0] == plain).all()
+
+    def test_field_checked_unseen_rule_keeps_the_floor_under_a_table(self) -> None:
+        from panogs_core.stages.labeling import label_unseen
+        from panogs_core.stages.neighbors import build_knn
+
+        # The floor under a table (plane z = 0) beside a seen leg: its nearest seen primitive is the leg's, but the
+        # field there says floor, as it does under real tables, so the segment's class stays.
+        xs, ys = np.meshgrid(np.arange(0, 1.0, 0.04), np.arange(0, 1.0, 0.04))
+        floor = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
         leg = np.stack([np.full(20, 0.5), np.full(20, 0.5), np.arange(1, 21) * 0.04], 1)
         points = np.concatenate([floor, leg]).astype(np.float32)
         under = np.r_[np.hypot(floor[:, 0] - 0.5, floor[:, 1] - 0.5) < 0.3, np.zeros(20, bool)]
         cls = np.r_[np.where(under[: len(floor)], -1, FLOOR), np.full(20, TABLE)].astype(np.int64)
-        sims = np.eye(4, dtype=np.float32)[np.full(len(points), TABLE)]
+        sims = 0.2 * np.eye(4, dtype=np.float32)[np.r_[np.full(len(floor), FLOOR), np.full(20, TABLE)]]
         segs = np.r_[np.zeros(len(floor)), np.ones(20)].astype(np.int64)
-        out, _ = label_unseen(cls, sims, points, build_knn(points, 6).neighbors, segs, "segment-checked", is_thing)
+        nbr = build_knn(points, 6).neighbors
+        out, counts = label_unseen(cls, sims, points, nbr, segs, "segment-field", 0.04)
         assert (out[under] == FLOOR).all()
+        assert counts["field"] == 0
+        assert (label_unseen(cls, sims, points, nbr, segs, "propagate")[0][under] == TABLE).any()
 
     def test_components_split_only_by_large_clusters(self) -> None:
         # Three touching chairs in a row (one class component), each its own cluster, and a fourth cluster

@@ -433,6 +433,50 @@ class TestScanPreset:
         assert (bottom >= 1.5 - 1e-6).all()
         assert (walls.boxes.half[boxes].min(axis=1) <= 0.011).all()
 
+    def test_bathroom_is_small_and_crowded(self) -> None:
+        from panogs_core.synthetic.catalog import CLASS_ID
+
+        spec = PRESETS["scan-bath"]
+        for seed in (0, 1):
+            layout = build_layout(spec, np.random.default_rng(seed))
+            assert layout.room[0] * layout.room[1] < 11.0
+            assert layout.annotated is not None
+            things = layout.instance_class[NUM_STUFF:][layout.annotated[NUM_STUFF:]]
+            assert {CLASS_ID[c] for c in ("bathtub", "toilet", "sink", "cabinet", "door")} <= set(things.tolist())
+            assert len(things) >= 9  # the fixtures and cabinets of one small room
+            assert (~layout.annotated[NUM_STUFF:]).sum() >= 3  # towels, bottles and bins
+            b, idx = layout.boxes, np.arange(NUM_STUFF, len(layout.boxes.yaw))
+            assert inside_room(Boxes(b.centers[idx], b.half[idx], b.yaw[idx]), layout.room)
+
+    def test_lost_frames_are_a_run_of_key_frames(self) -> None:
+        from panogs_core.synthetic.scan_scene import lost_frames
+
+        rng = np.random.default_rng(3)
+        assert lost_frames(40, 2, 0, rng) == frozenset()
+        for _ in range(20):
+            lost = sorted(lost_frames(40, 2, 2, rng))
+            assert lost[0] % 2 == 0
+            assert lost == list(range(lost[0], lost[0] + 3))  # two key frames and the frame between them
+            assert lost[-1] < 40
+        with pytest.raises(ConfigError, match="invalid_poses"):
+            dataclasses.replace(PRESETS["scan-bath"], invalid_poses=20)  # every key frame lost
+        with pytest.raises(ConfigError, match="room_kind"):
+            dataclasses.replace(PRESETS["scan"], room_kind="garage")
+
+    @pytest.mark.slow  # builds a small bathroom (about 3 s)
+    def test_bathroom_bundle_lacks_the_lost_frames(self, tmp_path: Path) -> None:
+        spec = dataclasses.replace(PRESETS["scan-bath"], width=160, height=120, num_frames=12,
+                                   num_points=6000, invalid_poses=2)  # fmt: skip
+        scene = open_bundle(make_scene(tmp_path / "bath", preset=spec, difficulty="default", seed=0))
+        ids = [int(f.id) for f in scene.frames]
+        assert len(ids) == 12 - 3
+        missing = sorted(set(range(12)) - set(ids))
+        assert missing == list(range(missing[0], missing[0] + 3))
+        assert len(scene.feature_frames) == 6 - 2
+        geo = scene.read_geometry()
+        assert geo is not None
+        assert len(geo.points) > 1000  # the mesh still holds what the lost frames saw
+
     def test_layout(self) -> None:
         from panogs_core.synthetic.catalog import CLASS_ID
 

@@ -108,6 +108,7 @@ def assign_panoptic(
     if nbr is not None and cfg.reference_spacing is not None:
         cfg = scaled_to_spacing(cfg, point_spacing(pts, nbr))
     unseen_counts: dict[str, int] = {}
+    temperature = cfg.score_temperature or default_temperature(None, emb)
     scores = field_sims
     if fused is None:
         # DEPARTURE (a zero feature has no evidence: class -1, not class 0 by accident of argmax): docs/method.md §7.2.
@@ -119,18 +120,17 @@ def assign_panoptic(
     elif cfg.vote == "islands" and nbr is not None:
         margin = None
         if cfg.vote_max_ratio > 0:  # the score gap a flip may cross: T ln(1 / ratio) in cosine units
-            margin = (cfg.score_temperature or default_temperature(None, emb)) * np.log(1.0 / cfg.vote_max_ratio)
+            margin = temperature * np.log(1.0 / cfg.vote_max_ratio)
         cls = vote_islands(cls, segments, nbr, cfg.island_points, cfg.vote_min_fraction, scores, margin)
     if fused is not None and nbr is not None:
-        is_thing = np.asarray(vocabulary.is_thing)
-        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, is_thing)
+        lead = temperature * float(np.log(cfg.unseen_field_ratio))  # the field's lead that overrules a segment
+        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, lead)
     if cfg.instances != "clusters" and nbr is not None:
         semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg)
     elif cfg.split_classes and nbr is not None:
         semantic, instance, inst_class = assemble_split(cls, cluster, vocabulary.is_thing, cfg.min_instance_points, nbr)
     else:
         semantic, instance, inst_class = assemble(cls, cluster, vocabulary.is_thing, cfg.min_instance_points)
-    temperature = cfg.score_temperature or default_temperature(None, emb)
     infos = instance_infos(pts, feats, field_sims / temperature, instance, inst_class, vocabulary)
     return PanopticLabels(semantic=semantic, instance=instance, instances=infos, unseen=unseen_counts)
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from panogs_core.errors import ConfigError
 
-_UNSEEN_MODES = ("segment", "segment-checked", "propagate", "field")
+_UNSEEN_MODES = ("segment", "segment-field", "propagate", "field")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -36,10 +36,13 @@ class LabelingConfig:
             class is at least this share of its own class's (0 = always).
         evidence_fused_weight: Class evidence of a seen primitive: this weight on the fused feature's
             cosines, the rest on the field's (1 = fused only).
-        unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``segment-checked`` (the same, but
-            the nearest seen class along the kNN graph where it differs from the segment's, the field agrees with
-            it and the two surfaces face the same way), ``propagate`` (the nearest seen class along the kNN graph)
-            or ``field`` (the field's extrapolation, the reference).
+        unseen: ``segment`` (the segment's seen majority, then ``propagate``), ``segment-field`` (the same, but
+            the nearest seen class along the kNN graph where it differs from the segment's and the field picks it,
+            ``unseen_field_ratio``), ``propagate`` (the nearest seen class along the kNN graph) or ``field`` (the
+            field's extrapolation, the reference).
+        unseen_field_ratio: ``segment-field`` overrules the segment's class only where the field's softmax
+            probability (at ``score_temperature``) of the nearest seen class is at least this many times the
+            segment's class's, a lead of ``T ln(ratio)`` in cosine units.
         instances: ``hybrid`` (class components split by large clusters), ``components`` or ``clusters``
             (the SAM-guided clusters, split by class: the earlier rule).
         component_radius: Longest kNN edge that joins two primitives of one class into a component, metres.
@@ -64,7 +67,8 @@ class LabelingConfig:
     # (``instances.assemble_components``). The reference's labelling: evidence_fused_weight=0, unseen="field",
     # vote="superprimitive", instances="clusters".
     evidence_fused_weight: float = 0.5
-    unseen: Literal["segment", "segment-checked", "propagate", "field"] = "segment"
+    unseen: Literal["segment", "segment-field", "propagate", "field"] = "segment-field"
+    unseen_field_ratio: float = 50.0
     island_points: int = 150
     vote_max_ratio: float = 0.1
     instances: Literal["clusters", "components", "hybrid"] = "hybrid"
@@ -92,6 +96,10 @@ class LabelingConfig:
         if not 0.0 <= self.split_min_fraction <= 1.0:
             raise ConfigError(
                 f"labeling.split_min_fraction: expected a value in [0, 1], found {self.split_min_fraction}"
+            )
+        if not (np.isfinite(self.unseen_field_ratio) and self.unseen_field_ratio >= 1.0):
+            raise ConfigError(
+                f"labeling.unseen_field_ratio: expected a finite value >= 1, found {self.unseen_field_ratio}"
             )
         if not (np.isfinite(self.vote_max_ratio) and 0.0 <= self.vote_max_ratio <= 1.0):
             raise ConfigError(f"labeling.vote_max_ratio: expected a value in [0, 1], found {self.vote_max_ratio}")
