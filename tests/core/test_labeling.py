@@ -570,6 +570,25 @@ class TestLabellingRules:
                                  dataclasses.replace(cfg, instances="components"), neighbors=nbr)  # fmt: skip
         assert len(np.unique(merged.instance)) == 1
 
+    def test_an_unseen_cluster_never_splits_a_component(self) -> None:
+        # A bathtub line of 150 primitives, one class: the first 100 seen, in one cluster; the last 50 seen by no
+        # key frame, clustered apart for want of masks. They are no second tub.
+        from panogs_core.stages.neighbors import build_knn
+
+        xs = np.arange(0, 1.5, 0.01)
+        points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1).astype(np.float32)
+        cluster = (xs >= 1.0).astype(np.int64)
+        sims = np.eye(4, dtype=np.float32)[np.full(len(xs), CHAIR)]
+        fused = sims.copy()
+        fused[100:] = 0.0
+        cfg = LabelingConfig(vote="none", min_instance_points=20, split_min_points=30, reference_spacing=None)
+        args = (points, sims, _Labels(np.zeros(len(xs), np.int64)), _Labels(cluster), _vocab(), cfg)
+        nbr = build_knn(points, 4).neighbors
+        assert len(np.unique(assign_panoptic(*args, neighbors=nbr).instance)) == 2  # both clusters seen: split
+        out = assign_panoptic(*args, neighbors=nbr, fused=fused)
+        assert len(np.unique(out.instance)) == 1
+        assert (out.semantic == CHAIR).all()
+
     def test_every_primitive_gets_a_class(self) -> None:
         points, feats, cls, cluster = _scene()
         fused = feats.copy()

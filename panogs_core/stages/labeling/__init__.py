@@ -126,7 +126,8 @@ def assign_panoptic(
         lead = temperature * float(np.log(cfg.unseen_field_ratio))  # the field's lead that overrules a segment
         cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, lead)
     if cfg.instances != "clusters" and nbr is not None:
-        semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg)
+        seen = None if fused is None else np.einsum("nd,nd->n", fused, fused) > 1e-12
+        semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg, seen)
     elif cfg.split_classes and nbr is not None:
         semantic, instance, inst_class = assemble_split(cls, cluster, vocabulary.is_thing, cfg.min_instance_points, nbr)
     else:

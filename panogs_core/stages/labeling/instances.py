@@ -132,6 +132,7 @@ def assemble_components(
     points: np.ndarray,
     neighbors: np.ndarray,
     cfg: LabelingConfig,
+    seen: np.ndarray | None = None,  # (N,) bool primitives some key frame saw; None = all
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Thing instances from connected components of the classes, split by the clusters where they agree.
 
@@ -144,7 +145,9 @@ def assemble_components(
     2. ``instances="hybrid"``: a component is split when two or more of its clusters are large parts of it
        (``split_min_points`` primitives and ``split_min_fraction`` of the component each); the primitives of
        its small clusters join the large part nearest along the component's edges. A cluster that is a
-       small part of an object (a chair's leg, a cushion seen apart by SAM) never splits it.
+       small part of an object (a chair's leg, a cushion seen apart by SAM) never splits it. The sizes count
+       ``seen`` primitives only: a cluster is evidence of an object of its own only where the masks saw it, and
+       the unseen part of a bathtub that few key frames saw, clustered apart for want of masks, is no second tub.
 
     Stuff: one instance per class, as in ``_assemble``.
     """
@@ -160,7 +163,8 @@ def assemble_components(
     if thing.any():
         owner = comp.copy()  # the unit that becomes an instance: a component, or one large part of it
         if cfg.instances == "hybrid":
-            owner = _split_by_clusters(comp, cluster, edges, cfg.split_min_points, cfg.split_min_fraction)
+            evidence = np.ones(n, bool) if seen is None else np.asarray(seen, bool)
+            owner = _split_by_clusters(comp, cluster, edges, cfg.split_min_points, cfg.split_min_fraction, evidence)
         ids, first, counts = np.unique(owner[thing], return_index=True, return_counts=True)
         big = counts >= cfg.min_instance_points
         order = ids[big][np.argsort(np.flatnonzero(thing)[first[big]], kind="stable")]
@@ -186,23 +190,26 @@ def _split_by_clusters(
     edges: np.ndarray,  # (E, 2) int64 graph edges
     min_points: int,
     min_fraction: float,
+    seen: np.ndarray,  # (N,) bool: only these count towards a part's size
 ) -> np.ndarray:  # (N,) int64 owner id, -1 where comp is -1
     """Per primitive, its component, or the large cluster part of its component it belongs to or is nearest."""
     n = comp.size
     member = comp >= 0
     span = int(cluster.max()) + 2
     part = np.where(member, comp * span + (cluster + 1), -1)  # (component, cluster) key
-    keys, inverse, counts = np.unique(part[member], return_inverse=True, return_counts=True)
+    keys, inverse = np.unique(part[member], return_inverse=True)
+    inverse = inverse.reshape(-1)
+    counts = np.bincount(inverse, weights=seen[member], minlength=len(keys))  # seen primitives per part
     comp_of_key = keys // span
-    comp_size = np.bincount(comp[member])
-    large = (counts >= min_points) & (counts >= min_fraction * comp_size[comp_of_key])
+    comp_size = np.bincount(comp[member], weights=seen[member])
+    large = (counts >= max(min_points, 1)) & (counts >= min_fraction * comp_size[comp_of_key])
     splits = np.bincount(comp_of_key[large], minlength=comp_size.size) >= 2
     owner = np.where(member, comp, -1)
     split_member = member & splits[np.maximum(comp, 0)]
     if not split_member.any():
         return owner
     key_of = np.full(n, -1, np.int64)
-    key_of[member] = inverse.reshape(-1)
+    key_of[member] = inverse
     is_large = split_member & large[np.maximum(key_of, 0)]
     # New owner ids above every component id: one per large part.
     base = int(comp.max()) + 1
