@@ -32,7 +32,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - unseen-field / unseen-propagate: unseen primitives take the field's extrapolated class, or the class of the
   nearest seen primitive along the kNN graph, instead of their super-primitive's majority checked by the field
 - unseen-segment: the super-primitive's majority alone (full: the majority, except where the nearest seen
-  primitive along the graph is of another class and the field picks that class, ``labeling.unseen``)
+  primitive along the graph is of another class and the field picks that class, ``labeling.unseen``);
+  unseen-no-lead: the field picks it by its argmax alone, without the lead ``labeling.unseen_field_ratio``
 - inst-clusters / inst-components: instances from the SAM-guided clusters, or class components alone
 - field-steps-0 / -300 / -600: the language field trained for its epochs alone, or at least 300 / 600 steps
   (the default's floor is ``language_field.min_steps``); field-batch-2048: 300 steps of 2048 primitives (the
@@ -84,6 +85,7 @@ VARIANTS: dict[str, dict] = {
     "unseen-field": {"labeling": {"unseen": "field"}},
     "unseen-propagate": {"labeling": {"unseen": "propagate"}},
     "unseen-segment": {"labeling": {"unseen": "segment"}},
+    "unseen-no-lead": {"labeling": {"unseen_field_ratio": 1.0}},
     "inst-clusters": {"labeling": {"instances": "clusters"}},
     "inst-components": {"labeling": {"instances": "components"}},
     "pool-0.8": {"fusion": {"mask_pooling": 0.8}},
@@ -235,6 +237,8 @@ def main() -> None:
                     print(f"{scene_dir.name}:\n{capture_stats(scene, fused, gt, vocab)}", file=sys.stderr)
                     for name, m in baselines(points, fused, vocab, gt, seen).items():
                         results.setdefault((difficulty, name), []).append(m)
+                        print(f"{difficulty:>8} seed {seed} {name:<18} "
+                              + "  ".join(f"{k} {m[k]:.3f}" for k in METRICS), file=sys.stderr)  # fmt: skip
                 labels = np.load(scene_dir / "run" / "labels.npz")
                 m = score(labels["semantic"], labels["instance"], gt, vocab, seen)
                 results.setdefault((difficulty, variant), []).append(m)
