@@ -5,7 +5,8 @@ Usage:
         [--eval-width 320] [--renders DIR] [--json FILE]
     python bench/gaussians.py quality [--work bench/results/gaussians] [--threads 1] [--json FILE]
     python bench/gaussians.py cost [--threads 1] [--iterations 5] [--json FILE]
-    python bench/gaussians.py stage [--threads 1]          # the stage's wall time at its default schedule
+    python bench/gaussians.py stage [--threads 1] [--preset small]  # the stage's wall time, default schedule
+    python bench/gaussians.py tiles [--sevenscenes DIR] [--widths 80 160] [--iterations 12]
 
 photometric: held-out views (every 8th colour frame left out of the fit) of a real capture and of the synthetic
 rooms, side by side: PSNR and SSIM at zero iterations (the initialisation), after the CPU default and after the GPU
@@ -25,6 +26,10 @@ cost: seconds per iteration (forward + backward + Adam step of the fit, and a fo
 for 30k and 150k Gaussians at 160x120 and 320x240, each case in its own child process so that its peak RSS is
 its own; and one 640x480 render of 150k Gaussians. The 30k scene is the small room's primitives; the 150k one is
 five copies of them jittered by 1 cm (scales recomputed from the denser neighbours), the same room at 5x density.
+
+tiles: CPU seconds of one training step (render, loss, backward) at each width for several (tile size, tiles per
+batch, chunk) settings of the torch rasteriser, twice over, interleaved; on the 7-Scenes bundle when given, else on
+the small synthetic room. The training step's settings (``backends.TRAINING_TILES``) come from it.
 
 Timings are wall and CPU seconds of this process; the machine may be shared (the docs say when it was).
 """
@@ -180,7 +185,7 @@ def cost_case(work: Path, copies: int, width: int, iterations: int, render_only:
     start = initial_gaussians(prims, prims.colors)
     fitter = Fitter(scene, start, cfg, resolve_schedule(cfg, scene.camera.width, False))
     # the fit clamps its width to the camera's (320 here); a render may be larger, at the same field of view
-    fitter.size = (width, round(scene.camera.height * width / scene.camera.width))
+    fitter.size = fitter.final_size = (width, round(scene.camera.height * width / scene.camera.width))
     frames = [f for f in scene.frames if f.color is not None]
     for f in frames:
         fitter.target(f)  # decode outside the timing
@@ -238,10 +243,14 @@ def cost(work: Path, threads: int, iterations: int) -> list[dict[str, Any]]:
     return rows
 
 
-def stage_time(work: Path) -> dict[str, Any]:
-    """The stage at its default schedule on the small demo room (all colour frames fitted)."""
-    scene = open_bundle(_rooms_small(work))
+def stage_time(work: Path, preset: str = "small") -> dict[str, Any]:
+    """The stage at its default schedule on a synthetic room of ``preset`` (all colour frames fitted)."""
+    path = _rooms_small(work) if preset == "small" else work / f"{preset}-0"
+    if not (path / "scene.json").is_file():
+        make_scene(path, preset=preset, difficulty="default", seed=0)
+    scene = open_bundle(path)
     prims = build_primitives(scene, PrimitivesConfig())
+    load_before = os.getloadavg()[0]
     t0, c0 = time.perf_counter(), time.process_time()
     fitted = fit_appearance(scene, prims, prims.colors, AppearanceConfig(cpu_threads=None))  # --threads decides
     row = {
@@ -249,13 +258,73 @@ def stage_time(work: Path) -> dict[str, Any]:
         "wall_s": round(time.perf_counter() - t0, 1),
         "cpu_s": round(time.process_time() - c0, 1),
         "s_per_iteration": round(fitted.extra["seconds_per_iteration"], 3),
+        "preset": preset,
+        "gaussians": int(prims.points.shape[0]),
+        "fit_size": list(fitted.extra.get("fit_size", ())),
+        "load_average_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
     print(
-        f"stage at the default CPU schedule: {row['iterations']} iterations, {row['wall_s']} s wall, {row['cpu_s']} s "
-        f"CPU ({row['s_per_iteration']} s/it); PSNR on training frames {row['psnr_before']} -> {row['psnr_after']} dB",
+        f"{preset} room, {row['gaussians']} Gaussians: stage at the default CPU schedule: {row['iterations']} "
+        f"iterations at {row['fit_size']}, {row['wall_s']} s wall, {row['cpu_s']} s "
+        f"CPU ({row['s_per_iteration']} s/it); PSNR on training frames {row['psnr_before']} -> {row['psnr_after']} dB; "
+        f"load average {row['load_average_before_after']} (before, after)",
         flush=True,
     )
     return row
+
+
+TILE_SETTINGS = [(8, 64, 128), (8, 16, 128), (4, 128, 64), (4, 64, 64), (4, 64, 32), (2, 256, 64)]
+
+
+def tiles(work: Path, sevenscenes: Path | None, stride: int, widths: list[int], steps: int) -> list[dict[str, Any]]:
+    """CPU seconds per training step for each (width, tile settings), interleaved and repeated (module docstring)."""
+    import torch
+
+    from panogs_core.gaussians import initialise, resolve_schedule, split_frames
+    from panogs_core.gaussians.fit import Fitter
+    from panogs_core.gaussians.photometric import photometric_loss
+    from panogs_core.gaussians.rasterizer import rasterize
+    from panogs_core.gaussians.spherical_harmonics import sh_to_color
+
+    bundle = _sevenscenes_bundle(work, sevenscenes, stride) if sevenscenes is not None else _rooms_small(work)
+    scene = open_bundle(bundle)
+    prims = build_primitives(scene, PrimitivesConfig())
+    cfg = AppearanceConfig(held_out_every=HELD_OUT_EVERY)
+    frames = split_frames(scene, cfg)[0]
+    start = initialise(scene, prims, _initial_colors(scene, prims), frames, cfg)
+    frames = frames[:steps]
+
+    def step(fitter: Fitter, settings: tuple[int, int, int]) -> float:
+        tile_size, per_batch, chunk = settings
+        c0 = time.process_time()
+        for frame in frames:
+            cam, g = fitter.camera(frame), fitter.gaussians()
+            rgb = sh_to_color(torch.cat([fitter.sh_dc, fitter.sh_rest], 1), g.means, cam.T_world_cam[:3, 3].float(), 0)
+            image = rasterize(
+                g, rgb, cam, tile_size=tile_size, tiles_per_batch=per_batch, chunk=chunk, analytic_backward=True
+            ).features
+            photometric_loss(image, fitter.target(frame)).backward()
+        return (time.process_time() - c0) / len(frames)
+
+    rows = []
+    for width in widths:
+        fit_cfg = AppearanceConfig(fit_width=width, device="cpu")
+        fitter = Fitter(scene, start, fit_cfg, resolve_schedule(fit_cfg, scene.camera.width, False))
+        step(fitter, TILE_SETTINGS[0])  # warm-up, and the targets decoded
+        times: dict[tuple[int, int, int], list[float]] = {s: [] for s in TILE_SETTINGS}
+        for _ in range(2):
+            for settings in TILE_SETTINGS:
+                times[settings].append(step(fitter, settings))
+        for settings, seconds in times.items():
+            row = {"gaussians": len(prims.points), "size": list(fitter.size), "tiles": list(settings)}
+            row["cpu_s_per_step"] = [round(x, 4) for x in seconds]
+            rows.append(row)
+            print(
+                f"{row['gaussians']} Gaussians at {fitter.size[0]}x{fitter.size[1]}, tile {settings[0]}, "
+                f"{settings[1]} tiles per batch, chunk {settings[2]}: {row['cpu_s_per_step']} CPU s per step",
+                flush=True,
+            )
+    return rows
 
 
 def _sevenscenes_bundle(work: Path, src: Path, stride: int) -> Path:
@@ -269,8 +338,18 @@ def _sevenscenes_bundle(work: Path, src: Path, stride: int) -> Path:
     return bundle
 
 
-def photometric_case(bundle: Path, schedule: str, init: str, eval_width: int, renders: Path | None) -> dict[str, Any]:
-    """One (scene, schedule) case in this process: held-out PSNR / SSIM at ``eval_width``, fit time, peak memory."""
+def photometric_case(
+    bundle: Path,
+    schedule: str,
+    init: str,
+    eval_width: int,
+    renders: Path | None,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """One (scene, schedule) case in this process: held-out PSNR / SSIM at ``eval_width``, fit time, peak memory.
+
+    ``overrides``: AppearanceConfig fields set on top of the schedule's (``--set``).
+    """
     import cv2
     import torch
 
@@ -282,14 +361,15 @@ def photometric_case(bundle: Path, schedule: str, init: str, eval_width: int, re
     prims = build_primitives(scene, PrimitivesConfig())
     colors = _initial_colors(scene, prims)
     iterations = {"zero": None, "cpu": None, "gpu": None}[schedule]
-    cfg = AppearanceConfig(
-        held_out_every=HELD_OUT_EVERY,
-        cpu_threads=None,
-        initialisation=init,
-        device="cuda" if schedule == "gpu" else "cpu",
-        iterations=iterations,
-        enabled=schedule != "zero",
-    )
+    settings: dict[str, Any] = {
+        "held_out_every": HELD_OUT_EVERY,
+        "cpu_threads": None,
+        "initialisation": init,
+        "device": "cuda" if schedule == "gpu" else "cpu",
+        "iterations": iterations,
+        "enabled": schedule != "zero",
+    }
+    cfg = AppearanceConfig(**(settings | (overrides or {})))
     if torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -340,6 +420,7 @@ def photometric(
     threads: int,
     renders: Path | None,
     scan: bool = False,
+    overrides: list[str] | None = None,
 ) -> list[dict[str, Any]]:
     import torch
 
@@ -366,6 +447,7 @@ def photometric(
                 argv = [sys.executable, __file__, "_photometric-case", "--bundle", str(bundle)]
                 argv += ["--schedule", schedule, "--init", init, "--eval-width", str(eval_width)]
                 argv += ["--threads", str(threads), "--work", str(work)]
+                argv += [a for o in overrides or [] for a in ("--set", o)]
                 if renders is not None:
                     argv += ["--renders", str(renders / bundle.name)]
                 done = subprocess.run(argv, check=True, capture_output=True, text=True, cwd=ROOT)
@@ -382,9 +464,25 @@ def photometric(
     return rows
 
 
+def _overrides(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs as AppearanceConfig fields; a VALUE that is not JSON is taken as a string."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"--set: expected KEY=VALUE, got {pair!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", choices=["photometric", "quality", "cost", "stage", "_cost-case", "_photometric-case"])
+    ap.add_argument(
+        "what", choices=["photometric", "quality", "cost", "stage", "tiles", "_cost-case", "_photometric-case"]
+    )
     ap.add_argument("--sevenscenes", help="photometric: a 7-Scenes sequence folder (frame-*.color.jpg ...)")
     ap.add_argument("--stride", type=int, default=10, help="photometric: keep every n-th 7-Scenes frame")
     ap.add_argument("--schedules", nargs="+", default=["zero", "cpu", "gpu"], choices=["zero", "cpu", "gpu"])
@@ -392,15 +490,24 @@ def main() -> None:
     ap.add_argument("--eval-width", type=int, default=320, help="photometric: px, width of the scored renders")
     ap.add_argument("--renders", help="photometric: write the first held-out render beside its frame here")
     ap.add_argument("--scan", action="store_true", help="photometric: add the synthetic scan room (80k vertices)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="photometric: an AppearanceConfig field for every fitted case (VALUE read as JSON), repeatable",
+    )
     ap.add_argument("--bundle", help=argparse.SUPPRESS)
     ap.add_argument("--schedule", help=argparse.SUPPRESS)
     ap.add_argument("--init", help=argparse.SUPPRESS)
     ap.add_argument("--work", default=str(WORK))
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    ap.add_argument("--iterations", type=int, default=5)
+    ap.add_argument("--iterations", type=int, default=5, help="cost: fit iterations; tiles: steps per setting")
+    ap.add_argument("--widths", type=int, nargs="+", default=[80, 160], help="tiles: fit widths (px)")
     ap.add_argument("--copies", type=int, default=1)
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--render-only", action="store_true", help="_cost-case: time the render only, no fit")
+    ap.add_argument("--preset", default="small", help="stage: the synthetic room (small, scan, scannet-size, ...)")
     ap.add_argument("--json", help="also write the numbers to this JSON file")
     args = ap.parse_args()
     import torch
@@ -414,7 +521,12 @@ def main() -> None:
         return
     if args.what == "_photometric-case":
         renders = Path(args.renders) if args.renders else None
-        print(json.dumps(photometric_case(Path(args.bundle), args.schedule, args.init, args.eval_width, renders)))
+        overrides = _overrides(args.set)
+        print(
+            json.dumps(
+                photometric_case(Path(args.bundle), args.schedule, args.init, args.eval_width, renders, overrides)
+            )
+        )
         return
     if args.what == "photometric":
         result = photometric(
@@ -427,13 +539,17 @@ def main() -> None:
             args.threads,
             Path(args.renders) if args.renders else None,
             args.scan,
+            args.set,
         )
     elif args.what == "quality":
         result = quality(work)
+    elif args.what == "tiles":
+        sevenscenes = Path(args.sevenscenes) if args.sevenscenes else None
+        result = tiles(work, sevenscenes, args.stride, args.widths, max(args.iterations, 12))
     elif args.what == "cost":
         result = cost(work, args.threads, args.iterations)
     else:
-        result = stage_time(work)
+        result = stage_time(work, args.preset)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
 

@@ -20,14 +20,17 @@ from panogs_core.errors import ConfigError, ShapeError
 # 1 / (2 sqrt(pi)), the DC band's basis value: here rather than in spherical_harmonics, which imports torch.
 SH_C0 = 0.28209479177387814
 # Per-device defaults (see the module docstring and docs/benchmarks.md for the measurements behind them).
-CPU_ITERATIONS = 120
-# The CPU's time budget, as Gaussian-iterations: one iteration costs about 7 us per Gaussian at the CPU fit width
-# (0.21 s at 30k, ~1 s at 144k on the 2-core machine; bench/gaussians.py cost and the large preset), so 3.6M keeps
-# the fit near 25 s whatever the scene's size: 120 iterations up to 30k Gaussians, 25 at the large preset's 144k.
-CPU_GAUSSIAN_ITERATIONS = 3_600_000
+CPU_ITERATIONS = 220
+# The CPU's time budget, as Gaussian-iterations: 4.4M gives the whole 220 iterations up to 20k Gaussians (7-Scenes'
+# stride-10 import), 146 at 30k and 56 at the scannet-size room's 79k, whose stage took 13.1 s of CPU (22.8 s wall
+# on the shared 2-core machine at load 5; bench/gaussians.py stage --preset scannet-size; docs/benchmarks.md).
+CPU_GAUSSIAN_ITERATIONS = 4_400_000
 CPU_MIN_ITERATIONS = 10
 CPU_FIT_WIDTH = 160  # px
 CPU_LR_SCALE = 4.0
+# The CPU's coarse to fine: the first 70 % of the iterations at half the width (many views cheaply, then the
+# detail; docs/benchmarks.md, "Gaussian scene").
+CPU_COARSE_FRACTION = 0.7
 GPU_ITERATIONS = 7000
 GPU_LR_SCALE = 1.0
 # Key frames kept in memory at most (evenly spaced over the capture): the targets are held as uint8 images.
@@ -55,6 +58,12 @@ class AppearanceConfig:
     lr_rotation: float = 0.001  # 3DGS rotation_lr
     lr_position: float = 0.00016  # 3DGS position_lr_init, times the scene extent (camera spread), only when moving
     dssim_weight: float = 0.2  # lambda of L1 + D-SSIM (3DGS)
+    # Ours: the photometric term, l1 (3DGS) or l2 (the squared error, which PSNR measures: on the CPU schedule it
+    # gained 0.35 dB on 7-Scenes' held-out views and lost 0.43 dB on the synthetic scan room's; docs/benchmarks.md)
+    photometric_norm: str = "l1"
+    # Ours: this fraction of the iterations (the first ones) renders at half the fit width (coarse to fine); None:
+    # CPU_COARSE_FRACTION on the CPU, 0 on CUDA
+    coarse_fraction: float | None = None
     # Ours: a Gaussian's scale may grow at most this factor over its initial (neighbour-distance) scale. The centres
     # sit on vertices a few cm apart, so larger Gaussians add nothing the neighbours cannot, and they make every
     # tile's list longer (the CPU fit slowed down 10x in 60 iterations without a cap; docs/benchmarks.md).
@@ -102,6 +111,10 @@ class AppearanceConfig:
         for name, value in rates.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"appearance.{name}: expected a finite value > 0, got {value!r}")
+        if self.coarse_fraction is not None and not (0.0 <= self.coarse_fraction <= 1.0):
+            raise ConfigError(
+                f"appearance.coarse_fraction: expected null or a value in [0, 1], got {self.coarse_fraction!r}"
+            )
         if not (0.0 <= self.dssim_weight <= 1.0):
             raise ConfigError(f"appearance.dssim_weight: expected a value in [0, 1], got {self.dssim_weight!r}")
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
@@ -109,6 +122,8 @@ class AppearanceConfig:
             raise ConfigError(f"appearance.device: expected auto, cpu or cuda[:N], got {self.device!r}")
         if self.initialisation not in ("surface", "reference"):
             raise ConfigError(f"appearance.initialisation: expected surface or reference, got {self.initialisation!r}")
+        if self.photometric_norm not in ("l1", "l2"):
+            raise ConfigError(f"appearance.photometric_norm: expected l1 or l2, got {self.photometric_norm!r}")
         if self.backend not in ("auto", "torch", "gsplat"):
             raise ConfigError(f"appearance.backend: expected auto, torch or gsplat, got {self.backend!r}")
 
@@ -227,6 +242,7 @@ class Schedule:
     fit_width: int
     lr_scale: float
     device: str
+    coarse_fraction: float = 0.0
 
 
 def resolve_schedule(
@@ -250,7 +266,15 @@ def resolve_schedule(
         iterations = min(iterations, max(CPU_MIN_ITERATIONS, budget))
     width = cfg.fit_width or (camera_width if on_gpu else CPU_FIT_WIDTH)
     lr_scale = cfg.lr_scale or (GPU_LR_SCALE if on_gpu else CPU_LR_SCALE)
-    return Schedule(iterations=iterations, fit_width=min(width, camera_width), lr_scale=lr_scale, device=device)
+    return Schedule(
+        iterations=iterations,
+        fit_width=min(width, camera_width),
+        lr_scale=lr_scale,
+        device=device,
+        coarse_fraction=(0.0 if on_gpu else CPU_COARSE_FRACTION)
+        if cfg.coarse_fraction is None
+        else cfg.coarse_fraction,
+    )
 
 
 def _rounded(value: float | None) -> float | None:

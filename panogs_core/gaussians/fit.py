@@ -37,7 +37,10 @@ class Fitter:
         dev = self.device
         n = init.means.shape[0]
         height = max(1, round(bundle.camera.height * schedule.fit_width / bundle.camera.width))
-        self.size = (schedule.fit_width, height)
+        self.size = (schedule.fit_width, height)  # the size of the renders; the fit's (and the scores') at the end
+        self.final_size = self.size
+        coarse = max(1, schedule.fit_width // 2)
+        self.coarse_size = (coarse, max(1, round(bundle.camera.height * coarse / bundle.camera.width)))
         self.anchor = torch.as_tensor(init.means, device=dev)
         sh = torch.zeros(n, num_coefficients(cfg.sh_degree), 3, device=dev)
         sh[:, 0] = torch.as_tensor(init.sh[:, 0], device=dev)
@@ -66,7 +69,7 @@ class Fitter:
         if cfg.move_centres:
             groups.append({"params": [self.offsets], "lr": cfg.lr_position * s * _bundle_extent(bundle)})
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
-        self._targets: dict[str, torch.Tensor] = {}
+        self._targets: dict[tuple[str, tuple[int, int]], torch.Tensor] = {}
         self.backend: Backend = cfg.backend  # type: ignore[assignment]
         # Where the training stands: iterations done, and the shuffled pass over the frames (what is left of it and
         # the generator that draws the next one), so that a snapshot resumes on the same frame sequence.
@@ -123,14 +126,15 @@ class Fitter:
         return PinholeCamera.from_camera(self.bundle.camera.scaled(*self.size), pose)
 
     def target(self, frame: Frame) -> torch.Tensor:  # (H, W, 3) float32 in [0, 1]
-        """The frame's colour at the fit size (area-averaged), cached as uint8."""
-        if frame.id not in self._targets:
+        """The frame's colour at the render size (area-averaged), cached as uint8."""
+        key = (frame.id, self.size)
+        if key not in self._targets:
             rgb = self.bundle.read_color(frame)
             assert rgb is not None  # split_frames keeps colour frames only
             if (rgb.shape[1], rgb.shape[0]) != self.size:
                 rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
-            self._targets[frame.id] = torch.as_tensor(np.ascontiguousarray(rgb), device=self.device)
-        return self._targets[frame.id].to(torch.float32) / 255.0
+            self._targets[key] = torch.as_tensor(np.ascontiguousarray(rgb), device=self.device)
+        return self._targets[key].to(torch.float32) / 255.0
 
     def gaussians(self) -> Gaussians3D:
         return Gaussians3D(
@@ -149,7 +153,8 @@ class Fitter:
         # Training differentiates the compositing by hand (rasterizer._CompositeAnalytic), keeping no (pixel,
         # Gaussian) intermediates: autograd through the ops held them all (2,280 MB peak on the large preset's 144k
         # Gaussians at 160 x 120, against 1,659 MB when recomputed) and ran slower.
-        return render(g, rgb, cam, backend=self.backend, training=torch.is_grad_enabled()).features
+        # training=True also when scoring (no grad): the training tiles render the same image, faster at these widths
+        return render(g, rgb, cam, backend=self.backend, training=True).features
 
     def train(self, frames: list[Frame], on_progress: ProgressFn | None, snapshot: StageSnapshot | None) -> None:
         """Run the iterations left; ``snapshot`` gets the state every ``SNAPSHOT_EVERY_S`` s and on cancellation."""
@@ -175,16 +180,20 @@ class Fitter:
         start = time.perf_counter()
         frame = frames[self.order.pop()]
         degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
+        # coarse to fine: the first coarse_fraction of the iterations at half the width
+        coarse = it < self.schedule.coarse_fraction * self.schedule.iterations
+        self.size = self.coarse_size if coarse else self.final_size
         image = self.render(frame, degree)
         if self.cfg.exposure_compensation:
             gain_bias = self.exposure[self.frame_index[frame.id]]
             image = image * (1.0 + gain_bias[0]) + gain_bias[1]
-        loss = photometric_loss(image, self.target(frame), self.cfg.dssim_weight)
+        loss = photometric_loss(image, self.target(frame), self.cfg.dssim_weight, self.cfg.photometric_norm)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         with torch.no_grad():
             torch.minimum(self.log_scales, self.max_log_scales, out=self.log_scales)
+        self.size = self.final_size
         self.seconds_per_iteration.append(time.perf_counter() - start)
         if self.cfg.move_centres:
             self._clamp_offsets()

@@ -52,10 +52,16 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (num / den).mean()
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, dssim_weight: float = DSSIM_WEIGHT) -> torch.Tensor:
-    """``(1 - lambda) |render - target|_1 + lambda (1 - SSIM)`` of (H, W, 3) images (the 3DGS loss)."""
-    l1 = (render - target).abs().mean()
-    return (1 - dssim_weight) * l1 + dssim_weight * (1 - ssim(render, target))
+def photometric_loss(
+    render: torch.Tensor, target: torch.Tensor, dssim_weight: float = DSSIM_WEIGHT, norm: str = "l1"
+) -> torch.Tensor:
+    """``(1 - lambda) |render - target|_1 + lambda (1 - SSIM)`` of (H, W, 3) images (the 3DGS loss); ``norm="l2"``
+    takes the mean squared error in place of the L1 term."""
+    diff = render - target
+    error = diff.abs().mean() if norm == "l1" else (diff * diff).mean()
+    if dssim_weight == 0:
+        return error
+    return (1 - dssim_weight) * error + dssim_weight * (1 - ssim(render, target))
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -14,6 +14,7 @@ from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 from panogs_core.errors import Cancelled, ConfigError
 from panogs_core.gaussians import fit_appearance
 from panogs_core.gaussians.config import (
+    CPU_COARSE_FRACTION,
     CPU_FIT_WIDTH,
     CPU_ITERATIONS,
     GPU_ITERATIONS,
@@ -153,6 +154,26 @@ def test_centres_move_within_the_radius_when_allowed(wall_bundle: Path) -> None:
     assert moved.max() > 1e-4
 
 
+def test_coarse_to_fine_renders_the_first_iterations_at_half_the_width(wall_bundle: Path) -> None:
+    from panogs_core.gaussians import initialise, split_frames
+    from panogs_core.gaussians.fit import Fitter
+
+    points, _ = _wall()
+    scene = open_bundle(wall_bundle)
+    cfg = AppearanceConfig(iterations=6, fit_width=48, device="cpu", coarse_fraction=0.5)
+    frames = split_frames(scene, cfg)[0]
+    start = initialise(scene, _prims(points), np.full((len(points), 3), 0.5, np.float32), frames, cfg)
+    fitter = Fitter(scene, start, cfg, resolve_schedule(cfg, CAMERA.width, cuda=False))
+    sizes = []
+    for _ in range(6):
+        fitter._step(frames)
+        sizes.extend({size for _, size in fitter._targets})
+        fitter._targets.clear()
+    assert sizes == [(24, 18)] * 3 + [(48, 36)] * 3
+    assert fitter.size == (48, 36)  # what the scores and the result see between steps
+    assert fitter.render(frames[0], 0).shape == (36, 48, 3)
+
+
 def test_cancellation_stops_the_fit(wall_bundle: Path) -> None:
     points, _ = _wall()
     scene = open_bundle(wall_bundle)
@@ -246,11 +267,16 @@ def test_default_schedule_depends_on_the_device() -> None:
     gpu = resolve_schedule(AppearanceConfig(), 640, cuda=True)
     assert (cpu.device, cpu.iterations, cpu.fit_width) == ("cpu", CPU_ITERATIONS, CPU_FIT_WIDTH)
     assert (gpu.device, gpu.iterations, gpu.fit_width) == ("cuda", GPU_ITERATIONS, 640)
+    # coarse to fine on the CPU only (full size throughout on a GPU, as 3DGS), and a share given is kept
+    assert (cpu.coarse_fraction, gpu.coarse_fraction) == (CPU_COARSE_FRACTION, 0.0)
+    assert resolve_schedule(AppearanceConfig(coarse_fraction=0.0), 640, cuda=False).coarse_fraction == 0.0
+    assert resolve_schedule(AppearanceConfig(coarse_fraction=0.5), 640, cuda=True).coarse_fraction == 0.5
     assert resolve_schedule(AppearanceConfig(device="cpu"), 640, cuda=True).device == "cpu"
     # The CPU default fits its time budget: fewer iterations for more Gaussians, never fewer than the floor,
     # and iterations asked for are kept.
-    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=30_000).iterations == CPU_ITERATIONS
-    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=144_000).iterations == 25
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=20_000).iterations == CPU_ITERATIONS
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=30_000).iterations == 146
+    assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=144_000).iterations == 30
     assert resolve_schedule(AppearanceConfig(), 640, cuda=False, num_gaussians=10**8).iterations == 10
     assert resolve_schedule(AppearanceConfig(iterations=300), 640, cuda=False, num_gaussians=10**6).iterations == 300
     assert resolve_schedule(AppearanceConfig(), 640, cuda=True, num_gaussians=10**6).iterations == GPU_ITERATIONS
@@ -268,6 +294,8 @@ def test_default_schedule_depends_on_the_device() -> None:
         ("device", "gpu", "appearance.device"),
         ("backend", "vulkan", "appearance.backend"),
         ("dssim_weight", 1.5, "appearance.dssim_weight"),
+        ("coarse_fraction", -0.1, "appearance.coarse_fraction"),
+        ("photometric_norm", "l3", "appearance.photometric_norm"),
     ],
 )
 def test_bad_settings_are_refused_naming_the_field(field: str, value: object, match: str) -> None:

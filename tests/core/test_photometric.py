@@ -56,6 +56,16 @@ def test_ssim_is_one_on_equal_images_and_drops_with_noise() -> None:
     assert float(photometric_loss(noisy, img)) > 0.05
 
 
+def test_the_l2_norm_takes_the_squared_error_in_place_of_l1() -> None:
+    target = torch.zeros(8, 8, 3)
+    render = target + 0.1
+    assert float(photometric_loss(render, target, 0.0)) == pytest.approx(0.1, abs=1e-6)
+    assert float(photometric_loss(render, target, 0.0, "l2")) == pytest.approx(0.01, abs=1e-6)
+    # with D-SSIM the two differ by the photometric term alone
+    with_ssim = float(photometric_loss(render, target, 0.2, "l1")) - float(photometric_loss(render, target, 0.2, "l2"))
+    assert with_ssim == pytest.approx(0.8 * (0.1 - 0.01), abs=1e-6)
+
+
 def test_psnr_of_a_known_error() -> None:
     a = torch.zeros(4, 4, 3)
     assert psnr(a + 0.1, a) == pytest.approx(20.0, abs=1e-4)
