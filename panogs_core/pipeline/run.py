@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -349,39 +350,7 @@ def run_pipeline(
     keys = _LazyKeys(scene, cfg, vocab)
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
-    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
-    fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
-    field_ = None
-    if cfg.features_source == "field":
-        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
-    features = st.primitive_features(field_, fused)
-    masks = runner.stage(st.MASKS, keys, lambda p: st.masks(scene, vis, cfg, p))
-    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
-    sp = runner.stage(st.SUPERPRIMITIVES, keys, lambda p: st.superprimitives(prims, features, masks, knn, cfg, p))
-    clusters = runner.stage(st.CLUSTERING, keys, lambda p: st.clustering(sp, knn, masks, features, cfg, p))
-    labels = runner.stage(
-        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
-    )
-
-    def export(_: ProgressFn) -> PipelineResult:
-        from panogs_core.stages.export import write_outputs
-
-        # gaussians.ply is the initialisation here (the labels with the primitives' colours and scales), so that the
-        # point views have what they read; the fit replaces it.
-        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=None)
-        return PipelineResult(
-            appearance={"state": FIT_RUNNING},
-            unseen=dict(labels.unseen),
-            out_dir=out,
-            scene_name=scene.name,
-            num_primitives=int(prims.points.shape[0]),
-            instances=[i.to_json() for i in labels.instances],
-            timings=runner.timings,
-            metrics=metrics,
-            files=files,
-        )
-
-    result = runner.step("export", export)
+    result, colors, semantic, instance = _label_scene(runner, keys, scene, prims, cfg, vocab, out)
 
     def report() -> None:
         runner.record_checkpoints(keys, wait=True)
@@ -406,15 +375,69 @@ def run_pipeline(
         report()
         return result
 
-    from panogs_core.stages.export import primitive_colors, write_gaussians
+    from panogs_core.stages.export import write_gaussians
 
     path = GAUSSIANS_PLY.path(out)
     tmp = path.with_name(f".{path.name}.tmp")
-    write_gaussians(tmp, prims, primitive_colors(prims, fused), labels.semantic, labels.instance, gaussians)
+    write_gaussians(tmp, prims, colors, semantic, instance, gaussians)
     tmp.replace(path)  # atomic: a reader sees the initialisation or the fitted scene, never half of one
     result.appearance = {**gaussians.summary(), "state": FIT_SUCCEEDED if gaussians.fitted else FIT_SKIPPED}
     report()
     return result
+
+
+def _label_scene(
+    runner: _Runner,
+    keys: _LazyKeys,
+    scene: Bundle,
+    prims: st.Primitives,
+    cfg: PipelineConfig,
+    vocab: Vocabulary,
+    out: Path,
+) -> tuple[PipelineResult, np.ndarray, np.ndarray, np.ndarray]:
+    """The labelling stages and the results' files; returns the result and what the Gaussian scene's file needs
+    (the primitives' colours, semantic and instance labels).
+
+    Every stage output lives only as long as a later stage reads it: the visibility goes after the masks, the
+    masks after the clustering, and the features, segments and fused features (161 MB each at ScanNet size) when
+    this returns, so the appearance fit runs without them.
+    """
+    from panogs_core.stages.export import primitive_colors, write_outputs
+
+    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
+    fused = runner.stage(st.FUSION, keys, partial(st.fusion, scene, vis, prims, cfg))
+    field_ = None
+    if cfg.features_source == "field":
+        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
+    features = st.primitive_features(field_, fused)
+    masks = runner.stage(st.MASKS, keys, partial(st.masks, scene, vis, cfg))
+    del vis
+    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
+    sp = runner.stage(st.SUPERPRIMITIVES, keys, partial(st.superprimitives, prims, features, masks, knn, cfg))
+    clusters = runner.stage(st.CLUSTERING, keys, partial(st.clustering, sp, knn, masks, features, cfg))
+    del masks
+    labels = runner.stage(
+        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
+    )
+
+    def export(_: ProgressFn) -> PipelineResult:
+        # gaussians.ply is the initialisation here (the labels with the primitives' colours and scales), so that the
+        # point views have what they read; the fit replaces it.
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=None)
+        return PipelineResult(
+            appearance={"state": FIT_RUNNING},
+            unseen=dict(labels.unseen),
+            out_dir=out,
+            scene_name=scene.name,
+            num_primitives=int(prims.points.shape[0]),
+            instances=[i.to_json() for i in labels.instances],
+            timings=runner.timings,
+            metrics=metrics,
+            files=files,
+        )
+
+    result = runner.step("export", export)
+    return result, primitive_colors(prims, fused), labels.semantic, labels.instance
 
 
 def _error_text(exc: BaseException) -> str:
