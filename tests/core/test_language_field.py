@@ -103,6 +103,31 @@ class TestFitLanguageField:
         for key in field_a.state:
             np.testing.assert_array_equal(field_a.state[key], field_b.state[key])
 
+    def test_cpu_threads_during_the_fit_then_restored(self) -> None:
+        import torch
+
+        points, region, anchors = _three_regions(n_per=50, seed=3)
+        fused = _fused(anchors[region], np.ones(len(points)))
+        seen: list[int] = []
+        before = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            fit_language_field(
+                points, fused, _small_cfg(epochs=1), on_progress=lambda *_: seen.append(torch.get_num_threads())
+            )
+            assert seen == [1]  # the default: one thread
+            assert torch.get_num_threads() == 2
+            seen.clear()
+            fit_language_field(
+                points,
+                fused,
+                _small_cfg(epochs=1, cpu_threads=None),
+                on_progress=lambda *_: seen.append(torch.get_num_threads()),
+            )
+            assert seen == [2]
+        finally:
+            torch.set_num_threads(before)
+
     def test_deterministic_for_a_seed(self) -> None:
         points, region, anchors = _three_regions(n_per=100, seed=3)
         fused = _fused(anchors[region], np.ones(len(points)))
@@ -291,6 +316,7 @@ class TestConfig:
             ("bound_padding", -0.1),
             ("max_resolution", 1),
             ("device", "not-a-device"),
+            ("cpu_threads", 0),
         ],
     )
     def test_exception_names_field(self, field: str, value: object) -> None:
