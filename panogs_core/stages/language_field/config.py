@@ -43,8 +43,8 @@ class LanguageFieldConfig:
     # GPU, unless the job names a device (worker/device.py).
     device: str = "cpu"
     # torch intra-op threads during a CPU fit (restored after it); None keeps torch's setting. One thread: a step's
-    # kernels are small (1024 points), and on the shared 2-core machine two threads spun against each other and
-    # against other processes: 72-114 ms of CPU per step against 12.7 ms with one (docs/benchmarks.md).
+    # kernels are small (1024 points), and on the shared 2-core machine a lone fit took 100-250 ms a step with two
+    # threads (spinning against each other and other processes) against 16-28 ms with one (docs/benchmarks.md).
     cpu_threads: int | None = 1
     seed: int = 0  # seeds plane/decoder initialisation and batch shuffling
 
