@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Side-by-side speed of two commits on one bundle, alternating, in one sitting (shared machines are noisy:
-# compare within a run). Prints each run's total, peak RSS, per-stage seconds and standard metrics.
+# compare within a run). Prints each run's total (and without the appearance stage, which runs after the results),
+# peak RSS and the stage it was reached in, per-stage seconds and standard metrics.
 #
 # Usage: bench/speed_ab.sh OLD_REV [BUNDLE] [ROUNDS] [RUN_ARGS ...]
 #   BUNDLE defaults to bench/results/speed/large-0 (make it with `panogs synth ... --preset large` or
@@ -29,7 +30,10 @@ run, side, rnd = sys.argv[1:]
 r = json.load(open(f"{run}/report.json"))
 m = json.load(open(f"{run}/metrics.json"))["standard"] if __import__("os").path.exists(f"{run}/metrics.json") else {}
 stages = " ".join(f"{s['stage']}={s['wall_s']:.2f}" for s in r["stages"])
-print(f"{side} round {rnd}: total {r['total_wall_s']:.1f} s, peak {r['peak_rss_mb']:.0f} MB; {stages}")
+top = max(r["stages"], key=lambda s: s["peak_rss_mb"])
+fit = sum(s["wall_s"] for s in r["stages"] if s["stage"] == "appearance")
+print(f"{side} round {rnd}: total {r['total_wall_s']:.1f} s (to the results {r['total_wall_s'] - fit:.1f} s), "
+      f"peak {r['peak_rss_mb']:.0f} MB (in {top['stage']}); {stages}")
 if m:
     print(f"    mIoU {m['miou']:.3f}  PRQ(T) {m['prq_thing']:.3f}  PRQ(S) {m['prq_stuff']:.3f}")
 PY

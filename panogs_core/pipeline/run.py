@@ -15,8 +15,10 @@ import json
 import logging
 import platform
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -127,11 +129,23 @@ class _Checkpoints:
         """Where ``stage`` keeps its partial work under ``key``; read only when resuming."""
         return StageSnapshot(self.root / f"{stage}.partial.pt", key, readable=self.enabled)
 
+    def may_have(self, stage: str) -> bool:
+        """Whether a checkpoint of ``stage`` might be reused (its key is then needed before the stage runs)."""
+        return self.enabled and stage in self.manifest and self.path(stage).is_file()
+
     def has(self, stage: str, key: str) -> bool:
-        return self.enabled and self.manifest.get(stage) == key and self.path(stage).is_file()
+        return self.may_have(stage) and self.manifest.get(stage) == key
 
     def record(self, stage: str, key: str) -> None:
         self.manifest[stage] = key
+        self._write_manifest()
+
+    def forget(self, stage: str) -> None:
+        """Drop the key of ``stage`` (its file is about to change and its new key is not known yet)."""
+        if self.manifest.pop(stage, None) is not None:
+            self._write_manifest()
+
+    def _write_manifest(self) -> None:
         tmp = self._manifest_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(self.manifest, indent=1))
         tmp.replace(self._manifest_path)
@@ -162,24 +176,38 @@ class _Runner:
         self.checkpoints = _Checkpoints(STAGES_FOLDER.path(out_dir), resume)
         self.on_progress = on_progress
         self.timings: list[StageStats] = []
+        self._unrecorded: list[str] = []  # stages whose checkpoint is written, waiting for their key
+
+    def record_checkpoints(self, keys: _LazyKeys, *, wait: bool) -> None:
+        """Record the keys of the checkpoints written before the keys were known (all of them when ``wait``)."""
+        if self._unrecorded and (wait or keys.ready()):
+            for name in self._unrecorded:
+                self.checkpoints.record(name, keys[name])
+                self.checkpoints.snapshot(name, keys[name]).discard()  # the stage's partial work is done with
+            self._unrecorded.clear()
 
     def progress_for(self, stage: str) -> _StageProgress:
         return _StageProgress(stage, self.on_progress)
 
-    def stage(self, spec: st.StageSpec[C], keys: Mapping[str, str], compute: Callable[[ProgressFn], C]) -> C:
-        """Load the checkpoint of ``spec`` if its key matches, else compute and save it."""
-        key = keys[spec.name]
+    def stage(self, spec: st.StageSpec[C], keys: _LazyKeys, compute: Callable[[ProgressFn], C]) -> C:
+        """Load the checkpoint of ``spec`` if its key matches, else compute and save it.
+
+        The key is waited for only when a checkpoint of the stage exists (the keys hash the whole bundle, which
+        the first stages need not wait for: :class:`_LazyKeys`); else the checkpoint is recorded once it is known.
+        """
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> C:
-            if self.checkpoints.has(spec.name, key):
+            self.record_checkpoints(keys, wait=False)  # what the stages before have written, if it can be
+            if self.checkpoints.may_have(spec.name) and self.checkpoints.has(spec.name, keys[spec.name]):
                 stats.cached = True
                 return spec.load(self.checkpoints.path(spec.name))
             result = compute(report)
             tmp = self.checkpoints.path(spec.name).with_suffix(".tmp.npz")
             result.save(tmp)
+            self.checkpoints.forget(spec.name)  # a stale key must never name the new file
             tmp.replace(self.checkpoints.path(spec.name))
-            self.checkpoints.record(spec.name, key)
-            self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
+            self._unrecorded.append(spec.name)
+            self.record_checkpoints(keys, wait=False)
             return result
 
         return self._timed(spec.name, load_or_compute)
@@ -203,6 +231,45 @@ class _Runner:
             " (checkpoint)" if timer.stats.cached else "",
         )
         return result
+
+
+class _LazyKeys(Mapping[str, str]):
+    """The stages' checkpoint keys, made from the bundle's hash once it is ready.
+
+    Hashing the bundle reads every file of it (2 GB at ScanNet size, about 2 s): it runs in a thread (hashlib and
+    file reads release the GIL) while the first stages compute, and a stage waits for it only to look up or to
+    record its checkpoint.
+    """
+
+    def __init__(self, scene: Bundle, cfg: PipelineConfig, vocab: Vocabulary) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash-bundle")
+        self._hash = self._pool.submit(hash_bundle, scene)
+        self._pool.shutdown(wait=False)  # the one task runs on; nothing more is submitted
+        self._cfg, self._vocab = cfg, vocab
+        self._keys: dict[str, str] | None = None
+
+    def ready(self) -> bool:
+        """Whether the bundle's hash is done (the keys are then known without waiting)."""
+        return self._hash.done()
+
+    @property
+    def input_hash(self) -> str:
+        """The bundle's SHA-256 (waits for the hashing thread; raises what it raised)."""
+        return self._hash.result()
+
+    def _resolved(self) -> dict[str, str]:
+        if self._keys is None:
+            self._keys = st.stage_keys(self.input_hash, self._cfg, self._vocab)
+        return self._keys
+
+    def __getitem__(self, name: str) -> str:
+        return self._resolved()[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._resolved())
+
+    def __len__(self) -> int:
+        return len(self._resolved())
 
 
 def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vocabulary:
@@ -279,48 +346,16 @@ def run_pipeline(
         "validate",
         lambda _: bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out)),
     )
-    input_hash = hash_bundle(scene)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
-    keys = st.stage_keys(input_hash, cfg, vocab)
+    keys = _LazyKeys(scene, cfg, vocab)
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
-    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
-    fused = runner.stage(st.FUSION, keys, lambda p: st.fusion(scene, vis, prims, cfg, p))
-    field_ = None
-    if cfg.features_source == "field":
-        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
-    features = st.primitive_features(field_, fused)
-    masks = runner.stage(st.MASKS, keys, lambda p: st.masks(scene, vis, cfg, p))
-    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
-    sp = runner.stage(st.SUPERPRIMITIVES, keys, lambda p: st.superprimitives(prims, features, masks, knn, cfg, p))
-    clusters = runner.stage(st.CLUSTERING, keys, lambda p: st.clustering(sp, knn, masks, features, cfg, p))
-    labels = runner.stage(
-        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
-    )
-
-    def export(_: ProgressFn) -> PipelineResult:
-        from panogs_core.stages.export import write_outputs
-
-        # gaussians.ply is the initialisation here (the labels with the primitives' colours and scales), so that the
-        # point views have what they read; the fit replaces it.
-        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=None)
-        return PipelineResult(
-            appearance={"state": FIT_RUNNING},
-            unseen=dict(labels.unseen),
-            out_dir=out,
-            scene_name=scene.name,
-            num_primitives=int(prims.points.shape[0]),
-            instances=[i.to_json() for i in labels.instances],
-            timings=runner.timings,
-            metrics=metrics,
-            files=files,
-        )
-
-    result = runner.step("export", export)
+    result, colors, semantic, instance = _label_scene(runner, keys, scene, prims, cfg, vocab, out)
 
     def report() -> None:
+        runner.record_checkpoints(keys, wait=True)
         result.total_s = time.perf_counter() - t_start
-        _write_report(out, scene, cfg, vocabulary, input_hash, runner.timings, result.total_s, result)
+        _write_report(out, scene, cfg, vocabulary, keys.input_hash, runner.timings, result.total_s, result)
 
     report()
     if on_results is not None:
@@ -340,15 +375,69 @@ def run_pipeline(
         report()
         return result
 
-    from panogs_core.stages.export import primitive_colors, write_gaussians
+    from panogs_core.stages.export import write_gaussians
 
     path = GAUSSIANS_PLY.path(out)
     tmp = path.with_name(f".{path.name}.tmp")
-    write_gaussians(tmp, prims, primitive_colors(prims, fused), labels.semantic, labels.instance, gaussians)
+    write_gaussians(tmp, prims, colors, semantic, instance, gaussians)
     tmp.replace(path)  # atomic: a reader sees the initialisation or the fitted scene, never half of one
     result.appearance = {**gaussians.summary(), "state": FIT_SUCCEEDED if gaussians.fitted else FIT_SKIPPED}
     report()
     return result
+
+
+def _label_scene(
+    runner: _Runner,
+    keys: _LazyKeys,
+    scene: Bundle,
+    prims: st.Primitives,
+    cfg: PipelineConfig,
+    vocab: Vocabulary,
+    out: Path,
+) -> tuple[PipelineResult, np.ndarray, np.ndarray, np.ndarray]:
+    """The labelling stages and the results' files; returns the result and what the Gaussian scene's file needs
+    (the primitives' colours, semantic and instance labels).
+
+    Every stage output lives only as long as a later stage reads it: the visibility goes after the masks, the
+    masks after the clustering, and the features, segments and fused features (161 MB each at ScanNet size) when
+    this returns, so the appearance fit runs without them.
+    """
+    from panogs_core.stages.export import primitive_colors, write_outputs
+
+    vis = runner.stage(st.VISIBILITY, keys, lambda p: st.visibility(scene, prims, cfg, p))
+    fused = runner.stage(st.FUSION, keys, partial(st.fusion, scene, vis, prims, cfg))
+    field_ = None
+    if cfg.features_source == "field":
+        field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
+    features = st.primitive_features(field_, fused)
+    masks = runner.stage(st.MASKS, keys, partial(st.masks, scene, vis, cfg))
+    del vis
+    knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
+    sp = runner.stage(st.SUPERPRIMITIVES, keys, partial(st.superprimitives, prims, features, masks, knn, cfg))
+    clusters = runner.stage(st.CLUSTERING, keys, partial(st.clustering, sp, knn, masks, features, cfg))
+    del masks
+    labels = runner.stage(
+        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
+    )
+
+    def export(_: ProgressFn) -> PipelineResult:
+        # gaussians.ply is the initialisation here (the labels with the primitives' colours and scales), so that the
+        # point views have what they read; the fit replaces it.
+        files, metrics = write_outputs(out, scene, prims, fused, sp, clusters, labels, vocab, gaussians=None)
+        return PipelineResult(
+            appearance={"state": FIT_RUNNING},
+            unseen=dict(labels.unseen),
+            out_dir=out,
+            scene_name=scene.name,
+            num_primitives=int(prims.points.shape[0]),
+            instances=[i.to_json() for i in labels.instances],
+            timings=runner.timings,
+            metrics=metrics,
+            files=files,
+        )
+
+    result = runner.step("export", export)
+    return result, primitive_colors(prims, fused), labels.semantic, labels.instance
 
 
 def _error_text(exc: BaseException) -> str:

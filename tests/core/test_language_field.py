@@ -103,6 +103,31 @@ class TestFitLanguageField:
         for key in field_a.state:
             np.testing.assert_array_equal(field_a.state[key], field_b.state[key])
 
+    def test_cpu_threads_during_the_fit_then_restored(self) -> None:
+        import torch
+
+        points, region, anchors = _three_regions(n_per=50, seed=3)
+        fused = _fused(anchors[region], np.ones(len(points)))
+        seen: list[int] = []
+        before = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            fit_language_field(
+                points, fused, _small_cfg(epochs=1), on_progress=lambda *_: seen.append(torch.get_num_threads())
+            )
+            assert seen == [1]  # the default: one thread
+            assert torch.get_num_threads() == 2
+            seen.clear()
+            fit_language_field(
+                points,
+                fused,
+                _small_cfg(epochs=1, cpu_threads=None),
+                on_progress=lambda *_: seen.append(torch.get_num_threads()),
+            )
+            assert seen == [2]
+        finally:
+            torch.set_num_threads(before)
+
     def test_deterministic_for_a_seed(self) -> None:
         points, region, anchors = _three_regions(n_per=100, seed=3)
         fused = _fused(anchors[region], np.ones(len(points)))
@@ -228,6 +253,50 @@ class TestGeometry:
         bounds = field_bounds(points, 0.0)
         assert (bounds[1] > bounds[0]).all()
 
+    def test_gathered_corners_sample_as_grid_sample(self) -> None:
+        # Training gathers each point's bilinear corners from one table; decoding uses grid_sample on the planes.
+        # Both must give the same latent, on the box's faces and corners too, and the table must map back.
+        import torch
+
+        from panogs_core.stages.language_field.triplane import (
+            _add_table_gradient,
+            _gathered_latent,
+            bilinear_corners,
+            init_model,
+            plane_table,
+            planes_from_table,
+        )
+
+        resolutions = [3, 7]
+        model = init_model(resolutions, 4, LanguageFieldConfig(channels=5, hidden_dims=(8,)))
+        rng = np.random.default_rng(0)
+        coords = rng.uniform(-1, 1, size=(300, 3)).astype(np.float32)
+        coords[:8] = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T  # the box's corners
+        coords[8:20, 1] = 1.0  # a face
+        coords_t = torch.from_numpy(coords)
+        table = plane_table(list(model.planes))
+        assert table.shape == (3 * (9 + 49), 5)
+        cells, weights = bilinear_corners(coords_t, resolutions)
+        assert cells.shape == weights.shape == (300, 24)
+        assert int(cells.min()) >= 0
+        assert int(cells.max()) < table.shape[0]
+        np.testing.assert_allclose(weights.sum(dim=1).numpy(), 6.0, atol=1e-5)  # 4 corners x 3 planes x 2 levels
+        with torch.no_grad():
+            expected = model.encode(coords_t).numpy()
+            gathered = _gathered_latent(table, cells, weights).numpy()
+        np.testing.assert_allclose(gathered, expected, atol=1e-5)
+        for plane, back in zip(model.planes, planes_from_table(table, resolutions), strict=True):
+            assert torch.equal(plane.detach(), back)
+
+        # The table's gradient written by hand is autograd's gradient of the gathered latent.
+        upstream = torch.from_numpy(rng.normal(size=(300, 5)).astype(np.float32))
+        leaf = table.detach().clone().requires_grad_(True)
+        (_gathered_latent(leaf, cells, weights) * upstream).sum().backward()
+        by_hand = torch.full_like(table, 7.0)  # stale values: the buffer is overwritten, not added to
+        _add_table_gradient(by_hand, cells, weights, upstream)
+        assert leaf.grad is not None
+        np.testing.assert_allclose(by_hand.numpy(), leaf.grad.numpy(), atol=1e-5)
+
 
 class TestConfig:
     @pytest.mark.parametrize(
@@ -247,6 +316,7 @@ class TestConfig:
             ("bound_padding", -0.1),
             ("max_resolution", 1),
             ("device", "not-a-device"),
+            ("cpu_threads", 0),
         ],
     )
     def test_exception_names_field(self, field: str, value: object) -> None:

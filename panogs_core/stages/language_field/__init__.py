@@ -148,10 +148,17 @@ def fit_language_field(
     points, features, weights = _check_inputs(points, fused)
     device = torch.device(cfg.device)
     bounds = field_bounds(points, cfg.bound_padding)  # (2, 3) float32
-    model = init_model(plane_resolutions(bounds, cfg), features.shape[1], cfg)
-    train_model(model, TrainingSet(points, features, weights, bounds, device), cfg, on_progress)
-    model.eval()
-    decoded = decode_features(model, points, bounds)  # (N, D)
+    resolutions = plane_resolutions(bounds, cfg)
+    threads = torch.get_num_threads()
+    if cfg.cpu_threads is not None and device.type == "cpu":
+        torch.set_num_threads(cfg.cpu_threads)
+    try:
+        model = init_model(resolutions, features.shape[1], cfg)
+        train_model(model, TrainingSet(points, features, weights, bounds, resolutions, device), cfg, on_progress)
+        model.eval()
+        decoded = decode_features(model, points, bounds)  # (N, D)
+    finally:
+        torch.set_num_threads(threads)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))
 
 

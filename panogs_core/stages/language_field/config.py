@@ -42,6 +42,10 @@ class LanguageFieldConfig:
     # Torch device for training and decoding. The CLI keeps the CPU; a service worker sets "cuda" where it sees a
     # GPU, unless the job names a device (worker/device.py).
     device: str = "cpu"
+    # torch intra-op threads during a CPU fit (restored after it); None keeps torch's setting. One thread: a step's
+    # kernels are small (1024 points), and on the shared 2-core machine a lone fit took 100-250 ms a step with two
+    # threads (spinning against each other and other processes) against 16-28 ms with one (docs/benchmarks.md).
+    cpu_threads: int | None = 1
     seed: int = 0  # seeds plane/decoder initialisation and batch shuffling
 
     def __post_init__(self) -> None:
@@ -70,6 +74,7 @@ class LanguageFieldConfig:
             self.bound_padding,
         )
         _require(self.max_resolution >= 2, "max_resolution", ">= 2", self.max_resolution)
+        _require(self.cpu_threads is None or self.cpu_threads >= 1, "cpu_threads", "None or >= 1", self.cpu_threads)
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         _require(
             re.fullmatch(r"cpu|cuda(:\d+)?|mps", self.device) is not None,

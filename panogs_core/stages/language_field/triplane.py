@@ -44,16 +44,16 @@ class _TriplaneDecoder(torch.nn.Module):
             latent = latent + sampled.sum(dim=0).squeeze(1).t()  # sum over planes, then over levels
         return latent
 
-    def hidden(self, coords: torch.Tensor) -> torch.Tensor:
-        """Input of the last (linear) layer. ``(B, 3)`` in ``[-1, 1]`` -> ``(B, H)``."""
-        h = self.encode(coords)
+    def hidden(self, latent: torch.Tensor) -> torch.Tensor:
+        """Input of the last (linear) layer. ``(B, C)`` latent -> ``(B, H)``."""
+        h = latent
         for weight in self.mlp[:-1]:
             h = torch.relu(h @ weight.t())
         return h
 
     def forward(self, coords: torch.Tensor) -> torch.Tensor:
         """Decoded (not normalised) feature. ``(B, 3)`` in ``[-1, 1]`` -> ``(B, D)``."""
-        return self.hidden(coords) @ self.mlp[-1].t()
+        return self.hidden(self.encode(coords)) @ self.mlp[-1].t()
 
 
 def _to_unit_cube(points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
@@ -115,21 +115,35 @@ def decode_features(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndar
 
 
 class TrainingSet:
-    """The primitives with weight > 0: coordinates in [-1, 1], weights, and their targets read per batch.
+    """The primitives with weight > 0: their bilinear plane corners, weights, and their targets read per batch.
 
     DEPARTURE (minor, docs/method.md §3.3): zero-weight (unseen) primitives, which add exactly 0 to the loss, are
-    left out of the batches. The targets are the fused features' rows scaled to unit length when a batch reads
-    them: no (M, D) copy of the features is made (it was the stage's largest array).
+    left out of the batches. The targets are the fused features' rows, read by each batch and scaled to unit length
+    (:attr:`inverse_norms`): no (M, D) copy of the features is made (it was the stage's largest array).
+
+    The training points never move, so where each one samples the planes is computed once
+    (:func:`bilinear_corners`): a step gathers those cells instead of calling ``grid_sample`` per level.
     """
 
     def __init__(
-        self, points: np.ndarray, features: np.ndarray, weights: np.ndarray, bounds: np.ndarray, device: torch.device
+        self,
+        points: np.ndarray,
+        features: np.ndarray,
+        weights: np.ndarray,
+        bounds: np.ndarray,
+        resolutions: list[int],
+        device: torch.device,
     ) -> None:
         keep = np.flatnonzero(weights > 0)
         features = np.asarray(features, dtype=np.float32)  # (N, D), no copy when it is float32 already
-        if not np.isfinite(np.einsum("nd,nd->n", features, features)[keep]).all():  # no (N, D) temporary
+        sq_norms = np.einsum("nd,nd->n", features, features)[keep]  # (M,), no (N, D) temporary
+        if not np.isfinite(sq_norms).all():
             raise InputError("fused.features: contains NaN or infinite values where the weight is > 0")
-        self.coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds)).to(device)  # (M, 3)
+        self.inverse_norms = torch.from_numpy(1.0 / np.sqrt(np.maximum(sq_norms, 1e-24))).to(device)  # (M,)
+        coords = _to_unit_cube(torch.from_numpy(points[keep]), torch.from_numpy(bounds))  # (M, 3)
+        cells, corner_weights = bilinear_corners(coords, resolutions)
+        self.cells = cells.to(device)  # (M, K) row of each corner in the plane table
+        self.corner_weights = corner_weights.to(device)  # (M, K) bilinear weight of each corner
         self.weights = torch.from_numpy(weights[keep]).to(device)  # (M,)
         self._rows = torch.from_numpy(keep).to(device)  # (M,) row of each kept primitive in `features`
         if not features.flags.writeable:  # torch.from_numpy warns on read-only memory
@@ -139,49 +153,122 @@ class TrainingSet:
     def __len__(self) -> int:
         return int(self._rows.shape[0])
 
-    def targets(self, idx: torch.Tensor) -> torch.Tensor:  # (B, D) unit rows of the kept primitives idx
-        """Unit targets of a batch (cosine loss: only the direction matters)."""
-        rows = self._features[self._rows[idx]]  # (B, D)
-        return rows / rows.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    def targets(self, idx: torch.Tensor) -> torch.Tensor:  # (B, D) rows of the kept primitives idx, as fused
+        """The fused rows of a batch, not normalised: :attr:`inverse_norms` scales them to unit length."""
+        return self._features.index_select(0, self._rows.index_select(0, idx))
+
+
+# The (width, height) coordinates of each plane: plane 0 is (x, y), plane 1 (x, z), plane 2 (y, z).
+_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+
+
+def bilinear_corners(
+    coords: torch.Tensor,  # (M, 3) in [-1, 1]
+    resolutions: list[int],
+) -> tuple[torch.Tensor, torch.Tensor]:  # (M, K) int64, (M, K) float32, K = 12 per level
+    """The plane cells a point samples and their bilinear weights, in the layout of :func:`plane_table`.
+
+    The same sampling as :meth:`_TriplaneDecoder.encode` (``grid_sample``, bilinear, ``align_corners=True``,
+    border padding): ``latent = sum_k weight_k * table[cell_k]``.
+    """
+    cells, weights = [], []
+    offset = 0
+    for res in resolutions:
+        for a, b in _PLANE_AXES:
+            x = ((coords[:, a] + 1.0) * 0.5 * (res - 1)).clamp(0.0, res - 1.0)  # width position
+            y = ((coords[:, b] + 1.0) * 0.5 * (res - 1)).clamp(0.0, res - 1.0)  # height position
+            x0 = x.floor().clamp(max=res - 2)
+            y0 = y.floor().clamp(max=res - 2)
+            fx, fy = x - x0, y - y0
+            base = offset + y0.long() * res + x0.long()
+            cells += [base, base + 1, base + res, base + res + 1]
+            weights += [(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
+            offset += res * res
+    return torch.stack(cells, dim=1), torch.stack(weights, dim=1).float()
+
+
+def plane_table(planes: list[torch.Tensor]) -> torch.Tensor:  # (cells, C)
+    """Every level's ``(3, C, R, R)`` planes as one ``(sum 3 R^2, C)`` table, rows in (level, plane, y, x) order."""
+    return torch.cat([p.permute(0, 2, 3, 1).reshape(-1, p.shape[1]) for p in planes])
+
+
+def planes_from_table(table: torch.Tensor, resolutions: list[int]) -> list[torch.Tensor]:
+    """The inverse of :func:`plane_table`: ``(cells, C)`` -> per level ``(3, C, R, R)``."""
+    planes, offset = [], 0
+    for res in resolutions:
+        block = table[offset : offset + 3 * res * res]
+        planes.append(block.reshape(3, res, res, -1).permute(0, 3, 1, 2).contiguous())
+        offset += 3 * res * res
+    return planes
 
 
 # Device types with torch's fused Adam kernel (torch 2.13: cpu, cuda, mps, xpu); elsewhere the per-tensor loop.
 _FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps", "xpu")
 
 
-def _optimizer(model: _TriplaneDecoder, cfg: LanguageFieldConfig) -> torch.optim.Optimizer:
+def _optimizer(model: _TriplaneDecoder, table: torch.Tensor, cfg: LanguageFieldConfig) -> torch.optim.Optimizer:
     """Adam with the reference's two groups: planes (eps 1e-15, no decay) and decoder (L2 weight decay).
+
+    The planes are trained as their one ``(cells, C)`` table (:func:`plane_table`): Adam is element-wise, so
+    the update of every plane value is the one it would get in its ``(3, C, R, R)`` plane.
 
     DEPARTURE (fused Adam, docs/method.md §3.3): torch's fused kernel where the device has one, instead of the
     per-tensor loop torch picks on the CPU; the same update rule, rounded differently.
     """
     groups = [
-        {"params": list(model.planes), "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},
+        {"params": [table], "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},
         {"params": list(model.mlp), "lr": cfg.lr, "weight_decay": cfg.weight_decay},
     ]
-    device = next(model.parameters()).device.type
+    device = table.device.type
     return torch.optim.Adam(groups, betas=cfg.betas, fused=device in _FUSED_ADAM_DEVICES)
 
 
 def _cosine_to_targets(
     model: _TriplaneDecoder,
-    coords: torch.Tensor,  # (B, 3) in [-1, 1]
-    targets: torch.Tensor,  # (B, D) unit rows
+    latent: torch.Tensor,  # (B, C)
+    targets: torch.Tensor,  # (B, D)
+    inverse_norms: torch.Tensor,  # (B,) 1 / |target|
 ) -> torch.Tensor:  # (B,)
     """``cos(W h, t)`` for the decoded feature ``W h`` without forming the ``(B, D)`` prediction.
 
     With the last layer ``W`` (D, H) linear and bias-free, ``W h . t = h . (W^T t)`` and
     ``|W h|^2 = h^T (W^T W) h``: one (B, D) x (D, H) product forward and one backward instead of three, and no
-    (B, D) element-wise work; the value is the same cosine as torch.cosine_similarity (eps 1e-8), as targets
-    are unit rows. This is most of the training time on a CPU.
+    (B, D) element-wise work (the targets' lengths scale the (B, H) product); the value is the same cosine as
+    torch.cosine_similarity (eps 1e-8) against the unit targets. This is most of the training time on a CPU.
     """
-    h = model.hidden(coords)  # (B, H)
+    h = model.hidden(latent)  # (B, H)
     last = model.mlp[-1]  # (D, H)
-    projected = targets @ last  # (B, H)
+    projected = (targets @ last) * inverse_norms.unsqueeze(1)  # (B, H), as if the targets were unit rows
     gram = last.t() @ last  # (H, H)
     dot = (h * projected).sum(dim=1)
     sq_norm = ((h @ gram) * h).sum(dim=1)
     return dot / sq_norm.clamp_min(0.0).sqrt().clamp_min(1e-8)
+
+
+def _gathered_latent(
+    table: torch.Tensor,  # (cells, C)
+    cells: torch.Tensor,  # (B, K) rows of the table
+    corner_weights: torch.Tensor,  # (B, K)
+) -> torch.Tensor:  # (B, C)
+    """``sum_k weight_k * table[cell_k]``: the tri-plane latent of points whose corners are known."""
+    rows = table.index_select(0, cells.reshape(-1)).reshape(*cells.shape, table.shape[1])  # (B, K, C)
+    return (rows * corner_weights.unsqueeze(2)).sum(dim=1)
+
+
+def _add_table_gradient(
+    grad: torch.Tensor,  # (cells, C), overwritten
+    cells: torch.Tensor,  # (B, K)
+    corner_weights: torch.Tensor,  # (B, K)
+    latent_grad: torch.Tensor,  # (B, C)
+) -> None:
+    """The table's gradient of a batch, written into a buffer kept across steps.
+
+    The backward of :func:`_gathered_latent` by hand: autograd would allocate a fresh ``(cells, C)`` zero
+    gradient every step, whose page faults cost twice the zeroing and the scatter together.
+    """
+    grad.zero_()
+    rows = (corner_weights.unsqueeze(2) * latent_grad.unsqueeze(1)).reshape(-1, grad.shape[1])  # (B K, C)
+    grad.index_add_(0, cells.reshape(-1), rows)
 
 
 def train_model(
@@ -190,22 +277,38 @@ def train_model(
     cfg: LanguageFieldConfig,
     on_progress: ProgressFn | None,
 ) -> None:
-    """Mini-batch Adam over shuffled primitives; the shuffle uses its own generator (seeded, reproducible)."""
-    optimizer = _optimizer(model, cfg)
+    """Mini-batch Adam over shuffled primitives; the shuffle uses its own generator (seeded, reproducible).
+
+    The planes train as one table (:func:`plane_table`), written back into ``model.planes`` at the end.
+    """
+    resolutions = [int(p.shape[-1]) for p in model.planes]
+    table = torch.nn.Parameter(plane_table([p.detach() for p in model.planes]))  # (cells, C), a copy
+    optimizer = _optimizer(model, table, cfg)
     gen = torch.Generator().manual_seed(cfg.seed + 1)
-    coords, weights = data.coords, data.weights  # (M, 3) in [-1, 1], (M,) > 0
+    weights = data.weights  # (M,) > 0
     count = len(data)
     steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
     epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
+    table_grad = torch.zeros_like(table)  # (cells, C), reused by every step
     for epoch in range(epochs):
-        order = torch.randperm(count, generator=gen).to(coords.device)
+        order = torch.randperm(count, generator=gen).to(weights.device)
         for start in range(0, count, cfg.batch_size):
             idx = order[start : start + cfg.batch_size]
-            cos = _cosine_to_targets(model, coords[idx], data.targets(idx))  # (B,)
-            loss = (weights[idx] * (1.0 - cos)).mean()
+            cells, corner_weights = data.cells.index_select(0, idx), data.corner_weights.index_select(0, idx)
+            with torch.no_grad():
+                latent = _gathered_latent(table, cells, corner_weights)  # (B, C)
+            latent.requires_grad_(True)
+            cos = _cosine_to_targets(model, latent, data.targets(idx), data.inverse_norms.index_select(0, idx))
+            loss = (weights.index_select(0, idx) * (1.0 - cos)).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            assert latent.grad is not None
+            _add_table_gradient(table_grad, cells, corner_weights, latent.grad)
+            table.grad = table_grad
             optimizer.step()
         if not math.isfinite(float(loss.detach())):
             raise NumericalError(f"language field: the loss became {float(loss.detach())} at epoch {epoch + 1}")
         report(on_progress, epoch + 1, epochs)
+    with torch.no_grad():
+        for plane, trained in zip(model.planes, planes_from_table(table.detach(), resolutions), strict=True):
+            plane.copy_(trained)
