@@ -1,12 +1,13 @@
 """When a run's results are ready, against when the whole run (the appearance fit last) has ended.
 
 Usage:
-    python bench/results_first.py BUNDLE [--out DIR] [--threads 1]
+    python bench/results_first.py BUNDLE [--out DIR] [--threads 1] [--fit-off]
 
 Runs ``run_pipeline`` once with the default settings and no checkpoints, and prints one JSON line: the seconds
 until ``on_results`` was called (the labels, instances and point views written), the seconds of the whole run,
 the fit's own time, the primitive count and the fit's state, iterations and PSNR before and after
-(docs/gaussians.md, "Results before the fit").
+(docs/gaussians.md, "Results before the fit"). ``--fit-off`` runs the same with ``appearance.enabled: false``,
+the time to results that the default run's must match.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def main() -> None:
     parser.add_argument("bundle")
     parser.add_argument("--out", help="the run folder (default: a temporary folder)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--fit-off", action="store_true", help="appearance.enabled: false (the baseline)")
     args = parser.parse_args()
     set_torch_threads(args.threads)
     out = args.out or tempfile.mkdtemp(prefix="results-first-")
@@ -36,7 +38,8 @@ def main() -> None:
     def on_results(_: PipelineResult) -> None:
         marks["results_s"] = round(time.perf_counter() - start, 2)
 
-    result = run_pipeline(args.bundle, out, PipelineConfig(), resume=False, on_results=on_results)
+    cfg = PipelineConfig().with_overrides({"appearance": {"enabled": False}} if args.fit_off else None)
+    result = run_pipeline(args.bundle, out, cfg, resume=False, on_results=on_results)
     marks["total_s"] = round(time.perf_counter() - start, 2)
     marks["fit_s"] = next(round(t.wall_s, 2) for t in result.timings if t.name == "appearance")
     marks["primitives"] = result.num_primitives
