@@ -42,7 +42,8 @@ from service.db.faults import DatabaseFault, classify
 from service.db.models import Artifact, FitState, Job, JobState
 from service.db.session import session_scope
 from service.settings import Settings
-from service.storage import Storage, sha256_file
+from service.storage import Storage, TreePush, sha256_file
+from service.storage.objects import StorageError, StorageUnavailable
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -153,6 +154,18 @@ class _Tracker:
     lost: bool = False
     results_ready: bool = False  # the results are recorded; what runs now is the appearance fit
     fit_progress: float = 0.0
+    push: TreePush | None = None  # stores the output folder (object storage), after each stage and at the end
+
+    def push_outputs(self, *, best_effort: bool = False) -> None:
+        """Store what changed in the output folder (nothing with the local backend, which writes in place)."""
+        if self.push is None:
+            return
+        try:
+            self.push.push()
+        except StorageError:
+            if not best_effort:
+                raise
+            logger.warning("job %s: could not store its partial work", self.job_id, exc_info=True)
 
     def fraction(self, stage: str, done: int, total: int) -> float:
         if stage not in self.env.stages:
@@ -171,6 +184,7 @@ class _Tracker:
         if changed:
             self.close_stage(now)
             self.stage, self.stage_started = stage, now
+            self.push_outputs()  # the stage before this one has its checkpoint: store it
         if self.lost:
             raise LeaseLost(f"job {self.job_id}: another worker holds it now")
         if self.env.shutdown.is_set():
@@ -291,9 +305,35 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             error_type="SceneMissing",
             error_message=f"scene {job.scene_id} no longer exists",
         )
-    out_dir = env.storage.job_dir(job.id)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    bundle_dir = env.storage.path(scene.bundle_path)
+    with _workspace(env, job, scene.bundle_path) as (bundle_dir, out_dir, push):
+        tracker.push = push
+        return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+
+
+@contextmanager
+def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, Path, TreePush | None]]:
+    """The job's bundle and output folder: in place with the local backend; else a scratch folder of this task
+    with the scene's bundle and what earlier attempts stored of the job (its checkpoints) fetched into it, and a
+    :class:`TreePush` that stores the output folder back. The scratch folder is removed after the task."""
+    storage = env.storage
+    if storage.is_local:
+        out_dir = storage.job_dir(job.id)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        yield storage.path(bundle_path), out_dir, None
+        return
+    with storage.scratch(f"job-{job.id}") as scratch:
+        bundle_dir, out_dir = scratch / "bundle", scratch / "out"
+        out_dir.mkdir()
+        storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        storage.fetch_tree(storage.job_prefix(job.id), out_dir)
+        push = TreePush(storage, out_dir, storage.job_prefix(job.id))
+        push.mark_present()
+        yield bundle_dir, out_dir, push
+
+
+def _run_in(
+    job: Job, tracker: _Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
+) -> JobState | None:
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
@@ -306,10 +346,27 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
                 resume=True,
                 on_results=lambda _result: _record_results(job.id, tracker, out_dir),
             )
+        tracker.push_outputs()
+    except StorageUnavailable as exc:
+        # The object storage is away: hand the job back and retry the task with backoff (Celery's).
+        with_db_retry(lambda: _release(job.id, tracker), deadline_s=env.settings.transient_retry_s, what="hand back")
+        raise TransientError(f"object storage unavailable: {exc}") from exc
+    except StorageError as exc:
+        tracker.close_stage(time.monotonic())
+        return _finish(
+            job.id,
+            tracker.lease,
+            env,
+            JobState.FAILED,
+            stage_timings=tracker.timings,
+            error_type="StorageError",
+            error_message=without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000],
+        )
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
         return None
     except Interrupted:
+        tracker.push_outputs(best_effort=True)  # what it did so far resumes on another host
         with_db_retry(
             lambda: _release(job.id, tracker),
             deadline_s=env.settings.transient_retry_s,
@@ -387,6 +444,7 @@ def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None
         LeaseLost: another task holds the job now.
     """
     env = tracker.env
+    tracker.push_outputs()
     artifacts = collect_artifacts(job_id, out_dir, env.storage, exclude=FITTED_FILES)
 
     def write() -> bool:
@@ -449,7 +507,7 @@ def collect_artifacts(
                 Artifact(
                     job_id=job_id,
                     name=name,
-                    path=storage.rel(path),
+                    path=storage.job_prefix(job_id) + name,
                     size_bytes=path.stat().st_size,
                     sha256=sha256_file(path).hexdigest(),
                     media_type=media_type,

@@ -151,7 +151,7 @@ class LocalStorage:
 
     def _info(self, key: str, path: Path) -> ObjectInfo:
         st = path.stat()
-        return ObjectInfo(key=key, size=st.st_size, etag=f"{st.st_size:x}-{st.st_mtime_ns:x}")
+        return ObjectInfo(key=key, size=st.st_size, etag=f"{st.st_size:x}-{st.st_mtime_ns:x}", modified=st.st_mtime)
 
     def list_objects(self, prefix: str) -> Iterator[ObjectInfo]:
         folder = self._folder(prefix)
@@ -187,7 +187,6 @@ class LocalStorage:
         shutil.rmtree(folder, ignore_errors=True)
         for key, upload_id in self.list_multipart(prefix):
             self.abort_multipart(key, upload_id)
-        self._prune(folder.parent)
         return count
 
     # Signed links -------------------------------------------------------------------------------------------------

@@ -55,11 +55,13 @@ class RangeNotSatisfiable(StorageError):
 
 @dataclass(frozen=True)
 class ObjectInfo:
-    """One stored object: its key, size in bytes and an opaque version tag (changes when the bytes do)."""
+    """One stored object: its key, size in bytes, an opaque version tag (changes when the bytes do) and, where the
+    listing gives it, when it was last written (seconds since the epoch; 0 when unknown)."""
 
     key: str
     size: int
     etag: str
+    modified: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -194,7 +194,9 @@ class S3Storage:
         pages = self.client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=full)
         for page in self._call(f"list {prefix}", lambda: list(pages)):
             for item in page.get("Contents", []):
-                yield ObjectInfo(key=item["Key"][len(self.prefix) :], size=int(item["Size"]), etag=_etag(item))
+                modified = item["LastModified"].timestamp() if "LastModified" in item else 0.0
+                key = item["Key"][len(self.prefix) :]
+                yield ObjectInfo(key=key, size=int(item["Size"]), etag=_etag(item), modified=modified)
 
     def delete(self, key: str) -> None:
         try:
