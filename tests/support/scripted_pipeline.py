@@ -142,7 +142,14 @@ def _write_outputs(out: Path, bundle: Path, vocabulary: str | Vocabulary | None,
             {**inst, "class_name": name, "class_index": i} for i, (inst, name) in enumerate(zip(INSTANCES, names))
         ]
         classes = [{"name": n, "kind": k} for n, k in zip(vocabulary.names, vocabulary.kinds)]
-        (out / "vocabulary.json").write_text(json.dumps({"classes": classes}))
+        doc: dict[str, Any] = {"classes": classes}
+        if vocabulary.embeddings is not None:  # then the run folder answers queries: each instance its class's vector
+            np.save(out / "vocabulary.npy", vocabulary.embeddings.astype(np.float32))
+            count = len(vocabulary.names)  # fewer classes than instances: the names repeat
+            rows = [vocabulary.embeddings[int(inst["class_index"]) % count] for inst in instances]
+            np.save(out / "instance_features.npy", np.stack(rows).astype(np.float32))
+            doc["embeddings"] = "vocabulary.npy"
+        (out / "vocabulary.json").write_text(json.dumps(doc))
     (out / "instances.json").write_text(json.dumps(instances))
     points = np.array([[0.9, 0, 0.5], [1.1, 0, 0.5], [-1.2, 0, 0.4], [-0.8, 0, 0.4]], np.float32)
     semantic = np.array([1, 1, 2, 2], np.int64)
