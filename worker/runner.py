@@ -305,9 +305,27 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             error_type="SceneMissing",
             error_message=f"scene {job.scene_id} no longer exists",
         )
-    with _workspace(env, job, scene.bundle_path) as (bundle_dir, out_dir, push):
-        tracker.push = push
-        return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+    try:
+        with _workspace(env, job, scene.bundle_path) as (bundle_dir, out_dir, push):
+            tracker.push = push
+            return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+    except StorageUnavailable as exc:
+        # The object storage is away: hand the job back and retry the task with backoff (Celery's); the next
+        # attempt resumes from the checkpoints it stored.
+        with_db_retry(lambda: _release(job.id, tracker), deadline_s=env.settings.transient_retry_s, what="hand back")
+        logger.warning("job %s: object storage unavailable, handed back: %s", job.id, exc)
+        raise TransientError(f"object storage unavailable: {exc}") from exc
+    except StorageError as exc:  # refused keys, a missing bucket: waiting cannot help
+        tracker.close_stage(time.monotonic())
+        return _finish(
+            job.id,
+            tracker.lease,
+            env,
+            JobState.FAILED,
+            stage_timings=tracker.timings,
+            error_type="StorageError",
+            error_message=without_host_paths(str(exc), env)[:10_000],
+        )
 
 
 @contextmanager
@@ -347,21 +365,8 @@ def _run_in(
                 on_results=lambda _result: _record_results(job.id, tracker, out_dir),
             )
         tracker.push_outputs()
-    except StorageUnavailable as exc:
-        # The object storage is away: hand the job back and retry the task with backoff (Celery's).
-        with_db_retry(lambda: _release(job.id, tracker), deadline_s=env.settings.transient_retry_s, what="hand back")
-        raise TransientError(f"object storage unavailable: {exc}") from exc
-    except StorageError as exc:
-        tracker.close_stage(time.monotonic())
-        return _finish(
-            job.id,
-            tracker.lease,
-            env,
-            JobState.FAILED,
-            stage_timings=tracker.timings,
-            error_type="StorageError",
-            error_message=without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000],
-        )
+    except StorageError:
+        raise  # handled by _run, around the workspace
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
         return None

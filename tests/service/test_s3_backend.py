@@ -19,7 +19,7 @@ import pytest
 import scripted_pipeline as scripted
 from fastapi.testclient import TestClient
 from seaweedfs import SeaweedFS
-from svc_helpers import RecordingSender, new_key
+from svc_helpers import VOCABULARY_8D, RecordingSender, new_key
 
 from service.api_app import create_app
 from service.db.models import JobState
@@ -30,10 +30,6 @@ from service.storage.backends import open_storage
 from worker import runner
 
 MIB = 1024 * 1024
-# Inline classes with vectors of the tiny bundle's 8-d space: the scripted pipeline writes them as vocabulary.json.
-VOCABULARY = {
-    "classes": [{"name": n, "embedding": [float(i == k) for i in range(8)]} for k, n in enumerate(("chair", "table"))]
-}
 TUS = {"Tus-Resumable": "1.0.0", "Content-Type": "application/offset+octet-stream"}
 
 
@@ -154,7 +150,7 @@ def test_scene_job_results_range_and_delete(
     assert _keys(s3_settings, f"uploads/{upload_id}/") == []  # extracted and stored: the archive is gone
     assert any(k.endswith("scene.json") for k in _keys(s3_settings, f"scenes/{scene_id}/"))
     job = s3_client.post(
-        "/v1/jobs", json={"scene_id": scene_id, "config": {}, "vocabulary": VOCABULARY}, headers=s3_auth
+        "/v1/jobs", json={"scene_id": scene_id, "config": {}, "vocabulary": VOCABULARY_8D}, headers=s3_auth
     )
     assert job.status_code == 202, job.text
     job_id = uuid.UUID(job.json()["id"])
