@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -39,11 +39,12 @@ from service import jobs
 from service.db import crud
 from service.db.base import utcnow
 from service.db.faults import DatabaseFault, classify
-from service.db.models import Artifact, FitState, Job, JobState
+from service.db.models import Artifact, FitState, Job, JobState, Scene
 from service.db.session import session_scope
 from service.settings import Settings
 from service.storage import Storage, TreePush, sha256_file
 from service.storage.objects import StorageError, StorageUnavailable
+from worker.shared_checkpoints import SceneCheckpoints
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -68,6 +69,7 @@ class PipelineFn(Protocol):
         on_progress: Callable[[str, int, int], None],
         resume: bool,
         on_results: Callable[[Any], None],
+        shared: Any,
     ) -> Any: ...
 
 
@@ -155,6 +157,7 @@ class _Tracker:
     results_ready: bool = False  # the results are recorded; what runs now is the appearance fit
     fit_progress: float = 0.0
     push: TreePush | None = None  # stores the output folder (object storage), after each stage and at the end
+    shared: SceneCheckpoints | None = None  # the scene's checkpoints; its leases are renewed with the heartbeat
 
     def push_outputs(self, *, best_effort: bool = False) -> None:
         """Store what changed in the output folder (nothing with the local backend, which writes in place)."""
@@ -229,6 +232,8 @@ class _Tracker:
 
     def heartbeat_loop(self) -> None:
         while not self.stop.wait(self.env.settings.heartbeat_interval_s):
+            if self.shared is not None:
+                self.shared.refresh()
             try:
                 self.write()
             except CancelRequested:
@@ -308,7 +313,11 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
     try:
         with _workspace(env, job, scene.bundle_path) as (bundle_dir, out_dir, push):
             tracker.push = push
-            return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+            try:
+                return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+            finally:
+                if tracker.shared is not None:
+                    tracker.shared.release_all()  # a stage that never stored its key: the next taker computes it
     except StorageUnavailable as exc:
         # The object storage is away: hand the job back and retry the task with backoff (Celery's); the next
         # attempt resumes from the checkpoints it stored.
@@ -352,6 +361,15 @@ def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, 
 def _run_in(
     job: Job, tracker: _Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
 ) -> JobState | None:
+    shared = SceneCheckpoints(
+        env.storage,
+        job.scene_id,
+        owner=f"job {job.id} lease {tracker.lease}",
+        lease_s=env.settings.heartbeat_timeout_s,
+        on_wait=lambda stage: tracker.on_progress(stage, 0, 1),
+        on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
+    )
+    tracker.shared = shared
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
@@ -363,6 +381,7 @@ def _run_in(
                 on_progress=tracker.on_progress,
                 resume=True,
                 on_results=lambda _result: _record_results(job.id, tracker, out_dir),
+                shared=shared,
             )
         tracker.push_outputs()
     except StorageError:
@@ -421,6 +440,17 @@ def _run_in(
         fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
         fit_error=fit_error,
     )
+
+
+def _count_scene_bytes(env: JobEnv, scene_id: uuid.UUID, size: int) -> None:
+    """A checkpoint stored under the scene counts in its size (the tenant's storage quota)."""
+
+    def write() -> None:
+        with session_scope(env.session_factory) as session:
+            session.execute(update(Scene).where(Scene.id == scene_id).values(size_bytes=Scene.size_bytes + size))
+            session.commit()
+
+    with_db_retry(write, deadline_s=env.settings.transient_retry_s, what="count a shared checkpoint")
 
 
 def fit_outcome(result: Any) -> tuple[FitState, str | None]:

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -155,12 +155,29 @@ class _StageProgress:
         self(self.total, self.total)
 
 
+class SharedCheckpoints(Protocol):
+    """Checkpoints kept beyond one run folder (the service keeps them under the scene, by key): a run whose stage
+    key was computed before fetches the checkpoint instead of computing the stage, and stores what it computed."""
+
+    def fetch(self, stage: str, key: str, dest: Path) -> bool:
+        """Write the checkpoint of ``stage`` under ``key`` to ``dest`` (whole) and return True; False when there
+        is none, and then this run computes it (and calls :meth:`store`)."""
+        ...
+
+    def store(self, stage: str, key: str, path: Path) -> None:
+        """Keep the checkpoint at ``path``, just computed, for later runs."""
+        ...
+
+
 class _Runner:
     """Runs stages with timing, progress and checkpoints; holds nothing but bookkeeping."""
 
-    def __init__(self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None) -> None:
+    def __init__(
+        self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None, shared: SharedCheckpoints | None
+    ) -> None:
         self.checkpoints = _Checkpoints(STAGES_FOLDER.path(out_dir), resume)
         self.on_progress = on_progress
+        self.shared = shared if resume else None
         self.timings: list[StageStats] = []
 
     def progress_for(self, stage: str) -> _StageProgress:
@@ -171,14 +188,20 @@ class _Runner:
         key = keys[spec.name]
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> C:
-            if self.checkpoints.has(spec.name, key):
+            path = self.checkpoints.path(spec.name)
+            if self.checkpoints.has(spec.name, key) or (
+                self.shared is not None and self.shared.fetch(spec.name, key, path)
+            ):
+                self.checkpoints.record(spec.name, key)
                 stats.cached = True
-                return spec.load(self.checkpoints.path(spec.name))
+                return spec.load(path)
             result = compute(report)
-            tmp = self.checkpoints.path(spec.name).with_suffix(".tmp.npz")
+            tmp = path.with_suffix(".tmp.npz")
             result.save(tmp)
-            tmp.replace(self.checkpoints.path(spec.name))
+            tmp.replace(path)
             self.checkpoints.record(spec.name, key)
+            if self.shared is not None:
+                self.shared.store(spec.name, key, path)
             self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
             return result
 
@@ -241,6 +264,7 @@ def run_pipeline(
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
     on_results: ResultsFn | None = None,
+    shared: SharedCheckpoints | None = None,
 ) -> PipelineResult:
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
@@ -261,6 +285,8 @@ def run_pipeline(
         resume: Reuse checkpoints whose keys match.
         on_results: Called once the results are written, before the fit, with the result so far (its
             ``fit_state`` is ``running``); may raise :class:`Cancelled` to stop.
+        shared: Checkpoints shared beyond ``out_dir`` (with ``resume``): fetched when this folder has none of a
+            stage's key, given each checkpoint this run computes.
 
     Returns:
         The result summary; files are in ``out_dir``. ``appearance["state"]`` says how the fit ended.
@@ -272,7 +298,7 @@ def run_pipeline(
     cfg = config or PipelineConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    runner = _Runner(out, resume, on_progress)
+    runner = _Runner(out, resume, on_progress, shared)
     t_start = time.perf_counter()
 
     scene = runner.step(
