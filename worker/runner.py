@@ -325,16 +325,7 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         logger.warning("job %s: object storage unavailable, handed back: %s", job.id, exc)
         raise TransientError(f"object storage unavailable: {exc}") from exc
     except StorageError as exc:  # refused keys, a missing bucket: waiting cannot help
-        tracker.close_stage(time.monotonic())
-        return _finish(
-            job.id,
-            tracker.lease,
-            env,
-            JobState.FAILED,
-            stage_timings=tracker.timings,
-            error_type="StorageError",
-            error_message=without_host_paths(str(exc), env)[:10_000],
-        )
+        return _fail(job.id, tracker, "StorageError", without_host_paths(str(exc), env)[:10_000])
 
 
 @contextmanager
@@ -404,20 +395,10 @@ def _run_in(
         return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings, **fit)
     except (TimeLimitExceeded, PanoGSError) as exc:
         # Domain errors: the input or the configuration is at fault, retrying cannot help.
-        tracker.close_stage(time.monotonic())
         logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
         message = without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000]
         fit = {"fit_state": FitState.FAILED, "fit_error": f"{type(exc).__name__}: {message}"}
-        return _finish(
-            job.id,
-            tracker.lease,
-            env,
-            JobState.FAILED,
-            stage_timings=tracker.timings,
-            error_type=type(exc).__name__,
-            error_message=message,
-            **(fit if tracker.results_ready else {}),
-        )
+        return _fail(job.id, tracker, type(exc).__name__, message, **(fit if tracker.results_ready else {}))
     tracker.close_stage(time.monotonic())
     timings = merge_timings(tracker.timings, getattr(result, "timings", None))
     fit_state, fit_error = fit_outcome(result)
@@ -439,6 +420,21 @@ def _run_in(
         fit_state=fit_state,
         fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
         fit_error=fit_error,
+    )
+
+
+def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, **values: Any) -> JobState | None:
+    """Record the job failed with ``error_type: message`` and the stage times so far."""
+    tracker.close_stage(time.monotonic())
+    return _finish(
+        job_id,
+        tracker.lease,
+        tracker.env,
+        JobState.FAILED,
+        stage_timings=tracker.timings,
+        error_type=error_type,
+        error_message=message,
+        **values,
     )
 
 
