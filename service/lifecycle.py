@@ -18,7 +18,6 @@ import logging
 import shutil
 import uuid
 from datetime import timedelta
-from pathlib import Path
 
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
@@ -78,7 +77,13 @@ def disk_room(settings: Settings, storage: Storage) -> int:
 
 
 def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str) -> None:
-    """Refuse (507) when ``needed`` bytes do not fit on the storage volume with ``min_free_disk_bytes`` left free."""
+    """Refuse (507) when ``needed`` bytes do not fit on the storage volume with ``min_free_disk_bytes`` left free.
+
+    An object storage (S3) has no free space to ask: only the local backend is checked (an extraction's scratch
+    folder is, through :func:`extraction_limit`).
+    """
+    if not storage.is_local:
+        return
     room = disk_room(settings, storage)
     if needed > room:
         raise InsufficientStorage(
@@ -131,7 +136,8 @@ def delete_job(session: Session, storage: Storage, job: Job) -> None:
     session.execute(delete(Artifact).where(Artifact.job_id == job_id))
     session.execute(delete(Job).where(Job.id == job_id))
     session.commit()
-    storage.remove_tree(storage.job_dir(job_id))
+    storage.delete_prefix(storage.job_prefix(job_id))
+    storage.drop_cached(job_id)
 
 
 def delete_scene(session: Session, storage: Storage, scene: Scene) -> list[uuid.UUID]:
@@ -142,7 +148,7 @@ def delete_scene(session: Session, storage: Storage, scene: Scene) -> list[uuid.
     scene_id = scene.id
     session.execute(delete(Scene).where(Scene.id == scene_id))
     session.commit()
-    storage.remove_tree(storage.scene_dir(scene_id))
+    storage.delete_prefix(storage.scene_prefix(scene_id))
     return [job.id for job in jobs]
 
 
@@ -165,22 +171,20 @@ def sweep_retention(session: Session, settings: Settings, storage: Storage) -> i
 
 def sweep_orphans(session: Session, storage: Storage) -> int:
     """Remove job and scene folders whose rows are gone (a delete interrupted between rows and files, or a worker
-    that wrote after its job was deleted); returns how many."""
+    that wrote after its job was deleted) once nothing was written in them for ``ORPHAN_GRACE``; returns how many."""
     removed = 0
-    for folder, model in ((storage.root / "artifacts", Job), (storage.root / "scenes", Scene)):
-        for path in _old_children(folder):
+    cutoff = (utcnow() - ORPHAN_GRACE).timestamp()
+    for top, model in (("artifacts/", Job), ("scenes/", Scene)):
+        newest: dict[str, float] = {}
+        for info in storage.objects.list_objects(top):
+            folder = info.key[len(top) :].split("/", 1)[0]
+            newest[folder] = max(newest.get(folder, 0.0), info.modified)
+        for name, modified in newest.items():
             try:
-                ident = uuid.UUID(path.name)
+                ident = uuid.UUID(name)
             except ValueError:
                 continue
-            if session.get(model, ident) is None:
-                storage.remove_tree(path)
+            if modified < cutoff and session.get(model, ident) is None:
+                storage.delete_prefix(f"{top}{name}/")
                 removed += 1
     return removed
-
-
-def _old_children(folder: Path) -> list[Path]:
-    if not folder.is_dir():
-        return []
-    cutoff = (utcnow() - ORPHAN_GRACE).timestamp()
-    return [p for p in folder.iterdir() if p.stat().st_mtime < cutoff]

@@ -26,7 +26,7 @@ from service.db.session import session_scope
 from service.lifecycle import sweep_orphans, sweep_retention
 from service.queue import Sender, dispatch
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, upload_folder
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def sweep(
         pending = [(job.id, job.queue) for job in crud.undispatched_jobs(session, crud.stale_cutoff(DISPATCH_GRACE_S))]
         stale = [(u.id, u.path) for u in crud.stale_uploads(session, crud.stale_cutoff(settings.upload_ttl_s))]
         for upload_id, rel in stale:
-            storage.remove_tree(storage.path(rel).parent)
+            storage.delete_prefix(upload_folder(rel))
             crud.delete_upload(session, upload_id)
             counts["uploads_deleted"] += 1
     if housekeeping:

@@ -35,6 +35,12 @@ class Settings(BaseSettings):
     broker_url: str | None = None  # default: filesystem:// with folders under <data_dir>/broker
     broker_key_prefix: str = ""  # Redis key prefix (kombu global_keyprefix); lets tests share a Redis
     storage_dir: Path | None = None  # uploads, scenes, artifacts; default <data_dir>/storage
+    storage_url: str | None = None  # s3://bucket/prefix: objects in S3 instead of storage_dir
+    s3_endpoint_url: str | None = None  # the S3 server (SeaweedFS, MinIO); empty: AWS
+    s3_access_key_id: str | None = None
+    s3_secret_access_key: str | None = None
+    s3_region: str = "us-east-1"
+    storage_signing_key: str | None = None  # signs local download links; default: a secret of each process
 
     # Uploads.
     max_upload_bytes: int = Field(default=16 * GIB, gt=0)  # largest accepted bundle archive
@@ -93,6 +99,11 @@ class Settings(BaseSettings):
             )
         if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
             raise ValueError("heartbeat_timeout_s must exceed heartbeat_interval_s")
+        if self.storage_url is not None and not self.storage_url.startswith("s3://"):
+            raise ValueError(f"PANOGS_STORAGE_URL must be s3://bucket[/prefix], not {self.storage_url!r}")
+        secret = self.s3_secret_access_key or ""
+        if self.environment == "production" and PLACEHOLDER_SECRET in secret:
+            raise ValueError(f"PANOGS_S3_SECRET_ACCESS_KEY still holds the placeholder {PLACEHOLDER_SECRET!r}")
         if self.environment == "production":
             for name in ("database_url", "broker_url"):
                 value = getattr(self, name)

@@ -34,7 +34,9 @@ from service.errors import (
     ServiceError,
     UnsupportedMediaType,
 )
-from service.storage import BLOCK, ChunkWriter, HashStates, Storage
+from service.storage import BLOCK, ChunkWriter, HashStates, Storage, sha256_object, upload_folder
+from service.storage import parts as object_parts
+from service.storage.objects import StorageError
 from service.stored_text import printable_text
 
 TUS_VERSION = "1.0.0"
@@ -108,9 +110,13 @@ def create_upload(
     if filename is not None:
         printable_text(filename, "Upload-Metadata: filename")
     upload_id = uuid.uuid4()
-    path = storage.upload_file(upload_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.touch()
+    key = storage.upload_key(upload_id)
+    if storage.is_local:
+        path = storage.upload_file(upload_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+    else:
+        object_parts.begin(storage.objects, key)
     upload = Upload(
         id=upload_id,
         api_key_id=tenant_id,
@@ -118,7 +124,7 @@ def create_upload(
         length=length,
         offset=0,
         expected_sha256=expected,
-        path=storage.rel(path),
+        path=key,
     )
     if upload.filename is not None:
         upload.filename = upload.filename[:255]
@@ -128,7 +134,7 @@ def create_upload(
     except BaseException:
         # The row was not made (database refused or away): its empty file must not outlive it.
         session.rollback()
-        storage.remove_tree(path.parent)
+        storage.delete_prefix(upload_folder(key))
         raise
     return upload
 
@@ -176,9 +182,18 @@ async def receive_body(
         raise PayloadTooLarge(
             f"the body ({declared} bytes at offset {upload.offset}) goes past Upload-Length {upload.length}"
         )
-    path = storage.path(upload.path)
-    running = await anyio.to_thread.run_sync(hashes.take, upload.id, path, upload.offset)
-    writer = await anyio.to_thread.run_sync(ChunkWriter, path, upload.offset, running, checksum and checksum[0])
+    writer: ChunkWriter | object_parts.PartWriter
+    algo = checksum and checksum[0]
+    if storage.is_local:
+        path = storage.path(upload.path)
+        running = await anyio.to_thread.run_sync(hashes.take, upload.id, path, upload.offset)
+        assert running is not None  # rebuilt from the file when not kept
+        writer = await anyio.to_thread.run_sync(ChunkWriter, path, upload.offset, running, algo)
+    else:  # S3: parts of a multipart upload; a hash not kept here is made from the joined object at the end
+        cached = hashes.take(upload.id, None, upload.offset)
+        writer = await anyio.to_thread.run_sync(
+            object_parts.PartWriter, storage.objects, upload.path, upload.offset, cached, algo
+        )
     buffer = bytearray()
     try:
         async for chunk in request.stream():
@@ -196,18 +211,38 @@ async def receive_body(
             return None
         if buffer:
             await anyio.to_thread.run_sync(writer.write, buffer)
-    except (ServiceError, OSError):
+    except (ServiceError, OSError, StorageError):
         await anyio.to_thread.run_sync(_discard, writer, hashes, upload.id)
         raise
-    offset = await anyio.to_thread.run_sync(writer.close)
     if checksum is not None and writer.chunk_hash is not None and writer.chunk_hash.digest() != checksum[1]:
         await anyio.to_thread.run_sync(_discard, writer, hashes, upload.id)
         raise ChecksumMismatch("Upload-Checksum does not match the bytes received; the chunk was discarded")
-    hashes.put(upload.id, offset, writer.running)
-    return offset, writer.running
+    offset = await anyio.to_thread.run_sync(writer.close)
+    running = writer.running
+    if isinstance(writer, object_parts.PartWriter) and offset == upload.length:
+        running = await anyio.to_thread.run_sync(_join, storage, writer)
+    if running is not None:
+        hashes.put(upload.id, offset, running)
+    return offset, running
 
 
-def _discard(writer: ChunkWriter, hashes: HashStates, upload_id: uuid.UUID) -> None:
+def _join(storage: Storage, writer: object_parts.PartWriter) -> Any:
+    """The last byte is in: join the parts; the upload's SHA-256 (from the object when no running one was kept)."""
+    digest = writer.finish()
+    return _Digest(digest or sha256_object(storage.objects, writer.key).hexdigest())
+
+
+class _Digest:
+    """A finished hash, as ``record_bytes`` reads one."""
+
+    def __init__(self, hexdigest: str) -> None:
+        self._hex = hexdigest
+
+    def hexdigest(self) -> str:
+        return self._hex
+
+
+def _discard(writer: ChunkWriter | object_parts.PartWriter, hashes: HashStates, upload_id: uuid.UUID) -> None:
     writer.rollback()
     hashes.drop(upload_id)
 
@@ -232,10 +267,12 @@ def record_bytes(
     upload.state = UploadState.COMPLETE
     upload.completed_at = utcnow()
     session.commit()
+    if not storage.is_local:  # the joined object stands: the states of the parts are done with
+        object_parts.forget_other_states(storage.objects, upload.path, -1)
     return upload
 
 
 def discard_upload(session: Session, storage: Storage, upload: Upload) -> None:
-    """Delete an upload's bytes and row."""
-    storage.remove_tree(storage.path(upload.path).parent)
+    """Delete an upload's bytes (and its unfinished multipart parts) and row."""
+    storage.delete_prefix(upload_folder(upload.path))
     crud.delete_upload(session, upload.id)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -39,10 +39,12 @@ from service import jobs
 from service.db import crud
 from service.db.base import utcnow
 from service.db.faults import DatabaseFault, classify
-from service.db.models import Artifact, FitState, Job, JobState
+from service.db.models import Artifact, FitState, Job, JobState, Scene
 from service.db.session import session_scope
 from service.settings import Settings
-from service.storage import Storage, sha256_file
+from service.storage import Storage, TreePush, sha256_file
+from service.storage.objects import StorageError, StorageUnavailable
+from worker.shared_checkpoints import SceneCheckpoints
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -67,6 +69,7 @@ class PipelineFn(Protocol):
         on_progress: Callable[[str, int, int], None],
         resume: bool,
         on_results: Callable[[Any], None],
+        shared: Any,
     ) -> Any: ...
 
 
@@ -153,6 +156,19 @@ class _Tracker:
     lost: bool = False
     results_ready: bool = False  # the results are recorded; what runs now is the appearance fit
     fit_progress: float = 0.0
+    push: TreePush | None = None  # stores the output folder (object storage), after each stage and at the end
+    shared: SceneCheckpoints | None = None  # the scene's checkpoints; its leases are renewed with the heartbeat
+
+    def push_outputs(self, *, best_effort: bool = False) -> None:
+        """Store what changed in the output folder (nothing with the local backend, which writes in place)."""
+        if self.push is None:
+            return
+        try:
+            self.push.push()
+        except StorageError:
+            if not best_effort:
+                raise
+            logger.warning("job %s: could not store its partial work", self.job_id, exc_info=True)
 
     def fraction(self, stage: str, done: int, total: int) -> float:
         if stage not in self.env.stages:
@@ -171,6 +187,7 @@ class _Tracker:
         if changed:
             self.close_stage(now)
             self.stage, self.stage_started = stage, now
+            self.push_outputs()  # the stage before this one has its checkpoint: store it
         if self.lost:
             raise LeaseLost(f"job {self.job_id}: another worker holds it now")
         if self.env.shutdown.is_set():
@@ -215,6 +232,8 @@ class _Tracker:
 
     def heartbeat_loop(self) -> None:
         while not self.stop.wait(self.env.settings.heartbeat_interval_s):
+            if self.shared is not None:
+                self.shared.refresh()
             try:
                 self.write()
             except CancelRequested:
@@ -291,9 +310,57 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
             error_type="SceneMissing",
             error_message=f"scene {job.scene_id} no longer exists",
         )
-    out_dir = env.storage.job_dir(job.id)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    bundle_dir = env.storage.path(scene.bundle_path)
+    try:
+        with _workspace(env, job, scene.bundle_path) as (bundle_dir, out_dir, push):
+            tracker.push = push
+            try:
+                return _run_in(job, tracker, env, vocabulary, bundle_dir, out_dir)
+            finally:
+                if tracker.shared is not None:
+                    tracker.shared.release_all()  # a stage that never stored its key: the next taker computes it
+    except StorageUnavailable as exc:
+        # The object storage is away: hand the job back and retry the task with backoff (Celery's); the next
+        # attempt resumes from the checkpoints it stored.
+        with_db_retry(lambda: _release(job.id, tracker), deadline_s=env.settings.transient_retry_s, what="hand back")
+        logger.warning("job %s: object storage unavailable, handed back: %s", job.id, exc)
+        raise TransientError(f"object storage unavailable: {exc}") from exc
+    except StorageError as exc:  # refused keys, a missing bucket: waiting cannot help
+        return _fail(job.id, tracker, "StorageError", without_host_paths(str(exc), env)[:10_000])
+
+
+@contextmanager
+def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, Path, TreePush | None]]:
+    """The job's bundle and output folder: in place with the local backend; else a scratch folder of this task
+    with the scene's bundle and what earlier attempts stored of the job (its checkpoints) fetched into it, and a
+    :class:`TreePush` that stores the output folder back. The scratch folder is removed after the task."""
+    storage = env.storage
+    if storage.is_local:
+        out_dir = storage.job_dir(job.id)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        yield storage.path(bundle_path), out_dir, None
+        return
+    with storage.scratch(f"job-{job.id}") as scratch:
+        bundle_dir, out_dir = scratch / "bundle", scratch / "out"
+        out_dir.mkdir()
+        storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        storage.fetch_tree(storage.job_prefix(job.id), out_dir)
+        push = TreePush(storage, out_dir, storage.job_prefix(job.id))
+        push.mark_present()
+        yield bundle_dir, out_dir, push
+
+
+def _run_in(
+    job: Job, tracker: _Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
+) -> JobState | None:
+    shared = SceneCheckpoints(
+        env.storage,
+        job.scene_id,
+        owner=f"job {job.id} lease {tracker.lease}",
+        lease_s=env.settings.heartbeat_timeout_s,
+        on_wait=lambda stage: tracker.on_progress(stage, 0, 1),
+        on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
+    )
+    tracker.shared = shared
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
@@ -305,11 +372,16 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
                 on_progress=tracker.on_progress,
                 resume=True,
                 on_results=lambda _result: _record_results(job.id, tracker, out_dir),
+                shared=shared,
             )
+        tracker.push_outputs()
+    except StorageError:
+        raise  # handled by _run, around the workspace
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
         return None
     except Interrupted:
+        tracker.push_outputs(best_effort=True)  # what it did so far resumes on another host
         with_db_retry(
             lambda: _release(job.id, tracker),
             deadline_s=env.settings.transient_retry_s,
@@ -323,20 +395,10 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings, **fit)
     except (TimeLimitExceeded, PanoGSError) as exc:
         # Domain errors: the input or the configuration is at fault, retrying cannot help.
-        tracker.close_stage(time.monotonic())
         logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
         message = without_host_paths(str(exc), env, bundle_dir, out_dir)[:10_000]
         fit = {"fit_state": FitState.FAILED, "fit_error": f"{type(exc).__name__}: {message}"}
-        return _finish(
-            job.id,
-            tracker.lease,
-            env,
-            JobState.FAILED,
-            stage_timings=tracker.timings,
-            error_type=type(exc).__name__,
-            error_message=message,
-            **(fit if tracker.results_ready else {}),
-        )
+        return _fail(job.id, tracker, type(exc).__name__, message, **(fit if tracker.results_ready else {}))
     tracker.close_stage(time.monotonic())
     timings = merge_timings(tracker.timings, getattr(result, "timings", None))
     fit_state, fit_error = fit_outcome(result)
@@ -359,6 +421,32 @@ def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
         fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
         fit_error=fit_error,
     )
+
+
+def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, **values: Any) -> JobState | None:
+    """Record the job failed with ``error_type: message`` and the stage times so far."""
+    tracker.close_stage(time.monotonic())
+    return _finish(
+        job_id,
+        tracker.lease,
+        tracker.env,
+        JobState.FAILED,
+        stage_timings=tracker.timings,
+        error_type=error_type,
+        error_message=message,
+        **values,
+    )
+
+
+def _count_scene_bytes(env: JobEnv, scene_id: uuid.UUID, size: int) -> None:
+    """A checkpoint stored under the scene counts in its size (the tenant's storage quota)."""
+
+    def write() -> None:
+        with session_scope(env.session_factory) as session:
+            session.execute(update(Scene).where(Scene.id == scene_id).values(size_bytes=Scene.size_bytes + size))
+            session.commit()
+
+    with_db_retry(write, deadline_s=env.settings.transient_retry_s, what="count a shared checkpoint")
 
 
 def fit_outcome(result: Any) -> tuple[FitState, str | None]:
@@ -387,6 +475,7 @@ def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None
         LeaseLost: another task holds the job now.
     """
     env = tracker.env
+    tracker.push_outputs()
     artifacts = collect_artifacts(job_id, out_dir, env.storage, exclude=FITTED_FILES)
 
     def write() -> bool:
@@ -449,7 +538,7 @@ def collect_artifacts(
                 Artifact(
                     job_id=job_id,
                     name=name,
-                    path=storage.rel(path),
+                    path=storage.job_prefix(job_id) + name,
                     size_bytes=path.stat().st_size,
                     sha256=sha256_file(path).hexdigest(),
                     media_type=media_type,

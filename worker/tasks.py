@@ -21,7 +21,7 @@ from panogs_core.threads import set_torch_threads
 from service.broker import TaskName
 from service.db.session import get_session_factory
 from service.settings import Settings
-from service.storage import Storage
+from service.storage.backends import open_storage
 from worker import runner
 from worker.device import cuda_available, device_config_factory
 
@@ -56,7 +56,7 @@ def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEn
     return runner.JobEnv(
         settings=settings,
         session_factory=get_session_factory(settings.database),
-        storage=Storage(settings.storage),
+        storage=open_storage(settings),
         pipeline=pipeline,
         make_config=device_config_factory(make_config, has_cuda),
         stages=stages,

@@ -20,7 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -169,12 +169,29 @@ class _StageProgress:
         self(self.total, self.total)
 
 
+class SharedCheckpoints(Protocol):
+    """Checkpoints kept beyond one run folder (the service keeps them under the scene, by key): a run whose stage
+    key was computed before fetches the checkpoint instead of computing the stage, and stores what it computed."""
+
+    def fetch(self, stage: str, key: str, dest: Path) -> bool:
+        """Write the checkpoint of ``stage`` under ``key`` to ``dest`` (whole) and return True; False when there
+        is none, and then this run computes it (and calls :meth:`store`)."""
+        ...
+
+    def store(self, stage: str, key: str, path: Path) -> None:
+        """Keep the checkpoint at ``path``, just computed, for later runs."""
+        ...
+
+
 class _Runner:
     """Runs stages with timing, progress and checkpoints; holds nothing but bookkeeping."""
 
-    def __init__(self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None) -> None:
+    def __init__(
+        self, out_dir: Path, resume: bool, on_progress: StageProgressFn | None, shared: SharedCheckpoints | None
+    ) -> None:
         self.checkpoints = _Checkpoints(STAGES_FOLDER.path(out_dir), resume)
         self.on_progress = on_progress
+        self.shared = shared if resume else None
         self.timings: list[StageStats] = []
         self._unrecorded: list[str] = []  # stages whose checkpoint is written, waiting for their key
 
@@ -198,19 +215,39 @@ class _Runner:
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> C:
             self.record_checkpoints(keys, wait=False)  # what the stages before have written, if it can be
-            if self.checkpoints.may_have(spec.name) and self.checkpoints.has(spec.name, keys[spec.name]):
+            path = self.checkpoints.path(spec.name)
+            if self._reusable(spec.name, keys, path):
                 stats.cached = True
-                return spec.load(self.checkpoints.path(spec.name))
+                return spec.load(path)
             result = compute(report)
-            tmp = self.checkpoints.path(spec.name).with_suffix(".tmp.npz")
+            tmp = path.with_suffix(".tmp.npz")
             result.save(tmp)
             self.checkpoints.forget(spec.name)  # a stale key must never name the new file
-            tmp.replace(self.checkpoints.path(spec.name))
-            self._unrecorded.append(spec.name)
-            self.record_checkpoints(keys, wait=False)
+            tmp.replace(path)
+            if self.shared is None:
+                self._unrecorded.append(spec.name)
+                self.record_checkpoints(keys, wait=False)
+            else:  # the shared store files the checkpoint under its key: wait for it here
+                key = keys[spec.name]
+                self.checkpoints.record(spec.name, key)
+                self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
+                self.shared.store(spec.name, key, path)
             return result
 
         return self._timed(spec.name, load_or_compute)
+
+    def _reusable(self, name: str, keys: _LazyKeys, path: Path) -> bool:
+        """Whether ``path`` holds the stage's checkpoint for its current key: in the run folder, else fetched from
+        the shared store (which needs the key, so a run with a shared store waits for the bundle's hash here)."""
+        if self.checkpoints.may_have(name) and self.checkpoints.has(name, keys[name]):
+            return True
+        if self.shared is None:
+            return False
+        self.checkpoints.forget(name)  # the fetch may replace the file: no stale key may name it
+        if self.shared.fetch(name, keys[name], path):
+            self.checkpoints.record(name, keys[name])
+            return True
+        return False
 
     def step(self, name: str, compute: Callable[[ProgressFn], T]) -> T:
         """Run a stage that has no checkpoint (it is cheap, or its outputs are the run's files)."""
@@ -308,6 +345,7 @@ def run_pipeline(
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
     on_results: ResultsFn | None = None,
+    shared: SharedCheckpoints | None = None,
 ) -> PipelineResult:
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
@@ -328,6 +366,8 @@ def run_pipeline(
         resume: Reuse checkpoints whose keys match.
         on_results: Called once the results are written, before the fit, with the result so far (its
             ``fit_state`` is ``running``); may raise :class:`Cancelled` to stop.
+        shared: Checkpoints shared beyond ``out_dir`` (with ``resume``): fetched when this folder has none of a
+            stage's key, given each checkpoint this run computes.
 
     Returns:
         The result summary; files are in ``out_dir``. ``appearance["state"]`` says how the fit ended.
@@ -339,7 +379,7 @@ def run_pipeline(
     cfg = config or PipelineConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    runner = _Runner(out, resume, on_progress)
+    runner = _Runner(out, resume, on_progress, shared)
     t_start = time.perf_counter()
 
     scene = runner.step(

@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "panogs_core"
 WEB_QUEUE_DATABASE = (
     "fastapi", "starlette", "uvicorn", "pydantic", "pydantic_settings", "sqlalchemy", "alembic", "celery", "redis",
-    "psycopg", "kombu",
+    "psycopg", "kombu", "boto3", "botocore",
 )  # fmt: skip
 # Top-level package -> the top-level modules none of its modules may import.
 LAYER_RULES: dict[str, tuple[str, ...]] = {

@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 from pipeline_stand_in import use
+from seaweedfs import SeaweedFS, seaweedfs
 from service_harness import (
     DEFAULT_PG_ADMIN_URL,
     DEFAULT_REDIS_URL,
@@ -61,6 +62,13 @@ def redis_prefix() -> Iterator[str]:
     prefix = new_redis_prefix()
     yield prefix
     drop_redis_prefix(REDIS_URL, prefix)
+
+
+@pytest.fixture(scope="session")
+def seaweedfs_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SeaweedFS]:
+    """A SeaweedFS S3 server of this session (``weed mini`` on free ports, data under tmp), stopped at the end."""
+    with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as server:
+        yield server
 
 
 @pytest.fixture(scope="session")

@@ -28,6 +28,13 @@ from worker.runner import FITTED_FILES, collect_artifacts
 BOTH_BACKENDS = pytest.mark.parametrize("settings", ["postgres", "sqlite"], indirect=True)
 
 
+# Inline classes with vectors in the tiny bundle's 8-d space: the scripted pipeline's run folder then answers
+# instances and queries (it writes vocabulary.json, vocabulary.npy and instance_features.npy from them).
+VOCABULARY_8D = {
+    "classes": [{"name": n, "embedding": [float(i == k) for i in range(8)]} for k, n in enumerate(("chair", "table"))]
+}
+
+
 @dataclass
 class RecordingSender:
     """Stands in for the Celery app: records ``send_task`` calls; can be told to fail like a broker that is

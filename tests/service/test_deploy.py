@@ -46,12 +46,20 @@ def test_services(compose: dict[str, Any]) -> None:
     assert "/readyz" in " ".join(services["api"]["healthcheck"]["test"])
 
 
-def test_shared_volume(compose: dict[str, Any]) -> None:
+def test_no_shared_volume_objects_in_seaweedfs(compose: dict[str, Any]) -> None:
     services = compose["services"]
     for name in ("api", "worker", "worker-gpu"):
-        assert "data:/data" in services[name]["volumes"]
-        assert services[name]["environment"]["PANOGS_STORAGE_DIR"].startswith("/data")
-    assert {"data", "pgdata", "redisdata"} <= set(compose["volumes"])
+        assert "volumes" not in services[name], f"{name} mounts a volume: nothing is shared between hosts"
+        env = services[name]["environment"]
+        assert "PANOGS_STORAGE_DIR" not in env
+        assert env["PANOGS_STORAGE_URL"].startswith("${PANOGS_STORAGE_URL:-s3://")
+        assert "seaweedfs:8333" in env["PANOGS_S3_ENDPOINT_URL"]
+    assert services["api"]["depends_on"]["seaweedfs"]["condition"] == "service_healthy"
+    seaweed = services["seaweedfs"]
+    assert seaweed["build"]["target"] == "seaweedfs"
+    assert seaweed["volumes"] == ["s3data:/data"]
+    assert "healthcheck" in seaweed
+    assert set(compose["volumes"]) == {"s3data", "pgdata", "redisdata"}
 
 
 def test_environment_names_real_settings(compose: dict[str, Any]) -> None:
@@ -59,7 +67,7 @@ def test_environment_names_real_settings(compose: dict[str, Any]) -> None:
         env = compose["services"][name]["environment"]
         panogs = {k for k in env if k.startswith("PANOGS_")}
         assert panogs <= FIELDS, f"{name}: unknown settings {panogs - FIELDS}"
-        assert {"PANOGS_DATABASE_URL", "PANOGS_BROKER_URL", "PANOGS_STORAGE_DIR"} <= panogs
+        assert {"PANOGS_DATABASE_URL", "PANOGS_BROKER_URL", "PANOGS_STORAGE_URL", "PANOGS_S3_ENDPOINT_URL"} <= panogs
         assert env["PANOGS_ENVIRONMENT"] == "production"
         assert env["PANOGS_DATABASE_URL"].startswith("postgresql+psycopg://")
         assert env["PANOGS_BROKER_URL"].startswith("redis://redis:")
@@ -249,7 +257,7 @@ def test_compose_builds_each_service_from_its_target(compose: dict[str, Any]) ->
 
 def test_env_example_lists_every_setting() -> None:
     text = (REPO / ".env.example").read_text()
-    named = set(re.findall(r"\bPANOGS_[A-Z_]+(?==)", text))
+    named = set(re.findall(r"\bPANOGS_[A-Z0-9_]+(?==)", text))
     assert FIELDS <= named, f"missing from .env.example: {sorted(FIELDS - named)}"
     assert "POSTGRES_PASSWORD=changethis" in text
 

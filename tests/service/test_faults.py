@@ -57,6 +57,9 @@ class Cluster:
         return httpx.Client(base_url=self.url, headers=self.headers, timeout=30)
 
     def new_job(self, **body: Any) -> str:
+        # Settings of its own: every job computes its stages (the scene's jobs share checkpoints by key), so that
+        # "mid-stage" is a moment each test can catch.
+        body.setdefault("config", {"settings": {"validate": next(self.serial)}})
         with self.client() as c:
             response = c.post("/v1/jobs", json={"scene_id": self.scene_id, **body})
         assert response.status_code == 202, response.text

@@ -188,8 +188,9 @@ def test_orphan_folders_are_swept(settings: Settings) -> None:
     (orphan / "late.ply").write_bytes(b"written after the delete")
     fresh = storage.job_dir(uuid.uuid4())
     fresh.mkdir(parents=True)
+    (fresh / "young.ply").write_bytes(b"being written")
     old = (utcnow() - timedelta(hours=1)).timestamp()
-    os.utime(orphan, (old, old))
+    os.utime(orphan / "late.ply", (old, old))  # nothing written in it for an hour
     with session_scope(get_session_factory(settings.database)) as session:
         assert sweep_orphans(session, storage) == 1
     assert not orphan.exists()

@@ -15,6 +15,7 @@ class names and ``vocabulary.json`` lists its classes). Like the real pipeline i
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
@@ -49,7 +50,9 @@ class ScriptedResult:
     appearance: dict[str, Any] = field(default_factory=dict)  # the fit's ``state`` (and ``error``), as the real one
 
 
-KNOWN_KEYS = ("fail_at", "language_field", "stage_s", "fit_s")
+# "settings": {stage: value}: what each stage "reads"; a stage's key hashes its own and every earlier stage's, as
+# the real stage keys do, so two jobs that differ only in a late stage's setting share the earlier checkpoints.
+KNOWN_KEYS = ("fail_at", "language_field", "stage_s", "fit_s", "settings")
 
 
 def make_config(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -77,6 +80,7 @@ def run_pipeline(
     on_progress: Callable[[str, int, int], None] | None = None,
     resume: bool = True,
     on_results: Callable[[Any], None] | None = None,
+    shared: Any = None,
 ) -> ScriptedResult:
     """Walk the stages with progress and checkpoints, writing the placeholder outputs after ``export`` and calling
     ``on_results`` then, before the fit (``appearance``, ``fit_s`` seconds if given). ``fail_at: appearance`` makes
@@ -89,7 +93,7 @@ def run_pipeline(
     result = ScriptedResult(out_dir=out, instances=[], timings=timings)
     for stage in STAGES:
         try:
-            _run_stage(stage, out, config, stage_s, timings, on_progress, resume)
+            _run_stage(stage, out, config, stage_s, timings, on_progress, resume, shared)
         except NumericalError as exc:
             if stage != "appearance":
                 raise
@@ -113,12 +117,18 @@ def _run_stage(
     timings: dict[str, float],
     on_progress: Callable[[str, int, int], None] | None,
     resume: bool,
+    shared: Any = None,
 ) -> None:
     marker = out / "stages" / f"{stage}.done"
+    key = stage_key(stage, config)
     start = time.perf_counter()
-    if resume and marker.exists():
+    if resume and (
+        (marker.exists() and marker.read_text() in (key, "done"))
+        or (shared is not None and shared.fetch(stage, key, marker))
+    ):
         if on_progress is not None:
             on_progress(stage, 1, 1)
+        CACHED.setdefault(str(out), set()).add(stage)
         return
     seconds = float(config.get("fit_s", stage_s)) if stage == "appearance" else stage_s
     for step in range(STEPS):
@@ -129,8 +139,21 @@ def _run_stage(
         time.sleep(seconds / STEPS)
     if on_progress is not None:
         on_progress(stage, STEPS, STEPS)
-    marker.write_text("done")
+    marker.write_text(key)
+    if resume and shared is not None:
+        shared.store(stage, key, marker)
     timings[stage] = time.perf_counter() - start
+
+
+# The stages each run folder took from a checkpoint (its own or a shared one), for tests to read.
+CACHED: dict[str, set[str]] = {}
+
+
+def stage_key(stage: str, config: dict[str, Any]) -> str:
+    """The scripted stage key: a hash of the ``settings`` of this stage and every earlier one."""
+    settings = config.get("settings", {})
+    upstream = [[name, settings.get(name)] for name in STAGES[: STAGES.index(stage) + 1]]
+    return hashlib.sha256(json.dumps(upstream).encode()).hexdigest()[:16]
 
 
 def _write_outputs(out: Path, bundle: Path, vocabulary: str | Vocabulary | None, device: str) -> list[dict[str, Any]]:
@@ -142,7 +165,14 @@ def _write_outputs(out: Path, bundle: Path, vocabulary: str | Vocabulary | None,
             {**inst, "class_name": name, "class_index": i} for i, (inst, name) in enumerate(zip(INSTANCES, names))
         ]
         classes = [{"name": n, "kind": k} for n, k in zip(vocabulary.names, vocabulary.kinds)]
-        (out / "vocabulary.json").write_text(json.dumps({"classes": classes}))
+        doc: dict[str, Any] = {"classes": classes}
+        if vocabulary.embeddings is not None:  # then the run folder answers queries: each instance its class's vector
+            np.save(out / "vocabulary.npy", vocabulary.embeddings.astype(np.float32))
+            count = len(vocabulary.names)  # fewer classes than instances: the names repeat
+            rows = [vocabulary.embeddings[int(inst["class_index"]) % count] for inst in instances]
+            np.save(out / "instance_features.npy", np.stack(rows).astype(np.float32))
+            doc["embeddings"] = "vocabulary.npy"
+        (out / "vocabulary.json").write_text(json.dumps(doc))
     (out / "instances.json").write_text(json.dumps(instances))
     points = np.array([[0.9, 0, 0.5], [1.1, 0, 0.5], [-1.2, 0, 0.4], [-0.8, 0, 0.4]], np.float32)
     semantic = np.array([1, 1, 2, 2], np.int64)

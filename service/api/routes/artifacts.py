@@ -6,12 +6,13 @@ once the fit is done, and answers 409 ``fit_not_ready`` with the fit's progress 
 
 from __future__ import annotations
 
-from fastapi import APIRouter
-from fastapi.responses import FileResponse
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, Response
 
 from panogs_core.io.run_folder import DOWNLOADABLE, GAUSSIANS_PLY
 from service.api.deps import JobDep, StorageDep
 from service.db.models import Job
+from service.downloads import object_response
 from service.errors import Conflict, NotFound
 from service.job_results import check_fitted
 from service.schemas import ArtifactPublic, ArtifactsPublic, error_responses
@@ -52,7 +53,7 @@ def list_artifacts(job: JobDep) -> ArtifactsPublic:
         206: {"description": "a byte range"},
     },
 )
-def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileResponse:
+async def download_artifact(job: JobDep, name: str, storage: StorageDep, request: Request) -> Response:
     """Download one file of ``panogs_core.io.run_folder.DOWNLOADABLE`` (``panoptic.ply``, ``gaussians.ply`` ...).
 
     Supports ``Range: bytes=start-end`` (206) to resume an interrupted download.
@@ -62,8 +63,10 @@ def download_artifact(job: JobDep, name: str, storage: StorageDep) -> FileRespon
     artifact = next((a for a in _finished(job).artifacts if a.name == name), None)
     if artifact is None or name not in DOWNLOADABLE:
         raise NotFound("artifact", name)
-    return FileResponse(
-        storage.path(artifact.path),
+    return await object_response(
+        storage,
+        artifact.path,
+        request.headers.get("range"),
         media_type=DOWNLOADABLE[name].media_type,
         filename=artifact.name,
         headers={"ETag": f'"{artifact.sha256}"', "Cache-Control": "private, max-age=3600"},

@@ -34,5 +34,5 @@ async def render(
     engine = get_read_engine(settings.database)
     # the tenant's job, its Gaussian scene fitted (404 / 409 otherwise; 409 fit_not_ready says how far the fit is)
     await run_in_threadpool(job_results.fitted_scene, engine, job_id, tenant.id)
-    png = await run_in_threadpool(render_child.render_layer, body, storage.job_dir(job_id))
+    png = await run_in_threadpool(render_child.render_layer, body, storage.run_folder(job_id))
     return Response(png, media_type="image/png")

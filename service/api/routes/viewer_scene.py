@@ -37,6 +37,6 @@ async def viewer_scene(
         final = True
     except FitNotReady:
         final = False  # the colours are the initialisation's until the fit replaces gaussians.ply: not cached
-    scene = await run_in_threadpool(build_scene, storage.job_dir(job_id), extra={"title": f"job {job_id}"})
+    scene = await run_in_threadpool(build_scene, storage.run_folder(job_id), extra={"title": f"job {job_id}"})
     cache = "private, max-age=3600" if final else "private, no-cache"
     return Response(scene.data, media_type="application/octet-stream", headers={"Cache-Control": cache})

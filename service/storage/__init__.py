@@ -1,0 +1,311 @@
+"""Where uploads, scenes and job artifacts live: an object storage (:mod:`service.storage.objects`) behind the
+paths and keys the service uses, and streamed writes.
+
+Keys (the same layout on disk for the local backend, under ``Settings.storage``)::
+
+    uploads/<upload_id>/data          the bytes as they arrive (tus PATCHes: appended on disk, S3 multipart parts)
+    scenes/<scene_id>/                the validated, extracted bundle (``open_bundle`` workdir)
+    artifacts/<job_id>/               the pipeline's out_dir: outputs, stage checkpoints, report
+
+With the local backend (the embedded default) the service works on those files in place, as it always did. With
+S3 (``PANOGS_STORAGE_URL``) nothing is shared between hosts but the bucket: each process keeps only a work folder
+of its own (``<data_dir>/work``): scratch folders for an extraction or a job, removed after it, and a cache of
+finished jobs' result files that the API reads.
+
+Nothing is read or written whole in memory: writes go through a small buffer, hashes are computed in blocks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import threading
+import uuid
+from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO
+
+from service.storage.local import LocalStorage
+from service.storage.objects import ObjectStorage
+
+BLOCK = 1 << 20  # read/write block, bytes
+ARCHIVE_SUFFIXES = {"zip": ".zip", "tar": ".tar", "gzip": ".tar.gz"}
+STAGES_PREFIX = "stages/"  # a job's checkpoints: never in the API's cache of result files
+
+
+class Storage:
+    """The object storage with the service's keys; with the local backend, also the files themselves."""
+
+    def __init__(self, root: Path, objects: ObjectStorage | None = None) -> None:
+        """``root``: the local backend's folder, or (with ``objects`` another backend) this process's work folder."""
+        self.root = root.resolve()
+        self.objects: ObjectStorage = objects if objects is not None else LocalStorage(self.root)
+        self.is_local = isinstance(self.objects, LocalStorage) and self.objects.root == self.root
+
+    # Keys ------------------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def upload_key(upload_id: uuid.UUID) -> str:
+        return f"uploads/{upload_id}/data"
+
+    @staticmethod
+    def scene_prefix(scene_id: uuid.UUID) -> str:
+        return f"scenes/{scene_id}/"
+
+    @staticmethod
+    def job_prefix(job_id: uuid.UUID) -> str:
+        return f"artifacts/{job_id}/"
+
+    def delete_prefix(self, prefix: str) -> int:
+        """Delete every object under ``prefix`` (and unfinished multipart uploads there)."""
+        return self.objects.delete_prefix(prefix)
+
+    # Local files (the local backend's own, or this process's work folder) --------------------------------------
+
+    def path(self, rel: str) -> Path:
+        """Absolute path of a stored relative path; refuses anything that leaves the root."""
+        full = (self.root / rel).resolve()
+        if not full.is_relative_to(self.root):
+            raise ValueError(f"path {rel!r} leaves the storage root")
+        return full
+
+    def rel(self, path: Path) -> str:
+        """The relative path the database stores for ``path``."""
+        return path.resolve().relative_to(self.root).as_posix()
+
+    def upload_file(self, upload_id: uuid.UUID) -> Path:
+        """Where an upload's bytes accumulate (local backend)."""
+        return self.root / self.upload_key(upload_id)
+
+    def scene_dir(self, scene_id: uuid.UUID) -> Path:
+        """Where a scene's bundle is extracted (local backend)."""
+        return self.root / "scenes" / str(scene_id)
+
+    def job_dir(self, job_id: uuid.UUID) -> Path:
+        """A job's pipeline output folder (artifacts and stage checkpoints; local backend)."""
+        return self.root / "artifacts" / str(job_id)
+
+    def remove_tree(self, path: Path) -> None:
+        """Delete a folder (or file) under the root, if present."""
+        path = path.resolve()
+        if not path.is_relative_to(self.root) or path == self.root:
+            raise ValueError(f"refusing to delete {path}: not inside the storage root")
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+
+    @contextmanager
+    def scratch(self, what: str) -> Iterator[Path]:
+        """A fresh local folder for one task (an extraction, a job), removed after it whatever happens."""
+        folder = self.root / "work" / "scratch" / f"{what}-{uuid.uuid4().hex[:12]}"
+        folder.mkdir(parents=True)
+        try:
+            yield folder
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def run_folder(self, job_id: uuid.UUID) -> Path:
+        """A local folder with a job's result files: the job's own folder with the local backend; else a cache of
+        them in the work folder, brought up to date from the storage (a file that changed or is new is fetched;
+        the stage checkpoints are not)."""
+        if self.is_local:
+            return self.job_dir(job_id)
+        folder = self.root / "work" / "cache" / "artifacts" / str(job_id)
+        prefix = self.job_prefix(job_id)
+        for info in self.objects.list_objects(prefix):
+            rel = info.key[len(prefix) :]
+            if rel.startswith(STAGES_PREFIX):
+                continue
+            local = folder / rel
+            if not local.is_file() or local.stat().st_size != info.size:
+                self.objects.get_file(info.key, local)
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder
+
+    def drop_cached(self, job_id: uuid.UUID) -> None:
+        """Forget the cached result files of a deleted job (S3 backend)."""
+        if not self.is_local:
+            shutil.rmtree(self.root / "work" / "cache" / "artifacts" / str(job_id), ignore_errors=True)
+
+    def fetch_tree(self, prefix: str, folder: Path) -> int:
+        """Copy every object under ``prefix`` into ``folder`` (keys below the prefix as paths); returns how many."""
+        count = 0
+        for info in self.objects.list_objects(prefix):
+            self.objects.get_file(info.key, folder / info.key[len(prefix) :])
+            count += 1
+        return count
+
+    def store_tree(self, folder: Path, prefix: str) -> int:
+        """Store every file under ``folder`` as an object under ``prefix``; returns the bytes stored."""
+        return TreePush(self, folder, prefix).push()
+
+
+class TreePush:
+    """Stores what changed in a local folder since the last :meth:`push` (new files, or a size or time that moved)
+    as objects under a prefix: a job's scratch output folder, pushed after each stage and at the end.
+
+    Temporary files of the pipeline (``*.tmp``, ``*.tmp.npz``) are never pushed: a checkpoint is stored once it
+    has its name, so a half-written one never reaches the storage.
+    """
+
+    def __init__(self, storage: Storage, folder: Path, prefix: str) -> None:
+        self.storage = storage
+        self.folder = folder
+        self.prefix = prefix
+        self._seen: dict[str, tuple[int, int]] = {}
+
+    def mark_present(self) -> None:
+        """Take the folder's current files as stored already (they were just fetched from the prefix)."""
+        for path, rel in self._files():
+            st = path.stat()
+            self._seen[rel] = (st.st_size, st.st_mtime_ns)
+
+    def _files(self) -> Iterator[tuple[Path, str]]:
+        for path in sorted(self.folder.rglob("*")):
+            if path.is_file() and not path.is_symlink() and ".tmp" not in path.name:
+                yield path, path.relative_to(self.folder).as_posix()
+
+    def push(self) -> int:
+        """Store the files that changed; returns their bytes."""
+        total = 0
+        for path, rel in self._files():
+            st = path.stat()
+            mark = (st.st_size, st.st_mtime_ns)
+            if self._seen.get(rel) != mark:
+                total += self.storage.objects.put_file(self.prefix + rel, path).size
+                self._seen[rel] = mark
+        return total
+
+
+def sha256_file(path: Path, length: int | None = None) -> hashlib._Hash:
+    """SHA-256 of the first ``length`` bytes of ``path`` (all of it by default), read in blocks."""
+    digest = hashlib.sha256()
+    remaining = path.stat().st_size if length is None else length
+    with path.open("rb") as f:
+        while remaining > 0:
+            block = f.read(min(BLOCK, remaining))
+            if not block:
+                break
+            digest.update(block)
+            remaining -= len(block)
+    return digest
+
+
+def upload_folder(key: str) -> str:
+    """The prefix of an upload's objects (``uploads/<id>/``), from the key of its bytes."""
+    return key.rsplit("/", 1)[0] + "/"
+
+
+def sha256_object(objects: ObjectStorage, key: str) -> hashlib._Hash:
+    """SHA-256 of a stored object, read in blocks."""
+    digest = hashlib.sha256()
+    for block in objects.read_range(key, 0, None, block=BLOCK):
+        digest.update(block)
+    return digest
+
+
+def detect_archive(path: Path) -> str | None:
+    """``.zip``, ``.tar`` or ``.tar.gz`` from the file's first bytes (not its name), or None."""
+    with path.open("rb") as f:
+        return archive_suffix(f.read(512))
+
+
+def archive_suffix(head: bytes) -> str | None:
+    """:func:`detect_archive` from a file's first 512 bytes."""
+    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
+        return ARCHIVE_SUFFIXES["zip"]
+    if head.startswith(b"\x1f\x8b"):
+        return ARCHIVE_SUFFIXES["gzip"]
+    if len(head) >= 262 and head[257:262] == b"ustar":
+        return ARCHIVE_SUFFIXES["tar"]
+    return None
+
+
+def dir_size(path: Path) -> int:
+    """Total bytes of the regular files under ``path`` (links are not followed)."""
+    total = 0
+    for dirpath, _dirs, files in os.walk(path):
+        for name in files:
+            p = Path(dirpath) / name
+            if not p.is_symlink():
+                total += p.stat().st_size
+    return total
+
+
+class HashStates:
+    """Running SHA-256 of in-progress uploads, so that each byte is hashed once when PATCHes arrive in order.
+
+    Keyed by upload id with the offset the state covers. A state that is missing (another API process took the
+    previous PATCH, or this one restarted) is rebuilt from the bytes already on disk.
+    """
+
+    def __init__(self, capacity: int = 64) -> None:
+        self._states: OrderedDict[uuid.UUID, tuple[int, hashlib._Hash]] = OrderedDict()
+        self._capacity = capacity
+        self._lock = threading.Lock()
+
+    def take(self, upload_id: uuid.UUID, path: Path | None, offset: int) -> hashlib._Hash | None:
+        """The running hash of the first ``offset`` bytes (removed from the cache until :meth:`put`); rebuilt from
+        ``path`` when this process has none, or None without a path (the parts of an S3 upload cannot be read)."""
+        with self._lock:
+            hit = self._states.pop(upload_id, None)
+        if hit is not None and hit[0] == offset:
+            return hit[1]
+        return sha256_file(path, offset) if path is not None else None
+
+    def put(self, upload_id: uuid.UUID, offset: int, digest: hashlib._Hash) -> None:
+        """Keep the running hash that covers ``offset`` bytes."""
+        with self._lock:
+            self._states[upload_id] = (offset, digest)
+            while len(self._states) > self._capacity:
+                self._states.popitem(last=False)
+
+    def drop(self, upload_id: uuid.UUID) -> None:
+        """Forget an upload's state."""
+        with self._lock:
+            self._states.pop(upload_id, None)
+
+
+class ChunkWriter:
+    """Writes one PATCH body at a known offset, hashing as it goes; used from a worker thread.
+
+    ``write`` is fed the request's chunks; ``close`` flushes and returns the new offset. ``rollback`` cuts the
+    file back to where this PATCH started (checksum mismatch).
+    """
+
+    def __init__(self, path: Path, offset: int, running: hashlib._Hash, chunk_algo: str | None) -> None:
+        self.path = path
+        self.start = offset
+        self.offset = offset
+        self.running = running
+        self.chunk_hash = hashlib.new(chunk_algo) if chunk_algo else None
+        self._file: BinaryIO = path.open("r+b")
+        self._file.seek(offset)
+        self._file.truncate(offset)  # bytes past the recorded offset are from an interrupted PATCH
+
+    def write(self, data: bytes | bytearray) -> None:
+        """Append ``data`` at the current offset."""
+        self._file.write(data)
+        self.running.update(data)
+        if self.chunk_hash is not None:
+            self.chunk_hash.update(data)
+        self.offset += len(data)
+
+    def close(self) -> int:
+        """Flush to disk; returns the offset after the last byte written."""
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        return self.offset
+
+    def rollback(self) -> None:
+        """Discard everything this writer wrote."""
+        if not self._file.closed:
+            self._file.close()
+        with self.path.open("r+b") as f:
+            f.truncate(self.start)
+        self.offset = self.start

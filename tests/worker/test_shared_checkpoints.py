@@ -1,0 +1,107 @@
+"""Stage checkpoints shared by a scene's jobs, by key: a re-run that changes a late stage's settings fetches the
+earlier stages, one job computes a key while another waits on its lease, a dead holder's lease is taken over,
+the bytes count in the scene's size, and deleting the scene deletes them."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import scripted_pipeline as scripted
+
+from service.db.models import Job, JobState, Scene
+from service.db.session import get_session_factory, session_scope
+from service.lifecycle import delete_scene
+from service.settings import Settings
+from service.storage import Storage
+from worker import runner
+from worker.shared_checkpoints import SceneCheckpoints
+
+Env = Callable[..., runner.JobEnv]
+
+
+def _second_job(settings: Settings, first: uuid.UUID, config: dict[str, Any]) -> uuid.UUID:
+    with session_scope(get_session_factory(settings.database)) as session:
+        job = session.get(Job, first)
+        assert job is not None
+        again = Job(api_key_id=job.api_key_id, scene_id=job.scene_id, state=JobState.QUEUED, queue="cpu",
+                    request_hash="h2", stage_timings={}, config=config)  # fmt: skip
+        session.add(again)
+        session.commit()
+        return again.id
+
+
+def _scene(settings: Settings, job_id: uuid.UUID) -> Scene:
+    with session_scope(get_session_factory(settings.database)) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        scene = session.get(Scene, job.scene_id)
+        assert scene is not None
+        return scene
+
+
+def test_a_rerun_with_other_clustering_settings_reuses_the_earlier_stages(
+    make_env: Env, make_job: Callable[..., uuid.UUID], settings: Settings
+) -> None:
+    first = make_job(config={"stage_s": 0.01, "settings": {"clustering": 1}})
+    env = make_env()
+    assert runner.execute_job(first, lease="a", worker="w", env=env) is JobState.SUCCEEDED
+    size_after_first = _scene(settings, first).size_bytes
+    assert size_after_first > 0  # the stored checkpoints count in the scene's size
+    second = _second_job(settings, first, {"stage_s": 0.01, "settings": {"clustering": 2}})
+    assert runner.execute_job(second, lease="b", worker="w", env=env) is JobState.SUCCEEDED
+    reused = scripted.CACHED[str(env.storage.job_dir(second))]
+    assert reused == {"validate", "primitives", "fusion"}  # clustering and every later stage computed again
+    assert _scene(settings, first).size_bytes > size_after_first  # the new keys' checkpoints
+    storage = Storage(settings.storage)
+    scene_id = _scene(settings, first).id
+    stored = [o.key for o in storage.objects.list_objects(f"scenes/{scene_id}/stages/")]
+    assert sum(k.startswith(f"scenes/{scene_id}/stages/clustering/") for k in stored) == 2  # one per key
+    assert not [k for k in stored if k.endswith(".lease")]  # every lease released
+    with session_scope(get_session_factory(settings.database)) as session:
+        scene = session.get(Scene, scene_id)
+        assert scene is not None
+        delete_scene(session, storage, scene)
+    assert list(storage.objects.list_objects(f"scenes/{scene_id}/")) == []
+
+
+def _shared(settings: Settings, scene_id: uuid.UUID, owner: str, **kw: Any) -> SceneCheckpoints:
+    return SceneCheckpoints(
+        Storage(settings.storage), scene_id, owner, lease_s=kw.pop("lease_s", 5.0), poll_s=0.05, **kw
+    )
+
+
+def test_a_second_job_waits_for_the_key_another_computes(settings: Settings, tmp_path: Path) -> None:
+    scene_id = uuid.uuid4()
+    computing = _shared(settings, scene_id, "first")
+    waiting_polls: list[str] = []
+    waiting = _shared(settings, scene_id, "second", on_wait=waiting_polls.append)
+    assert computing.fetch("fusion", "k1", tmp_path / "a.npz") is False  # nobody has it: this one computes it
+    made = tmp_path / "made.npz"
+    made.write_bytes(b"the checkpoint")
+
+    def finish_later() -> None:
+        time.sleep(0.4)
+        computing.store("fusion", "k1", made)
+
+    thread = threading.Thread(target=finish_later)
+    thread.start()
+    assert waiting.fetch("fusion", "k1", tmp_path / "b.npz") is True  # waited, then fetched: computed once
+    thread.join()
+    assert (tmp_path / "b.npz").read_bytes() == b"the checkpoint"
+    assert waiting_polls  # it went through the job's progress callback while it waited
+    assert waiting.reused == ["fusion"]
+
+
+def test_a_dead_holders_lease_is_taken_over(settings: Settings, tmp_path: Path) -> None:
+    scene_id = uuid.uuid4()
+    dead = _shared(settings, scene_id, "dead", lease_s=0.3)
+    assert dead.fetch("fusion", "k1", tmp_path / "a.npz") is False  # then its worker is killed: no store, no release
+    time.sleep(0.5)
+    other = _shared(settings, scene_id, "other", lease_s=0.3)
+    assert other.fetch("fusion", "k1", tmp_path / "b.npz") is False  # the stale lease is its now: it computes
+    assert not (tmp_path / "b.npz").exists()  # nothing half-written was read

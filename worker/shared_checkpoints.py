@@ -1,0 +1,133 @@
+"""Stage checkpoints shared by the jobs of one scene, by stage key, with a lease so that one job computes each.
+
+The pipeline's stage keys hash a stage's inputs and the settings it reads (``panogs_core.pipeline.stages``), so a
+job whose early stages have the key of an earlier job's (a re-run that changes only the clustering thresholds)
+fetches those checkpoints instead of computing them: ``scenes/<scene id>/stages/<stage>/<key>.ckpt``.
+
+- **Whole or absent.** A checkpoint is stored once it is complete (the pipeline renames it into place first, and
+  an object is written whole by both backends), so a worker that crashes mid-write leaves nothing to read.
+- **One computes, the others wait.** A job that misses a checkpoint takes the key's lease (a conditional create
+  of ``<key>.lease``); a second job that needs the same key meanwhile waits for the checkpoint, going through the
+  job's progress callback each poll (a cancel or a lost lease stops it). The holder refreshes its leases with its
+  heartbeat; a lease older than ``lease_s`` belongs to a dead worker and is taken over. Two takers of one stale
+  lease may both compute the stage: the result is the same and each write is whole.
+- **Counted and deleted with the scene.** Each stored checkpoint's bytes are added to the scene's ``size_bytes``
+  (the tenant's quota); deleting the scene deletes its prefix, checkpoints included.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+from service.storage import Storage
+from service.storage.objects import AlreadyExists, ObjectNotFound, StorageError
+
+logger = logging.getLogger(__name__)
+
+
+class SceneCheckpoints:
+    """``panogs_core.pipeline.run.SharedCheckpoints`` over the storage, under one scene."""
+
+    def __init__(
+        self,
+        storage: Storage,
+        scene_id: uuid.UUID,
+        owner: str,
+        *,
+        lease_s: float,
+        poll_s: float = 0.5,
+        on_wait: Callable[[str], None] | None = None,
+        on_stored: Callable[[int], None] | None = None,
+    ) -> None:
+        self.storage = storage
+        self.prefix = f"{storage.scene_prefix(scene_id)}stages/"
+        self.owner = owner
+        self.lease_s = lease_s
+        self.poll_s = poll_s
+        self.on_wait = on_wait
+        self.on_stored = on_stored
+        self.reused: list[str] = []  # the stages fetched from another job's checkpoint
+        self._held: set[tuple[str, str]] = set()
+        self._lock = threading.Lock()
+
+    def _object(self, stage: str, key: str) -> str:
+        return f"{self.prefix}{stage}/{key}.ckpt"
+
+    def _lease(self, stage: str, key: str) -> str:
+        return f"{self.prefix}{stage}/{key}.lease"
+
+    def _lease_body(self) -> bytes:
+        return json.dumps({"owner": self.owner, "at": time.time()}).encode()
+
+    def fetch(self, stage: str, key: str, dest: Path) -> bool:
+        objects = self.storage.objects
+        while True:
+            if objects.stat(self._object(stage, key)) is not None:
+                try:
+                    objects.get_file(self._object(stage, key), dest)
+                except ObjectNotFound:  # deleted between the two calls (the scene is going): compute it
+                    return False
+                self.reused.append(stage)
+                logger.info("stage %s: checkpoint %s of this scene reused", stage, key)
+                return True
+            try:
+                objects.put_bytes(self._lease(stage, key), self._lease_body(), if_absent=True)
+            except AlreadyExists:
+                if self._stale(stage, key):
+                    objects.delete(self._lease(stage, key))  # its holder is gone: take it over
+                    continue
+                if self.on_wait is not None:
+                    self.on_wait(stage)  # may raise Cancelled (a cancel, a lost lease, the time limit)
+                time.sleep(self.poll_s)
+                continue
+            if objects.stat(self._object(stage, key)) is not None:
+                objects.delete(self._lease(stage, key))  # stored between our look and our lease: fetch it
+                continue
+            with self._lock:
+                self._held.add((stage, key))
+            return False
+
+    def _stale(self, stage: str, key: str) -> bool:
+        try:
+            holder = json.loads(self.storage.objects.get_bytes(self._lease(stage, key)))
+        except ObjectNotFound:
+            return False  # released meanwhile: look again
+        except ValueError:
+            return True
+        return bool(time.time() - float(holder.get("at", 0)) > self.lease_s)
+
+    def store(self, stage: str, key: str, path: Path) -> None:
+        info = self.storage.objects.put_file(self._object(stage, key), path)
+        if self.on_stored is not None:
+            self.on_stored(info.size)
+        self._release(stage, key)
+
+    def _release(self, stage: str, key: str) -> None:
+        with self._lock:  # not while the heartbeat renews it, which would put it back
+            self._held.discard((stage, key))
+            self.storage.objects.delete(self._lease(stage, key))
+
+    def refresh(self) -> None:
+        """Renew the leases this job holds (from its heartbeat)."""
+        with self._lock:
+            for stage, key in list(self._held):
+                try:
+                    self.storage.objects.put_bytes(self._lease(stage, key), self._lease_body())
+                except StorageError:
+                    logger.warning("stage %s: could not renew the lease of key %s", stage, key)
+
+    def release_all(self) -> None:
+        """Give up every lease still held (the job ended, failed or stopped before storing)."""
+        with self._lock:
+            held = list(self._held)
+        for stage, key in held:
+            try:
+                self._release(stage, key)
+            except StorageError:
+                logger.warning("stage %s: lease of key %s not released; it expires", stage, key)
