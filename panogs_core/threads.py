@@ -17,7 +17,8 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import MutableMapping
+from collections.abc import Iterator, MutableMapping
+from contextlib import contextmanager
 from pathlib import Path
 
 CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")  # cgroup v2: "<quota> <period>" in microseconds, or "max <period>"
@@ -106,3 +107,20 @@ def set_torch_threads(threads: int) -> None:
         torch.set_num_interop_threads(threads)
     except RuntimeError:  # fixed once any inter-op work ran in this process; the intra-op count is what matters
         pass
+
+
+@contextmanager
+def torch_threads(threads: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to ``threads`` inside the block and restored after it; None keeps torch's.
+
+    For one stage of a pipeline that runs best with a count of its own (a CPU fit of small kernels).
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -36,6 +36,7 @@ from panogs_core.gaussians.config import (
 from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
+from panogs_core.threads import torch_threads
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -113,10 +114,7 @@ def fit_appearance(
     schedule = resolve_schedule(cfg, bundle.camera.width, torch.cuda.is_available(), len(prims.points))
     from panogs_core.gaussians.fit import Fitter
 
-    threads = torch.get_num_threads()
-    if cfg.cpu_threads is not None and schedule.device == "cpu":
-        torch.set_num_threads(cfg.cpu_threads)
-    try:
+    with torch_threads(cfg.cpu_threads if schedule.device == "cpu" else None):
         fitter = Fitter(bundle, start, cfg, schedule)
         eval_frames = held or _evenly(fit_frames, _EVAL_FRAMES)
         saved = snapshot.load() if snapshot is not None else None
@@ -127,8 +125,6 @@ def fit_appearance(
         before = fitter.scores_before
         fitter.train(fit_frames, on_progress, snapshot)
         after = fitter.evaluate(eval_frames)
-    finally:
-        torch.set_num_threads(threads)
     note = f"{len(no_color)} frame(s) without colour skipped" if no_color else ""
     log.info(
         "appearance: %d iterations at %d px wide on %s, PSNR %.2f -> %.2f dB (%s)",

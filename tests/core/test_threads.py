@@ -112,3 +112,24 @@ def test_panogs_parser_loads_no_thread_pool() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("inside", [1, None])
+def test_torch_threads_sets_the_count_in_the_block_and_restores_it(inside: int | None) -> None:
+    torch = pytest.importorskip("torch")
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        seen: list[int] = []
+
+        def failing_stage() -> None:
+            with threads.torch_threads(inside):
+                seen.append(torch.get_num_threads())
+                raise RuntimeError("the stage failed")
+
+        with pytest.raises(RuntimeError):
+            failing_stage()
+        assert seen == [2 if inside is None else inside]
+        assert torch.get_num_threads() == 2  # restored after a failure too
+    finally:
+        torch.set_num_threads(before)

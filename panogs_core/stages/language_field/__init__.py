@@ -20,6 +20,7 @@ import numpy as np
 from panogs_core.errors import InputError, ShapeError
 from panogs_core.progress import ProgressFn
 from panogs_core.stages.language_field.config import LanguageFieldConfig
+from panogs_core.threads import torch_threads
 
 if TYPE_CHECKING:
     from panogs_core.stages.fusion import FusedFeatures
@@ -149,16 +150,11 @@ def fit_language_field(
     device = torch.device(cfg.device)
     bounds = field_bounds(points, cfg.bound_padding)  # (2, 3) float32
     resolutions = plane_resolutions(bounds, cfg)
-    threads = torch.get_num_threads()
-    if cfg.cpu_threads is not None and device.type == "cpu":
-        torch.set_num_threads(cfg.cpu_threads)
-    try:
+    with torch_threads(cfg.cpu_threads if device.type == "cpu" else None):
         model = init_model(resolutions, features.shape[1], cfg)
         train_model(model, TrainingSet(points, features, weights, bounds, resolutions, device), cfg, on_progress)
         model.eval()
         decoded = decode_features(model, points, bounds)  # (N, D)
-    finally:
-        torch.set_num_threads(threads)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))
 
 
