@@ -199,9 +199,14 @@ class _Runner:
         """Record the keys of the checkpoints written before the keys were known (all of them when ``wait``)."""
         if self._unrecorded and (wait or keys.ready()):
             for name in self._unrecorded:
-                self.checkpoints.record(name, keys[name])
-                self.checkpoints.snapshot(name, keys[name]).discard()  # the stage's partial work is done with
+                self._recorded(name, keys[name])
             self._unrecorded.clear()
+
+    def _recorded(self, name: str, key: str) -> str:
+        """Record the checkpoint just written of ``name`` under ``key`` (its partial work is done with); ``key``."""
+        self.checkpoints.record(name, key)
+        self.checkpoints.snapshot(name, key).discard()
+        return key
 
     def progress_for(self, stage: str) -> _StageProgress:
         return _StageProgress(stage, self.on_progress)
@@ -228,10 +233,7 @@ class _Runner:
                 self._unrecorded.append(spec.name)
                 self.record_checkpoints(keys, wait=False)
             else:  # the shared store files the checkpoint under its key: wait for it here
-                key = keys[spec.name]
-                self.checkpoints.record(spec.name, key)
-                self.checkpoints.snapshot(spec.name, key).discard()  # the stage's partial work is done with
-                self.shared.store(spec.name, key, path)
+                self.shared.store(spec.name, self._recorded(spec.name, keys[spec.name]), path)
             return result
 
         return self._timed(spec.name, load_or_compute)
@@ -239,7 +241,7 @@ class _Runner:
     def _reusable(self, name: str, keys: _LazyKeys, path: Path) -> bool:
         """Whether ``path`` holds the stage's checkpoint for its current key: in the run folder, else fetched from
         the shared store (which needs the key, so a run with a shared store waits for the bundle's hash here)."""
-        if self.checkpoints.may_have(name) and self.checkpoints.has(name, keys[name]):
+        if self.checkpoints.may_have(name) and self.checkpoints.has(name, keys[name]):  # no wait without a file
             return True
         if self.shared is None:
             return False
