@@ -110,11 +110,13 @@ def assign_panoptic(
     unseen_counts: dict[str, int] = {}
     temperature = cfg.score_temperature or default_temperature(None, emb)
     scores = field_sims
+    seen = None  # (N,) bool primitives some key frame saw; None without the fused features
     if fused is None:
         # DEPARTURE (a zero feature has no evidence: class -1, not class 0 by accident of argmax): docs/method.md §7.2.
         cls = np.where(sq_norm > 1e-12, np.argmax(field_sims, axis=1), -1).astype(np.int64)
     else:
         cls, scores = primitive_classes(field_sims, fused, emb, cfg)
+        seen = cls >= 0  # -1 exactly where no key frame saw the primitive (a zero fused feature)
     if cfg.vote == "superprimitive":
         cls = vote_in_segments(cls, segments, cfg.vote_min_fraction)
     elif cfg.vote == "islands" and nbr is not None:
@@ -126,7 +128,6 @@ def assign_panoptic(
         lead = temperature * float(np.log(cfg.unseen_field_ratio))  # the field's lead that overrules a segment
         cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, lead)
     if cfg.instances != "clusters" and nbr is not None:
-        seen = None if fused is None else np.einsum("nd,nd->n", fused, fused) > 1e-12
         semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg, seen)
     elif cfg.split_classes and nbr is not None:
         semantic, instance, inst_class = assemble_split(cls, cluster, vocabulary.is_thing, cfg.min_instance_points, nbr)
