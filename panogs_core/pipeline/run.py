@@ -133,9 +133,6 @@ class _Checkpoints:
         """Whether a checkpoint of ``stage`` might be reused (its key is then needed before the stage runs)."""
         return self.enabled and stage in self.manifest and self.path(stage).is_file()
 
-    def has(self, stage: str, key: str) -> bool:
-        return self.may_have(stage) and self.manifest.get(stage) == key
-
     def record(self, stage: str, key: str) -> None:
         self.manifest[stage] = key
         self._write_manifest()
@@ -241,7 +238,7 @@ class _Runner:
     def _reusable(self, name: str, keys: _LazyKeys, path: Path) -> bool:
         """Whether ``path`` holds the stage's checkpoint for its current key: in the run folder, else fetched from
         the shared store (which needs the key, so a run with a shared store waits for the bundle's hash here)."""
-        if self.checkpoints.may_have(name) and self.checkpoints.has(name, keys[name]):  # no wait without a file
+        if self.checkpoints.may_have(name) and self.checkpoints.manifest[name] == keys[name]:  # no wait without it
             return True
         if self.shared is None:
             return False
