@@ -185,7 +185,7 @@ def cost_case(work: Path, copies: int, width: int, iterations: int, render_only:
     start = initial_gaussians(prims, prims.colors)
     fitter = Fitter(scene, start, cfg, resolve_schedule(cfg, scene.camera.width, False))
     # the fit clamps its width to the camera's (320 here); a render may be larger, at the same field of view
-    fitter.size = fitter.final_size = (width, round(scene.camera.height * width / scene.camera.width))
+    fitter.size = (width, round(scene.camera.height * width / scene.camera.width))
     frames = [f for f in scene.frames if f.color is not None]
     for f in frames:
         fitter.target(f)  # decode outside the timing

@@ -37,8 +37,7 @@ class Fitter:
         dev = self.device
         n = init.means.shape[0]
         height = max(1, round(bundle.camera.height * schedule.fit_width / bundle.camera.width))
-        self.size = (schedule.fit_width, height)  # the size of the renders; the fit's (and the scores') at the end
-        self.final_size = self.size
+        self.size = (schedule.fit_width, height)  # the size of the scores and the exported renders
         coarse = max(1, schedule.fit_width // 2)
         self.coarse_size = (coarse, max(1, round(bundle.camera.height * coarse / bundle.camera.width)))
         self.anchor = torch.as_tensor(init.means, device=dev)
@@ -121,18 +120,20 @@ class Fitter:
         self.seconds_per_iteration = [float(x) for x in state["seconds_per_iteration"]]
         return True
 
-    def camera(self, frame: Frame) -> PinholeCamera:
+    def camera(self, frame: Frame, size: tuple[int, int] | None = None) -> PinholeCamera:
+        """The frame's camera at ``size`` (width, height; default the fit's size)."""
         pose = torch.as_tensor(np.asarray(frame.T_world_cam, np.float64))
-        return PinholeCamera.from_camera(self.bundle.camera.scaled(*self.size), pose)
+        return PinholeCamera.from_camera(self.bundle.camera.scaled(*(size or self.size)), pose)
 
-    def target(self, frame: Frame) -> torch.Tensor:  # (H, W, 3) float32 in [0, 1]
-        """The frame's colour at the render size (area-averaged), cached as uint8."""
-        key = (frame.id, self.size)
+    def target(self, frame: Frame, size: tuple[int, int] | None = None) -> torch.Tensor:  # (H, W, 3) in [0, 1]
+        """The frame's colour at ``size`` (default the fit's size; area-averaged), cached as uint8."""
+        size = size or self.size
+        key = (frame.id, size)
         if key not in self._targets:
             rgb = self.bundle.read_color(frame)
             assert rgb is not None  # split_frames keeps colour frames only
-            if (rgb.shape[1], rgb.shape[0]) != self.size:
-                rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
+            if (rgb.shape[1], rgb.shape[0]) != size:
+                rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
             self._targets[key] = torch.as_tensor(np.ascontiguousarray(rgb), device=self.device)
         return self._targets[key].to(torch.float32) / 255.0
 
@@ -144,8 +145,8 @@ class Fitter:
             opacity_logits=self.opacity,
         )
 
-    def render(self, frame: Frame, degree: int) -> torch.Tensor:  # (H, W, 3)
-        cam = self.camera(frame)
+    def render(self, frame: Frame, degree: int, size: tuple[int, int] | None = None) -> torch.Tensor:  # (H, W, 3)
+        cam = self.camera(frame, size)
         g = self.gaussians()
         centre = cam.T_world_cam[:3, 3].to(dtype=g.means.dtype, device=self.device)
         sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)
@@ -182,18 +183,17 @@ class Fitter:
         degree = min(self.cfg.sh_degree, it // self.cfg.sh_increase_every)
         # coarse to fine: the first coarse_fraction of the iterations at half the width
         coarse = it < self.schedule.coarse_fraction * self.schedule.iterations
-        self.size = self.coarse_size if coarse else self.final_size
-        image = self.render(frame, degree)
+        size = self.coarse_size if coarse else self.size
+        image = self.render(frame, degree, size)
         if self.cfg.exposure_compensation:
             gain_bias = self.exposure[self.frame_index[frame.id]]
             image = image * (1.0 + gain_bias[0]) + gain_bias[1]
-        loss = photometric_loss(image, self.target(frame), self.cfg.dssim_weight, self.cfg.photometric_norm)
+        loss = photometric_loss(image, self.target(frame, size), self.cfg.dssim_weight, self.cfg.photometric_norm)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         with torch.no_grad():
             torch.minimum(self.log_scales, self.max_log_scales, out=self.log_scales)
-        self.size = self.final_size
         self.seconds_per_iteration.append(time.perf_counter() - start)
         if self.cfg.move_centres:
             self._clamp_offsets()
