@@ -1,6 +1,7 @@
 // Builds the viewer and the app into the Python package (service/static/app), where FastAPI serves them and the
 // wheel carries them. Two bundles share the viewer: app.js (sign in, uploads, jobs, viewer) and viewer.js (the
-// viewer alone: `panogs view` and the offline file of `panogs export-html`, which inlines it).
+// viewer alone: the offline file of `panogs export-html`, which inlines it); view.js, `panogs view`'s page, is the
+// viewer as an ES module beside app.js, sharing its chunks (three.js, the photo view).
 import { build } from "esbuild";
 import { copyFileSync, mkdirSync, readdirSync, rmSync } from "node:fs";
 import { dirname, join } from "node:path";
@@ -19,16 +20,17 @@ const common = {
   legalComments: "none",
   logLevel: "warning",
 };
-// app.js is an ES module split in chunks: the photo view (Spark, 3 MB with its WebAssembly) loads on demand.
+// app.js and view.js are ES modules split in chunks: the photo view (Spark, 3 MB with its WebAssembly) loads on
+// demand.
 await build({
   ...common,
-  entryPoints: { app: join(here, "src", "app-main.js") },
+  entryPoints: { app: join(here, "src", "app-main.js"), view: join(here, "src", "view-main.js") },
   format: "esm",
   splitting: true,
   chunkNames: "chunk-[hash]",
 });
 // viewer.js stays one classic script: the offline file of `panogs export-html` inlines it.
-await build({ ...common, entryPoints: { viewer: join(here, "src", "viewer-main.js") }, format: "iife" });
+await build({ ...common, entryPoints: { viewer: join(here, "src", "viewer-standalone.js") }, format: "iife" });
 for (const name of readdirSync(join(here, "public"))) {
   copyFileSync(join(here, "public", name), join(out, name));
 }

@@ -7,7 +7,7 @@ from pathlib import Path
 from panogs_core.errors import InputError
 
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static" / "app"
-BUILT_FILES = ("index.html", "viewer.html", "app.js", "viewer.js", "app.css")
+BUILT_FILES = ("index.html", "viewer.html", "app.js", "view.js", "viewer.js", "app.css")
 
 
 def static_dir() -> Path:

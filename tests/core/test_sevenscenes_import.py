@@ -13,6 +13,8 @@ import pytest
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import open_bundle
 from panogs_core.io.importers.sevenscenes import import_sevenscenes
+from panogs_core.pipeline.run import resolve_scene_vocabulary
+from panogs_core.types import Vocabulary
 
 ROOT = Path(__file__).resolve().parents[2]
 W, H = 16, 12
@@ -79,3 +81,25 @@ def test_the_cli_imports_the_layout(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "wrote 3 frames" in done.stdout
     assert len(open_bundle(tmp_path / "b").frames) == 3
+
+
+def test_a_placeholder_bundle_carries_the_label_set_its_run_uses(tmp_path: Path) -> None:
+    """The run's label set is the bundle's, in the placeholder space, and every primitive's feature is closest to
+    ``surface`` (before, the run looked for CLIP embeddings of ScanNet-20 and refused the 8-d features)."""
+    src = _sequence(tmp_path / "seq", frames=2)
+    import_sevenscenes(src, tmp_path / "b", placeholder_maps=True)
+    scene = open_bundle(tmp_path / "b")
+    assert scene.feature_space == "placeholder"
+    vocabulary = resolve_scene_vocabulary(scene, None)
+    assert vocabulary.names == ("surface", "object")
+    assert vocabulary.embeddings is not None
+    feature = scene.read_features(scene.feature_frames[0]).reshape(-1)
+    assert int(np.argmax(vocabulary.embeddings @ feature)) == 0
+
+
+def test_a_vocabulary_is_refused_with_placeholder_maps(tmp_path: Path) -> None:
+    src = _sequence(tmp_path / "seq", frames=1)
+    vocabulary = Vocabulary(("chair",), ("thing",))
+    with pytest.raises(InputError, match="vocabulary cannot be used with placeholder maps"):
+        import_sevenscenes(src, tmp_path / "b", placeholder_maps=True, vocabulary=vocabulary)
+    assert not (tmp_path / "b" / "scene.json").exists()

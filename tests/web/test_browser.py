@@ -19,6 +19,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from viewer_page import BACKGROUND, canvas_pixels, look_from_frame
 
 pytestmark = pytest.mark.slow
 
@@ -114,13 +115,6 @@ def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
     return str(ident)
 
 
-def _canvas_pixels(page: Any, path: Path | None = None) -> np.ndarray:  # (H, W, 3) uint8 RGB
-    page.evaluate("window.__panogs.viewer.renderNow()")
-    png = page.locator(".pgs-canvas canvas").screenshot(path=str(path) if path else None)
-    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    return bgr[:, :, ::-1]
-
-
 def _open_viewer(page: Any, url: str, job_id: str, view: str = "") -> None:
     # A fresh page load: a new fragment on the same page would keep the open viewer and its state.
     page.goto("about:blank")
@@ -151,13 +145,13 @@ def test_upload_reaches_succeeded_and_opens_the_viewer(
 
 def test_canvas_draws_the_palette_where_the_scene_is(page: Any, job_id: str, served: dict[str, Any]) -> None:
     _open_viewer(page, served["url"], job_id, "?mode=semantic")
-    pixels = _canvas_pixels(page).reshape(-1, 3).astype(int)
+    pixels = canvas_pixels(page).reshape(-1, 3).astype(int)
     header = page.evaluate("window.__panogs.viewer.scene.header")
     shown = [c for c in header["classes"] if c["count"] > 0]
     # Each class's palette colour, drawn exactly (no lighting, no blending), on a share of the canvas.
     present = [c["name"] for c in shown if (np.abs(pixels - c["color"]).sum(axis=1) == 0).mean() > 0.001]
     assert len(present) >= 3, f"palette colours on the canvas: {present}"
-    background = (np.abs(pixels - [16, 20, 24]).sum(axis=1) <= 3).mean()
+    background = (np.abs(pixels - BACKGROUND).sum(axis=1) <= 3).mean()
     assert 0.05 < background < 0.95  # the scene covers part of the canvas, not none and not all
 
 
@@ -165,11 +159,11 @@ def test_colour_modes_change_the_pixels_and_the_url_reopens_the_view(
     page: Any, job_id: str, served: dict[str, Any], artifacts: Path
 ) -> None:
     _open_viewer(page, served["url"], job_id, "?mode=semantic")
-    semantic = _canvas_pixels(page)
+    semantic = canvas_pixels(page)
     page.keyboard.press("1")
-    camera = _canvas_pixels(page, artifacts / "camera.png")
+    camera = canvas_pixels(page, artifacts / "camera.png")
     page.keyboard.press("3")
-    instance = _canvas_pixels(page, artifacts / "instance.png")
+    instance = canvas_pixels(page, artifacts / "instance.png")
     for a, b in ((semantic, camera), (semantic, instance), (camera, instance)):
         assert (np.abs(a.astype(int) - b).sum(axis=2) > 30).mean() > 0.02
     assert "mode=instance" in page.url
@@ -183,23 +177,8 @@ def test_colour_modes_change_the_pixels_and_the_url_reopens_the_view(
 def _look_from_key_frame(page: Any, api: httpx.Client, job_id: str) -> str:
     """Put the viewer's camera at the first key frame's pose and field of view (cameras.json); its frame id."""
     cameras = api.get(f"/v1/jobs/{job_id}/artifacts/cameras.json").json()
-    frame = cameras["frames"][0]
-    page.evaluate(
-        """([pose, fy, height]) => {
-          const v = window.__panogs.viewer;
-          const cam = v.camera;
-          const at = (r, c) => pose[r][c];
-          cam.position.set(at(0, 3), at(1, 3), at(2, 3));
-          // OpenCV camera: +z looks forward; the orbit target one metre along it.
-          v.layer.controls.target.set(at(0, 3) + at(0, 2), at(1, 3) + at(1, 2), at(2, 3) + at(2, 2));
-          cam.fov = 2 * Math.atan(height / (2 * fy)) * 180 / Math.PI;
-          cam.near = 0.01;
-          cam.updateProjectionMatrix();
-          v.layer.controls.update();
-        }""",
-        [frame["T_world_cam"], cameras["camera"]["fy"], cameras["camera"]["height"]],
-    )
-    return str(frame["id"])
+    look_from_frame(page, cameras["frames"][0], cameras["camera"])
+    return str(cameras["frames"][0]["id"])
 
 
 def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
@@ -209,18 +188,18 @@ def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
     assert page.get_attribute(".pgs-viewer", "data-photo") == "off"
     frame_id = _look_from_key_frame(page, api, job_id)
     page.wait_for_timeout(300)
-    points = _canvas_pixels(page)
+    points = canvas_pixels(page)
     page.keyboard.press("p")
     page.wait_for_selector(".pgs-viewer[data-photo=on]", timeout=120_000)
     page.wait_for_timeout(1500)  # the splats' depth order comes from Spark's worker a few frames later
-    photo = _canvas_pixels(page, artifacts / "photo.png")
-    background = np.array([16, 20, 24])
+    photo = canvas_pixels(page, artifacts / "photo.png")
+    background = BACKGROUND
     covered = (np.abs(photo.astype(int) - background).sum(axis=2) > 12).mean()
     assert covered > 0.3, f"the splats cover {covered:.0%} of the canvas"
     assert (np.abs(photo.astype(int) - points).sum(axis=2) > 30).mean() > 0.05, "the photo is not the points"
     page.keyboard.press("2")  # the class colours over the photo
     page.wait_for_timeout(500)
-    over = _canvas_pixels(page, artifacts / "photo-semantic.png")
+    over = canvas_pixels(page, artifacts / "photo-semantic.png")
     assert (np.abs(over.astype(int) - photo).sum(axis=2) > 30).mean() > 0.05
     assert page.get_attribute(".pgs-viewer", "data-photo") == "on"
     # The photo beside the key frame's colour image, seen from the same pose (the canvas's aspect differs).

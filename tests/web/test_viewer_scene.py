@@ -108,7 +108,8 @@ def test_local_viewer_serves_the_scene_and_the_api_query(run: tuple[Path, dict[s
     assert ready.wait(10)
     with httpx.Client(base_url=urls[0], timeout=10) as client:
         assert client.get("scene.bin").content == viewer.scene.data
-        assert "static/viewer.js" in client.get("").text
+        assert "static/view.js" in client.get("").text
+        assert client.get("gaussians.ply").content == (folder / "gaussians.ply").read_bytes()
         answer = client.post("query", json={"text": "chair", "top_k": 2}).json()
         expected = run_query(load_result(folder), QueryCreate(text="chair", top_k=2), None)
         assert answer["hits"] == expected.model_dump(mode="json")["hits"]

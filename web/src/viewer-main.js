@@ -1,6 +1,8 @@
-// The viewer on its own page: `panogs view RUN_DIR` (scene and queries from the local server) or the offline file
-// of `panogs export-html` (the scene inline as base64; class-name queries answered from the answers the file
-// carries, computed by the same query code as the API). The view state lives in the URL's fragment.
+// The viewer on its own page: `panogs view RUN_DIR` (scene, queries and gaussians.ply from the local server) or the
+// offline file of `panogs export-html` (the scene inline as base64; class-name queries answered from the answers
+// the file carries, computed by the same query code as the API). The view state lives in the URL's fragment.
+// Two entry points call startViewer: view-main.js (`panogs view`, an ES module that can load the photo view's
+// chunk) and viewer-standalone.js (one classic script that the offline file inlines, without Spark's 3 MB).
 import { base64ToBuffer, fetchScene, parseScene } from "./scene.js";
 import { paramsToState, stateToParams } from "./viewer/url-state.js";
 import { Viewer } from "./viewer/viewer.js";
@@ -27,13 +29,15 @@ function offlineQuery(header, text) {
   return Promise.resolve(answer);
 }
 
-async function main() {
+// photo: the Viewer's photo option (load and bytes of the Gaussian scene), or null where there is none.
+export async function startViewer(photo) {
   const root = document.getElementById("viewer");
   const inline = document.getElementById("panogs-scene");
   const params = new URLSearchParams(location.hash.slice(1));
   let header = null;
   const viewer = new Viewer(root, {
     state: paramsToState(params),
+    photo: inline ? null : photo,
     queryFn: (text) => (inline ? offlineQuery(header, text) : localQuery("query", text)),
     onStateChange: (state) => history.replaceState(null, "", "#" + stateToParams(state).toString()),
   });
@@ -50,5 +54,3 @@ async function main() {
     viewer.showError(`Could not open the scene: ${err.message}`);
   }
 }
-
-main();

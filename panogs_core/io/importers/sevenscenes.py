@@ -9,9 +9,11 @@ Source layout::
     <features>/<i>.npy, <masks>/<i>.png      optional, as the ScanNet importer's (``<i>`` or ``<i:06d>``)
 
 The capture has no 2D feature maps nor masks, which a bundle needs on at least one frame (docs/scene_format.md).
-``placeholder_maps`` writes, on the first frame only, a constant 1 x 1 feature map and a one-segment mask, and names
-the bundle ``<name> (placeholder maps)``: enough to open the bundle and fit its Gaussians (the photometric
-benchmark, docs/gaussians.md), never meaningful labels. Colour and depth of a Kinect v1 are registered only
+``placeholder_maps`` writes, on the first frame only, a constant 1 x 1 feature map and a one-segment mask, in a
+feature space of its own (``placeholder``) with a two-class label set embedded in it (``surface`` and ``object``),
+and names the bundle ``<name> (placeholder maps)``: enough to open the bundle, fit its Gaussians (the photometric
+benchmark, docs/gaussians.md) and run ``panogs run`` end to end (everything is ``surface``), never meaningful
+labels. Colour and depth of a Kinect v1 are registered only
 roughly; the importer keeps both as they are (docs/gaussians.md says what that costs the fit).
 """
 
@@ -36,6 +38,16 @@ SEVENSCENES_DEPTH_SCALE = 1000.0  # millimetres
 _NO_DEPTH = 65535  # 7-Scenes marks a pixel without a measurement with 65535 as well as 0
 _FRAME = re.compile(r"frame-(\d+)\.depth\.png$")
 PLACEHOLDER_DIM = 8  # the placeholder feature map's dimension
+PLACEHOLDER_SPACE = "placeholder"  # its feature space: no text encoder, so the bundle carries its label set
+
+
+def placeholder_vocabulary() -> Vocabulary:
+    """The label set of a placeholder bundle: ``surface`` (stuff) is the constant feature, ``object`` (thing) an
+    axis, so every primitive is ``surface``."""
+    surface = np.full(PLACEHOLDER_DIM, 1.0 / np.sqrt(PLACEHOLDER_DIM), np.float32)
+    axis = np.zeros(PLACEHOLDER_DIM, np.float32)
+    axis[0] = 1.0
+    return Vocabulary(("surface", "object"), ("stuff", "thing"), np.stack([surface, axis]))
 
 
 def import_sevenscenes(
@@ -89,7 +101,12 @@ def import_sevenscenes(
     if present:
         dim = int(np.load(present[0], mmap_mode="r").shape[-1])
     elif placeholder_maps:
-        dim = PLACEHOLDER_DIM
+        if vocabulary is not None:
+            raise InputError(
+                "import_sevenscenes: a vocabulary cannot be used with placeholder maps (their features mean "
+                "nothing); leave it out, or pass feature maps of the vocabulary's space"
+            )
+        dim, feature_space, vocabulary = PLACEHOLDER_DIM, PLACEHOLDER_SPACE, placeholder_vocabulary()
     else:
         where = "no features folder given" if feature_dir is None else f"none in {feature_dir}"
         raise InputError(
