@@ -272,6 +272,15 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _tiles_choice(text: str) -> str | tuple[int, int]:
+    from panogs_core.tiling.plan import parse_tiles
+
+    try:
+        return parse_tiles(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     _limit_threads(args.threads)
     from panogs_core.language.label_sets import is_builtin_name, vocabulary_from_name_or_file
@@ -304,15 +313,29 @@ def _cmd_run(args: argparse.Namespace) -> int:
         printed.append(result)
 
     try:
-        result = run_pipeline(
-            args.bundle,
-            args.out,
-            cfg,
-            vocabulary=vocabulary,
-            on_progress=progress,
-            resume=not args.no_resume,
-            on_results=print_results,
-        )
+        if args.tiles == "off":
+            result = run_pipeline(
+                args.bundle,
+                args.out,
+                cfg,
+                vocabulary=vocabulary,
+                on_progress=progress,
+                resume=not args.no_resume,
+                on_results=print_results,
+            )
+        else:  # the plan runs a scene that fits whole as run_pipeline does (docs/method.md §16)
+            from panogs_core.tiling.runner import run_tiled
+
+            result = run_tiled(
+                args.bundle,
+                args.out,
+                cfg,
+                tiles=args.tiles,
+                vocabulary=vocabulary,
+                on_progress=progress,
+                resume=not args.no_resume,
+                on_results=print_results,
+            )
     except KeyboardInterrupt:
         progress.close()
         if printed:
@@ -467,6 +490,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int,
         metavar="N",
         help="threads of torch, OpenMP and BLAS (default: the cores this process may use)",
+    )
+    p.add_argument(
+        "--tiles",
+        type=_tiles_choice,
+        default="auto",
+        metavar="auto|off|NxM",
+        help="split a scene over the memory target into tiles and merge them (auto, the default: only when it "
+        "does not fit whole), never (off), or into N x M tiles",
     )
     p.set_defaults(func=_cmd_run)
 
