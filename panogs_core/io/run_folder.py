@@ -168,6 +168,15 @@ BUNDLE_FOLDER = RunFile(
     (_PIPELINE,),
     optional=True,
 )
+TILES_FOLDER = RunFile(
+    "tiles/",
+    FOLDER,
+    "a tiled run's tiles (`panogs run --tiles`): one run folder per tile, `tile-<k>-<digest>/` (its labels, "
+    "checkpoints and `report.json`), which the merge reads and a re-run resumes tile by tile",
+    "panogs_core.tiling.runner",
+    ("panogs_core.tiling.runner",),
+    optional=True,
+)
 
 RUN_FILES: tuple[RunFile, ...] = (
     PANOPTIC_PLY,
@@ -182,6 +191,7 @@ RUN_FILES: tuple[RunFile, ...] = (
     METRICS_JSON,
     STAGES_FOLDER,
     BUNDLE_FOLDER,
+    TILES_FOLDER,
 )
 # What the API lists and serves for a finished job, by name (docs/service.md).
 DOWNLOADABLE: dict[str, RunFile] = {f.name: f for f in RUN_FILES if f.downloadable}

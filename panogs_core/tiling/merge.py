@@ -210,7 +210,10 @@ def _instance_infos(
     vocabulary: Vocabulary,
 ) -> tuple[InstanceInfo, ...]:
     """One :class:`InstanceInfo` per merged instance: geometry from its primitives, feature and score from its
-    pieces weighted by the core primitives each contributes."""
+    pieces weighted by the core primitives each contributes.
+
+    DEPARTURE (docs/method.md §16.3): a piece's feature is its tile's mean over the piece's core and halo.
+    """
     if not rows:
         return ()
     labelled = instance >= 0

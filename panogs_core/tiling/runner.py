@@ -22,7 +22,7 @@ import numpy as np
 from panogs_core import __version__
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import Bundle, open_bundle
-from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER
+from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
 from panogs_core.pipeline.run import (
@@ -41,7 +41,6 @@ from panogs_core.types import Vocabulary
 
 log = logging.getLogger(__name__)
 
-TILES_FOLDER = "tiles"
 # DEPARTURE (docs/method.md §16.3): a tiled run fits no Gaussian scene; gaussians.ply is the initialisation.
 _NO_FIT_NOTE = "tiled run: the appearance fit does not run per tile; gaussians.ply holds the initialisation"
 
@@ -118,7 +117,7 @@ def _named(sink: StageProgressFn | None, stage: str) -> Any:
 
 def tile_folder(out: Path, tile: TileSpec) -> Path:
     """The run folder of one tile."""
-    return out / TILES_FOLDER / tile.name
+    return TILES_FOLDER.path(out) / tile.name
 
 
 def _run_tile(
