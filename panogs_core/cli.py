@@ -329,7 +329,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(format_instances(result.instances))
         if result.metrics:
             print("\n" + format_metrics(result.metrics))
-        print("\n" + FITTING_LINE, flush=True)
+        if result.fit_state == "running":  # a tiled run fits none (docs/method.md §16.3)
+            print("\n" + FITTING_LINE, flush=True)
         printed.append(result)
 
     try:

@@ -242,3 +242,39 @@ def test_untiled_path_is_unchanged(building: Path, tmp_path: Path) -> None:
     for name in ("labels.npz", "instances.json", "instance_features.npy"):
         assert (tmp_path / "auto" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes(), name
     assert "tiling" not in json.loads((tmp_path / "auto" / "report.json").read_text())
+
+
+# --- the synthetic building -----------------------------------------------------------------------------------
+
+
+def test_building_rooms_are_joined_by_a_doorway(building: Path, points: np.ndarray) -> None:
+    bundle = open_bundle(building)
+    gt = bundle.read_ground_truth()
+    assert gt is not None
+    assert bundle.vocabulary is not None
+    stuff = {n for n, k in zip(bundle.vocabulary.names, bundle.vocabulary.kinds, strict=True) if k == "stuff"}
+    # the six stuff instances of each room come first: floor, ceiling, four walls, room by room
+    for instance in range(12):
+        classes = {bundle.vocabulary.names[c] for c in np.unique(gt.semantic[gt.instance == instance])}
+        assert classes <= stuff
+    assert not ({bundle.vocabulary.names[c] for c in np.unique(gt.semantic[gt.instance >= 12])} & stuff)
+    floor0, floor1 = points[gt.instance == 0], points[gt.instance == 6]
+    seam = (floor0[:, 0].max() + floor1[:, 0].min()) / 2
+    # the shared walls' faces, below the lintel: a gap at least 0.9 m wide along y is the doorway
+    wall = (gt.instance == 3) & (points[:, 2] > 0.2) & (points[:, 2] < 1.9)
+    ys = np.sort(points[wall, 1])
+    assert np.diff(ys).max() >= 0.9
+    # key frames of the first room see into the second through it
+    vis = compute_visibility(bundle, points, VisibilityConfig())
+    first_room = [v for v in range(vis.num_frames) if bundle.frames[v].T_world_cam[0, 3] < seam]
+    beyond = [(points[vis.frame(v)[0], 0] > seam + 0.5).sum() for v in first_room]
+    assert max(beyond) > 100
+
+
+def test_the_cli_refuses_bad_tiles_and_rooms(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli_main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "--tiles", "2by2"])
+    assert "--tiles: expected auto, off or NxM" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main(["synth", str(tmp_path / "b"), "--preset", "building", "--rooms", "0x2"])
+    assert "expected N or NxM rooms" in capsys.readouterr().err
