@@ -43,7 +43,7 @@ def _run(bundle: Path, out: Path, tiles: str) -> dict:
     report = json.loads((out / "report.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())["standard"]
     labels = np.load(out / "labels.npz")
-    return {"report": report, "metrics": metrics, "instance": labels["instance"]}
+    return {"report": report, "metrics": metrics, "instance": labels["instance"], "semantic": labels["semantic"]}
 
 
 def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarray, pred: np.ndarray) -> tuple:
@@ -63,6 +63,40 @@ def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarra
             majors.add(int(ids[np.argmax(n)]))
         split += len(majors) > 1
     return split, crossing
+
+
+SEAM_BANDS = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, np.inf))  # metres from the nearest seam
+
+
+def _seam_distance(plan, points: np.ndarray, owner: np.ndarray) -> np.ndarray:  # (N,) metres, inf: no seam
+    """Distance in XY from each primitive to the nearest edge of its core that is a seam (not the scene's edge)."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    out = np.full(points.shape[0], np.inf)
+    for tile in plan.tiles:
+        mine = owner == tile.index
+        x0, x1, y0, y1 = tile.core_box
+        for value, axis, edge in ((x0, 0, lo[0]), (x1, 0, hi[0]), (y0, 1, lo[1]), (y1, 1, hi[1])):
+            if abs(value - edge) > plan.cell_m:
+                out[mine] = np.minimum(out[mine], np.abs(points[mine, axis] - value))
+    return out
+
+
+def _weight_change(root: Path, plan, points: np.ndarray) -> float:
+    """Median relative change of the fusion's confidence weight (its scene-wide ranges taken per tile) over the
+    core primitives seen in both runs: |w_tile / w_untiled - 1|."""
+    from panogs_core.tiling.runner import tile_folder
+
+    with np.load(root["off"] / "stages" / "fusion.npz") as npz:
+        whole = npz["weights"]
+    changes = []
+    for tile in plan.tiles:
+        index, core = plan.members(tile, points)
+        with np.load(tile_folder(root["tiled"], tile) / "stages" / "fusion.npz") as npz:
+            part = npz["weights"][core]
+        ref = whole[index[core]]
+        seen = (ref > 0) & (part > 0)
+        changes.append(np.abs(part[seen] / ref[seen] - 1.0))
+    return float(np.median(np.concatenate(changes)))
 
 
 def main() -> None:
@@ -90,6 +124,19 @@ def main() -> None:
         gt_thing = (gt.semantic >= 0) & scene.vocabulary.is_thing[np.maximum(gt.semantic, 0)]
         split_t, crossing = _split_share(owner, gt.instance, gt_thing, tiled["instance"])
         split_u, _ = _split_share(owner, gt.instance, gt_thing, untiled["instance"])
+        distance = _seam_distance(plan, geometry.points, owner)
+        annotated = gt.semantic >= 0
+        bands = []
+        for a, b in SEAM_BANDS:
+            band = (distance >= a) & (distance < b) & annotated
+            wrong_t = tiled["semantic"][band] != gt.semantic[band]
+            wrong_u = untiled["semantic"][band] != gt.semantic[band]
+            bands.append((float(wrong_t.mean()), float(wrong_u.mean())))
+        folders = {
+            "off": args.root / f"{args.preset}-{seed}-off",
+            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}",
+        }
+        weight_change = _weight_change(folders, plan, geometry.points)
         u_peak = max(s["peak_rss_mb"] for s in untiled["report"]["stages"])
         tiles = tiled["report"]["tiling"]["tiles"]
         t_peaks = [t["peak_rss_mb"] for t in tiles]
@@ -101,7 +148,7 @@ def main() -> None:
             "inst": (untiled["report"]["num_instances"], tiled["report"]["num_instances"]),
             "split": (split_t, split_u, crossing), "peak": (u_peak, t_peaks),
             "wall": (untiled["report"]["total_wall_s"], tiled["report"]["total_wall_s"]),
-            "joins": tiled["report"]["tiling"]["seam_joins"],
+            "joins": tiled["report"]["tiling"]["seam_joins"], "bands": bands, "weights": weight_change,
         })  # fmt: skip
     print(
         f"| {args.preset} seed | mIoU off / {args.tiles} (delta) | PRQ(T) (delta) | PRQ(S) (delta) | instances "
@@ -121,6 +168,12 @@ def main() -> None:
             f"{crossing} | {r['joins']} | {u_peak:.0f} / {peaks} ({max(t_peaks) / u_peak:.2f}) | "
             f"{r['wall'][0]:.0f} / {r['wall'][1]:.0f} |"
         )
+    heads = " | ".join(f"{a:g}-{b:g} m" for a, b in SEAM_BANDS)
+    print(f"\n| seed | wrong class, tiled / untiled, by distance to a seam: {heads} | fusion weight change (median) |")
+    print("|---|" + "---|" * len(SEAM_BANDS) + "---|")
+    for r in rows:
+        cells = " | ".join(f"{t:.3f} / {u:.3f}" for t, u in r["bands"])
+        print(f"| {r['seed']} | {cells} | {r['weights']:.3f} |")
     x, y = np.array([f[0] for f in fit], float), np.array([f[1] for f in fit], float)
     slope, intercept = np.polyfit(x, y, 1)
     print(

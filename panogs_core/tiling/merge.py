@@ -2,9 +2,9 @@
 
 * Each primitive takes its class and instance from the tile whose core holds it.
 * A thing instance cut by a seam is one instance: instance a of tile t and instance b of tile u are joined when
-  they share a class and each is the other's best overlap where the two tiles both label primitives (t's halo
-  over u's core, u's halo over t's core), with at least ``min_overlap`` shared primitives. Joins are transitive
-  (an instance at a corner of four tiles is one).
+  they share a class and each is the other's best overlap (intersection over union) where the two tiles both
+  label primitives (t's halo over u's core, u's halo over t's core), with at least ``min_overlap`` shared
+  primitives. Joins are transitive (an instance at a corner of four tiles is one).
 * Stuff is one segment per class across the building.
 * Ids as an untiled run numbers them: things by their first primitive (scene order), then stuff by class; an
   instance's feature and score are its tiles' pieces' averaged by their core primitives, its centroid, box and
@@ -97,71 +97,92 @@ def merge_tiles(
     piece = np.full(n, -1, np.int64)  # the owning tile's piece (tile offset + its instance id) at each primitive
     superprimitive = np.full(n, -1, np.int64)
     cluster = np.full(n, -1, np.int64)
+    owner_tile = np.full(n, -1, np.int64)
     infos: list[InstanceInfo] = []  # every tile's instances, piece id = position here
-    halo_points, halo_pieces = [], []  # primitives of a tile's halo and that tile's piece there
+    halo_points, halo_pieces, halo_tiles = [], [], []  # a tile's halo primitives, its piece there, the tile
     offsets = {"sp": 0, "cluster": 0}
-    for tile in tiles:
+    for t, tile in enumerate(tiles):
         base = len(infos)
         infos.extend(tile.instances)
         own = tile.point_index[tile.core]
+        owner_tile[own] = t
         semantic[own] = tile.semantic[tile.core]
-        local = tile.instance[tile.core]
-        piece[own] = np.where(local >= 0, local + base, -1)
+        piece[own] = _pieces(tile.instance[tile.core], base, t)
         for name, dest, src in (("sp", superprimitive, tile.superprimitive), ("cluster", cluster, tile.cluster)):
             part = src[tile.core]
             dest[own] = np.where(part >= 0, part + offsets[name], -1)
             offsets[name] += int(src.max()) + 1 if src.size else 0
-        halo = ~tile.core & (tile.instance >= 0)
+        halo = ~tile.core
         halo_points.append(tile.point_index[halo])
-        halo_pieces.append(tile.instance[halo] + base)
+        halo_pieces.append(_pieces(tile.instance[halo], base, t))
+        halo_tiles.append(np.full(int(halo.sum()), t, np.int64))
     piece_class = np.array([i.class_index for i in infos], np.int64)
     piece_thing = is_thing[piece_class] if infos else np.zeros(0, bool)
     groups = _UnionFind(len(infos))
-    joins = _join_across_seams(groups, np.concatenate(halo_points), np.concatenate(halo_pieces), piece,
-                               piece_class, piece_thing, min_overlap)  # fmt: skip
+    halo_point = np.concatenate(halo_points)
+    joins = _join_across_seams(
+        groups,
+        (np.concatenate(halo_pieces), np.concatenate(halo_tiles)),
+        (piece[halo_point], owner_tile[halo_point]),
+        piece_class,
+        piece_thing,
+        min_overlap,
+    )
+    piece = np.where(piece >= 0, piece, -1)  # the tiles' "no instance" codes: none
     instance, rows = _number_instances(groups, piece, piece_class, piece_thing, semantic, is_thing)
     instances = _instance_infos(points, instance, rows, piece, infos, vocabulary)
     labels = PanopticLabels(semantic=semantic, instance=instance, instances=instances)
     return MergedLabels(labels=labels, superprimitive=superprimitive, cluster=cluster, seam_joins=joins)
 
 
+def _pieces(local: np.ndarray, base: int, tile: int) -> np.ndarray:
+    """Piece ids of a tile's instance ids: ``base + id``, and ``-(1 + tile)`` for its primitives in no instance (so
+    that "nothing" in one tile is told apart from "nothing" in another when overlaps are counted)."""
+    return np.where(local >= 0, local + base, -1 - tile)
+
+
 def _join_across_seams(
     groups: _UnionFind,
-    halo_point: np.ndarray,  # (H,) primitives labelled in some tile's halo
-    halo_piece: np.ndarray,  # (H,) that tile's piece there
-    piece: np.ndarray,  # (N,) the owning tile's piece
+    halo: tuple[np.ndarray, np.ndarray],  # (H,) piece and tile of every halo primitive of every tile
+    owner: tuple[np.ndarray, np.ndarray],  # (H,) piece and tile of the core that holds that primitive
     piece_class: np.ndarray,
     piece_thing: np.ndarray,
     min_overlap: int,
 ) -> int:
-    """Union the mutual best overlaps of thing pieces of one class; returns how many pairs were joined."""
-    owner = piece[halo_point]
-    keep = (owner >= 0) & (owner != halo_piece)
-    a, b = halo_piece[keep], owner[keep]
-    keep = piece_thing[a] & piece_thing[b] & (piece_class[a] == piece_class[b])
-    a, b = a[keep], b[keep]
+    """Union the thing pieces of one class that are each other's best overlap; returns how many pairs were joined.
+
+    Overlap is the intersection over union on the primitives that both of two tiles label (the halo of each over
+    the core of the other): a piece that took in two objects of the other tile is then not every piece's best.
+    A piece's best is chosen per neighbouring tile, so an object at the corner of three or four tiles joins each.
+    """
+    (hp, ht), (op, ot) = halo, owner
+    first = ht < ot  # order each entry by tile, so that both directions of a pair of tiles count together
+    a, b = np.where(first, hp, op), np.where(first, op, hp)
+    ta, tb = np.where(first, ht, ot), np.where(first, ot, ht)
     if a.size == 0:
         return 0
-    # Unordered pairs: t's halo over u's core and u's halo over t's core count towards the same pair.
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    pairs, counts = np.unique(np.stack([lo, hi], 1), axis=0, return_counts=True)
+    keys, counts = np.unique(np.stack([a, b, ta, tb], 1), axis=0, return_counts=True)
+    # each piece's primitives in the region it shares with the other tile: the sum of its pairs' counts there
+    size: dict[tuple[int, int], int] = {}
+    for (p, q, tp, tq), c in zip(keys.tolist(), counts.tolist()):
+        size[(p, tq)] = size.get((p, tq), 0) + c
+        size[(q, tp)] = size.get((q, tp), 0) + c
+    candidates = []
+    for (p, q, tp, tq), c in zip(keys.tolist(), counts.tolist()):
+        if p >= 0 and q >= 0 and piece_thing[p] and piece_thing[q] and piece_class[p] == piece_class[q]:
+            candidates.append((p, q, tp, tq, c, c / (size[(p, tq)] + size[(q, tp)] - c)))
+    best: dict[tuple[int, int], tuple[float, int]] = {}  # (piece, other tile) -> (IoU, partner)
+    for p, q, tp, tq, _, iou in candidates:
+        for x, y, other in ((p, q, tq), (q, p, tp)):
+            held = best.get((x, other))
+            if held is None or iou > held[0] or (iou == held[0] and y < held[1]):
+                best[(x, other)] = (iou, y)
     joined = 0
-    best = _best_partner(pairs, counts)
-    for (p, q), c in zip(pairs.tolist(), counts.tolist()):
-        if c >= min_overlap and best.get(p) == q and best.get(q) == p:
+    for p, q, tp, tq, c, _ in candidates:
+        if c >= min_overlap and best[(p, tq)][1] == q and best[(q, tp)][1] == p:
             groups.union(p, q)
             joined += 1
     return joined
-
-
-def _best_partner(pairs: np.ndarray, counts: np.ndarray) -> dict[int, int]:
-    """For every piece, the piece it overlaps most (ties: the lower id), over the pairs."""
-    best: dict[int, tuple[int, int]] = {}
-    for (p, q), c in zip(pairs.tolist(), counts.tolist()):
-        for x, y in ((p, q), (q, p)):
-            if x not in best or c > best[x][1] or (c == best[x][1] and y < best[x][0]):
-                best[x] = (y, c)
-    return {x: y for x, (y, _) in best.items()}
 
 
 def _number_instances(
