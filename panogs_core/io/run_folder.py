@@ -171,8 +171,9 @@ BUNDLE_FOLDER = RunFile(
 TILES_FOLDER = RunFile(
     "tiles/",
     FOLDER,
-    "a tiled run's tiles (`panogs run --tiles`): one run folder per tile, `tile-<k>-<digest>/` (its labels, "
-    "checkpoints and `report.json`), which the merge reads and a re-run resumes tile by tile",
+    "a tiled run's tiles (`panogs run --tiles`): `plan.json` (every tile's rectangles and frames) and one run "
+    "folder per tile, `tile-<k>-<digest>/` (its labels, checkpoints and `report.json`), which the merge reads and a "
+    "re-run resumes tile by tile",
     "panogs_core.tiling.runner",
     ("panogs_core.tiling.runner",),
     optional=True,

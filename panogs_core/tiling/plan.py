@@ -18,12 +18,14 @@ sees (a few hundred cells): nothing N x V, no feature map.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -164,6 +166,39 @@ class TilePlan:
             "whole_estimated_mb": round(self.whole_estimated_bytes / 2**20, 1),
             "tiles": [t.to_json() for t in self.tiles],
         }
+
+    def save(self, path: Path) -> None:
+        """The whole plan as JSON (``tiles/plan.json``): what a worker needs to rebuild any tile's bundle
+        (:func:`panogs_core.tiling.view.tile_bundle`) from the scene's bundle, without planning again."""
+        doc = {
+            "origin": list(self.origin), "cell_m": self.cell_m, "halo_cells": self.halo_cells, "grid": list(self.grid),
+            "tiled": self.tiled, "reason": self.reason, "whole_estimated_bytes": self.whole_estimated_bytes,
+            "tiles": [dataclasses.asdict(t) for t in self.tiles],
+        }  # fmt: skip
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> TilePlan:
+        """Read what :meth:`save` wrote."""
+        doc = json.loads(path.read_text())
+        tiles = tuple(
+            TileSpec(
+                index=int(t["index"]), core_cells=tuple(int(v) for v in t["core_cells"]),  # type: ignore[arg-type]
+                core_box=tuple(float(v) for v in t["core_box"]),  # type: ignore[arg-type]
+                halo_box=tuple(float(v) for v in t["halo_box"]),  # type: ignore[arg-type]
+                core_points=int(t["core_points"]), halo_points=int(t["halo_points"]),
+                frame_ids=tuple(str(f) for f in t["frame_ids"]), estimated_bytes=float(t["estimated_bytes"]),
+            )
+            for t in doc["tiles"]
+        )  # fmt: skip
+        return cls(
+            origin=(float(doc["origin"][0]), float(doc["origin"][1])), cell_m=float(doc["cell_m"]),
+            halo_cells=int(doc["halo_cells"]), grid=(int(doc["grid"][0]), int(doc["grid"][1])), tiles=tiles,
+            tiled=bool(doc["tiled"]), reason=str(doc["reason"]),
+            whole_estimated_bytes=float(doc["whole_estimated_bytes"]),
+        )  # fmt: skip
 
 
 def parse_tiles(text: str) -> str | tuple[int, int]:

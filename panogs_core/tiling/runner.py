@@ -93,6 +93,8 @@ def run_tiled(
                             on_results=on_results)  # fmt: skip
     assert points is not None
     vocab = resolve_scene_vocabulary(scene, vocabulary)
+    TILES_FOLDER.path(out).mkdir(parents=True, exist_ok=True)
+    plan.save(plan_path(out))
     tile_cfg = cfg.with_overrides({"appearance": {"enabled": False}})
     tile_rows = []
     for tile in plan.tiles:
@@ -126,6 +128,11 @@ def _named(sink: StageProgressFn | None, stage: str) -> Any:
     if sink is None:
         return None
     return lambda done, total: sink(stage, done, total)
+
+
+def plan_path(out: Path) -> Path:
+    """The plan of a tiled run, beside its tiles' folders."""
+    return TILES_FOLDER.path(out) / "plan.json"
 
 
 def tile_folder(out: Path, tile: TileSpec) -> Path:

@@ -19,7 +19,7 @@ from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 from panogs_core.synthetic import make_building, make_scene
 from panogs_core.tiling.merge import TileLabels, merge_tiles
-from panogs_core.tiling.plan import TilingConfig, parse_tiles, plan_tiles
+from panogs_core.tiling.plan import TilePlan, TilingConfig, parse_tiles, plan_tiles
 from panogs_core.tiling.runner import run_tiled
 from panogs_core.tiling.view import tile_bundle
 from panogs_core.types import Vocabulary
@@ -216,6 +216,9 @@ def test_tiled_cli_run_is_deterministic_and_reported(building: Path, tmp_path: P
         assert (runs[0] / name).read_bytes() == (runs[1] / name).read_bytes(), name
     report = json.loads((runs[0] / "report.json").read_text())
     tiles = report["tiling"]["tiles"]
+    plan = TilePlan.load(runs[0] / "tiles" / "plan.json")
+    assert [t.name for t in plan.tiles] == [t["name"] for t in tiles]
+    assert all((runs[0] / "tiles" / t["name"] / "labels.npz").is_file() for t in tiles)
     assert report["tiling"]["tiled"]
     assert len(tiles) == 2
     assert sum(t["core_primitives"] for t in tiles) == report["num_primitives"]
@@ -278,3 +281,11 @@ def test_the_cli_refuses_bad_tiles_and_rooms(tmp_path: Path, capsys: pytest.Capt
     with pytest.raises(SystemExit):
         cli_main(["synth", str(tmp_path / "b"), "--preset", "building", "--rooms", "0x2"])
     assert "expected N or NxM rooms" in capsys.readouterr().err
+
+
+def test_a_saved_plan_rebuilds_the_same_tiles(building: Path, points: np.ndarray, tmp_path: Path) -> None:
+    plan = plan_tiles(open_bundle(building), EXACT, (2, 1), points=points)
+    plan.save(tmp_path / "plan.json")
+    again = TilePlan.load(tmp_path / "plan.json")
+    assert again == plan
+    assert np.array_equal(again.core_of(points), plan.core_of(points))
