@@ -137,9 +137,10 @@ REPORT_JSON = RunFile(
     "input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), and `unseen_primitives`: how "
     "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`). Written when "
     "the results are (`appearance.state` `running`), again when the fit ends (`succeeded`, `skipped`, `failed` "
-    "or `canceled`, with `error`)",
+    "or `canceled`, with `error`). A tiled run's (`panogs run --tiles`) has `tiling`: the plan and per tile its core "
+    "and halo primitives, frames, wall time and peak memory",
     _PIPELINE,
-    ("bench.speed", "bench.service.bench_service"),
+    ("bench.speed", "bench.service.bench_service", "bench.tiling"),
     downloadable=True,
 )
 METRICS_JSON = RunFile(
