@@ -24,8 +24,21 @@ from panogs_core.errors import PanoGSError
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from panogs_core.synthetic import make_scene
+    from panogs_core.synthetic import make_building, make_scene
 
+    if args.preset == "building":
+        path = make_building(
+            args.out,
+            rooms=args.rooms,
+            room=args.room_preset,
+            difficulty=args.difficulty,
+            seed=args.seed,
+            feature_space=args.space,
+            with_geometry=not args.no_geometry,
+        )
+        rooms = f"{args.rooms[0]}x{args.rooms[1]} {args.room_preset} rooms"
+        print(f"wrote synthetic building ({rooms}, {args.difficulty}, seed {args.seed}) to {path}")
+        return 0
     path = make_scene(
         args.out,
         preset=args.preset,
@@ -36,6 +49,13 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     )
     print(f"wrote synthetic scene ({args.preset}, {args.difficulty}, seed {args.seed}) to {path}")
     return 0
+
+
+def _room_grid(text: str) -> tuple[int, int]:
+    parts = text.split("x")
+    if len(parts) in (1, 2) and all(p.isdigit() and 1 <= int(p) <= 16 for p in parts):
+        return (int(parts[0]), int(parts[-1]))
+    raise argparse.ArgumentTypeError(f"expected N or NxM rooms (1-16 each), got {text!r}")
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
@@ -272,6 +292,15 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _tiles_choice(text: str) -> str | tuple[int, int]:
+    from panogs_core.tiling.plan import parse_tiles
+
+    try:
+        return parse_tiles(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     _limit_threads(args.threads)
     from panogs_core.language.label_sets import is_builtin_name, vocabulary_from_name_or_file
@@ -300,19 +329,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(format_instances(result.instances))
         if result.metrics:
             print("\n" + format_metrics(result.metrics))
-        print("\n" + FITTING_LINE, flush=True)
+        if result.fit_state == "running":  # a tiled run fits none (docs/method.md §16.3)
+            print("\n" + FITTING_LINE, flush=True)
         printed.append(result)
 
     try:
-        result = run_pipeline(
-            args.bundle,
-            args.out,
-            cfg,
-            vocabulary=vocabulary,
-            on_progress=progress,
-            resume=not args.no_resume,
-            on_results=print_results,
-        )
+        if args.tiles == "off":
+            result = run_pipeline(
+                args.bundle,
+                args.out,
+                cfg,
+                vocabulary=vocabulary,
+                on_progress=progress,
+                resume=not args.no_resume,
+                on_results=print_results,
+            )
+        else:  # the plan runs a scene that fits whole as run_pipeline does (docs/method.md §16)
+            from panogs_core.tiling.plan import TilingConfig
+            from panogs_core.tiling.runner import run_tiled
+
+            tiling = TilingConfig()
+            if args.tile_memory_gb is not None:
+                tiling = TilingConfig(memory_target_bytes=args.tile_memory_gb * 1e9)
+
+            result = run_tiled(
+                args.bundle,
+                args.out,
+                cfg,
+                tiles=args.tiles,
+                tiling=tiling,
+                vocabulary=vocabulary,
+                on_progress=progress,
+                resume=not args.no_resume,
+                on_results=print_results,
+            )
     except KeyboardInterrupt:
         progress.close()
         if printed:
@@ -408,7 +458,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("synth", help="make a synthetic scene bundle")
     p.add_argument("out", help="output bundle folder")
-    p.add_argument("--preset", default="tiny", choices=["tiny", "small", "default", "large", "scan"])
+    p.add_argument("--preset", default="tiny", choices=["tiny", "small", "default", "large", "scan", "building"])
+    p.add_argument(
+        "--rooms",
+        type=_room_grid,
+        default=(2, 2),
+        metavar="N|NxM",
+        help="building only: rooms along x and y (N: N x N; default 2)",
+    )
+    p.add_argument(
+        "--room-preset",
+        default="large",
+        choices=["tiny", "small", "default", "large"],
+        help="building only: the kind of each room (default large)",
+    )
     p.add_argument("--difficulty", default="default", choices=["easy", "default", "hard"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
@@ -467,6 +530,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int,
         metavar="N",
         help="threads of torch, OpenMP and BLAS (default: the cores this process may use)",
+    )
+    p.add_argument(
+        "--tiles",
+        type=_tiles_choice,
+        default="auto",
+        metavar="auto|off|NxM",
+        help="split a scene over the memory target into tiles and merge them (auto, the default: only when it "
+        "does not fit whole), never (off), or into N x M tiles",
+    )
+    p.add_argument(
+        "--tile-memory-gb",
+        type=float,
+        metavar="GB",
+        help="with --tiles auto: the memory target of one tile (default 3; docs/method.md §16)",
     )
     p.set_defaults(func=_cmd_run)
 

@@ -137,9 +137,10 @@ REPORT_JSON = RunFile(
     "input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), and `unseen_primitives`: how "
     "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`). Written when "
     "the results are (`appearance.state` `running`), again when the fit ends (`succeeded`, `skipped`, `failed` "
-    "or `canceled`, with `error`)",
+    "or `canceled`, with `error`). A tiled run's (`panogs run --tiles`) has `tiling`: the plan and per tile its core "
+    "and halo primitives, frames, wall time and peak memory",
     _PIPELINE,
-    ("bench.speed", "bench.service.bench_service"),
+    ("bench.speed", "bench.service.bench_service", "bench.tiling"),
     downloadable=True,
 )
 METRICS_JSON = RunFile(
@@ -168,6 +169,16 @@ BUNDLE_FOLDER = RunFile(
     (_PIPELINE,),
     optional=True,
 )
+TILES_FOLDER = RunFile(
+    "tiles/",
+    FOLDER,
+    "a tiled run's tiles (`panogs run --tiles`): `plan.json` (every tile's rectangles and frames) and one run "
+    "folder per tile, `tile-<k>-<digest>/` (its labels, checkpoints and `report.json`), which the merge reads and a "
+    "re-run resumes tile by tile",
+    "panogs_core.tiling.runner",
+    ("panogs_core.tiling.runner",),
+    optional=True,
+)
 
 RUN_FILES: tuple[RunFile, ...] = (
     PANOPTIC_PLY,
@@ -182,6 +193,7 @@ RUN_FILES: tuple[RunFile, ...] = (
     METRICS_JSON,
     STAGES_FOLDER,
     BUNDLE_FOLDER,
+    TILES_FOLDER,
 )
 # What the API lists and serves for a finished job, by name (docs/service.md).
 DOWNLOADABLE: dict[str, RunFile] = {f.name: f for f in RUN_FILES if f.downloadable}

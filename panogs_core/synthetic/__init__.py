@@ -10,6 +10,7 @@ confusions). See ``docs/synthetic.md`` for the noise model and the presets.
 
 from __future__ import annotations
 
+from panogs_core.synthetic.building import make_building
 from panogs_core.synthetic.catalog import CLASS_KINDS, CLASS_NAMES, catalogue_vocabulary, label_embeddings
 from panogs_core.synthetic.layout import Layout
 from panogs_core.synthetic.presets import (
@@ -46,6 +47,7 @@ __all__ = [
     "get_difficulty",
     "get_preset",
     "label_embeddings",
+    "make_building",
     "make_scene",
     "spec_camera",
 ]

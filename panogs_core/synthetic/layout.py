@@ -58,6 +58,7 @@ class Layout:
         families: Family of each zone, along x.
         annotated: ``(I,)`` bool, False for instances the ground truth leaves unannotated (clutter outside
             the label set, the ceiling of a realistic scene); None = every instance is annotated.
+        num_stuff: The stuff instances come first, this many of them (six in a room).
     """
 
     room: np.ndarray
@@ -68,6 +69,7 @@ class Layout:
     contacts: np.ndarray
     families: tuple[str, ...]
     annotated: np.ndarray | None = None
+    num_stuff: int = NUM_STUFF  # instances 0..num_stuff-1 are stuff (a building: six per room, building.py)
 
     @property
     def box_class(self) -> np.ndarray:  # (B,) int64

@@ -21,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from panogs_core.synthetic.degrade import smooth_field
-from panogs_core.synthetic.layout import NUM_STUFF, Layout
+from panogs_core.synthetic.layout import Layout
 from panogs_core.synthetic.presets import MaskNoise
 
 
@@ -74,7 +74,7 @@ def _split(
         if group_size[group[i]] > 1:
             continue  # merged regions stay whole
         region = instance == i
-        if i < NUM_STUFF:
+        if i < layout.num_stuff:
             if rng.random() < noise.stuff_split:
                 pieces = int(rng.integers(noise.stuff_pieces[0], noise.stuff_pieces[1] + 1))
                 sub[region] = 1 + _stuff_pieces(region, pieces, rng)

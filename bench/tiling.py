@@ -1,0 +1,186 @@
+"""Tiling benchmark: untiled against forced tiles on the same scenes (docs/method.md §16, docs/benchmarks.md "Tiling").
+
+Usage:
+    python bench/tiling.py [--preset large] [--seeds 0 1 2] [--tiles 2x2] [--root /tmp/tiling-bench] [--regen]
+
+Per seed: ``panogs synth`` (kept under ``--root`` unless ``--regen``), then ``panogs run --tiles off`` and
+``panogs run --tiles NxM`` (appearance fit off in both: a tiled run fits none), each in its own process so that
+peak memory is its own. Prints a markdown table: standard-mode mIoU, PRQ(T), PRQ(S) of both and their deltas,
+instance counts, the share of ground-truth thing instances that cross a tile border and come out split there
+(the majority predicted instance differs between two tiles' cores; the untiled run's share on the same instances
+beside it), the peak of the untiled run and of every tile (the highest of its stages' sampled peaks) and their
+ratio, and a least-squares fit of peak memory against primitives x frames over the runs and tiles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+from panogs_core.io.bundle import open_bundle  # noqa: E402
+from panogs_core.tiling.plan import TilingConfig, parse_tiles, plan_tiles  # noqa: E402
+
+MIN_SHARE = 0.1  # an instance crosses a border when two cores each hold at least this share of its points
+
+
+def _cli(*args: str) -> None:
+    subprocess.run([sys.executable, "-m", "panogs_core.cli", *args], cwd=REPO, check=True, capture_output=True)
+
+
+def _run(bundle: Path, out: Path, tiles: str) -> dict:
+    if not (out / "report.json").is_file():
+        _cli("run", str(bundle), "--out", str(out), "--tiles", tiles, "-q", "--set", "appearance.enabled=false")
+    report = json.loads((out / "report.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())["standard"]
+    labels = np.load(out / "labels.npz")
+    return {"report": report, "metrics": metrics, "instance": labels["instance"], "semantic": labels["semantic"]}
+
+
+def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarray, pred: np.ndarray) -> tuple:
+    """Of the GT thing instances whose points two tile cores each hold a share of, how many the prediction splits
+    there (the majority predicted instance of the two parts differs); returns (split, crossing)."""
+    crossing = split = 0
+    for g in np.unique(gt_instance[gt_thing]):
+        member = gt_instance == g
+        cores, counts = np.unique(owner[member], return_counts=True)
+        big = cores[counts >= MIN_SHARE * member.sum()]
+        if big.size < 2:
+            continue
+        crossing += 1
+        majors = set()
+        for core in big:
+            ids, n = np.unique(pred[member & (owner == core)], return_counts=True)
+            majors.add(int(ids[np.argmax(n)]))
+        split += len(majors) > 1
+    return split, crossing
+
+
+SEAM_BANDS = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, np.inf))  # metres from the nearest seam
+
+
+def _seam_distance(plan, points: np.ndarray, owner: np.ndarray) -> np.ndarray:  # (N,) metres, inf: no seam
+    """Distance in XY from each primitive to the nearest edge of its core that is a seam (not the scene's edge)."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    out = np.full(points.shape[0], np.inf)
+    for tile in plan.tiles:
+        mine = owner == tile.index
+        x0, x1, y0, y1 = tile.core_box
+        for value, axis, edge in ((x0, 0, lo[0]), (x1, 0, hi[0]), (y0, 1, lo[1]), (y1, 1, hi[1])):
+            if abs(value - edge) > plan.cell_m:
+                out[mine] = np.minimum(out[mine], np.abs(points[mine, axis] - value))
+    return out
+
+
+def _weight_change(root: Path, plan, points: np.ndarray) -> float:
+    """Median relative change of the fusion's confidence weight (its scene-wide ranges taken per tile) over the
+    core primitives seen in both runs: |w_tile / w_untiled - 1|."""
+    from panogs_core.tiling.runner import tile_folder
+
+    with np.load(root["off"] / "stages" / "fusion.npz") as npz:
+        whole = npz["weights"]
+    changes = []
+    for tile in plan.tiles:
+        index, core = plan.members(tile, points)
+        with np.load(tile_folder(root["tiled"], tile) / "stages" / "fusion.npz") as npz:
+            part = npz["weights"][core]
+        ref = whole[index[core]]
+        seen = (ref > 0) & (part > 0)
+        changes.append(np.abs(part[seen] / ref[seen] - 1.0))
+    return float(np.median(np.concatenate(changes)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="large")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--tiles", default="2x2")
+    parser.add_argument("--root", type=Path, default=Path("/tmp/tiling-bench"))
+    parser.add_argument("--regen", action="store_true")
+    args = parser.parse_args()
+    rows, fit = [], []
+    for seed in args.seeds:
+        bundle = args.root / f"{args.preset}-{seed}"
+        if args.regen or not (bundle / "scene.json").is_file():
+            _cli("synth", str(bundle), "--preset", args.preset, "--seed", str(seed))
+        untiled = _run(bundle, args.root / f"{args.preset}-{seed}-off", "off")
+        tiled = _run(bundle, args.root / f"{args.preset}-{seed}-{args.tiles}", args.tiles)
+        scene = open_bundle(bundle)
+        geometry, gt = scene.read_geometry(), scene.read_ground_truth()
+        assert geometry is not None
+        assert gt is not None
+        assert scene.vocabulary is not None
+        plan = plan_tiles(scene, TilingConfig(), parse_tiles(args.tiles), points=geometry.points)
+        owner = plan.core_of(geometry.points)
+        gt_thing = (gt.semantic >= 0) & scene.vocabulary.is_thing[np.maximum(gt.semantic, 0)]
+        split_t, crossing = _split_share(owner, gt.instance, gt_thing, tiled["instance"])
+        split_u, _ = _split_share(owner, gt.instance, gt_thing, untiled["instance"])
+        distance = _seam_distance(plan, geometry.points, owner)
+        annotated = gt.semantic >= 0
+        bands = []
+        for a, b in SEAM_BANDS:
+            band = (distance >= a) & (distance < b) & annotated
+            wrong_t = tiled["semantic"][band] != gt.semantic[band]
+            wrong_u = untiled["semantic"][band] != gt.semantic[band]
+            bands.append((float(wrong_t.mean()), float(wrong_u.mean())))
+        folders = {
+            "off": args.root / f"{args.preset}-{seed}-off",
+            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}",
+        }
+        weight_change = _weight_change(folders, plan, geometry.points)
+        u_peak = max(s["peak_rss_mb"] for s in untiled["report"]["stages"])
+        tiles = tiled["report"]["tiling"]["tiles"]
+        t_peaks = [t["peak_rss_mb"] for t in tiles]
+        n, v = untiled["report"]["num_primitives"], untiled["report"]["num_frames"]
+        fit.append((n * v, u_peak))
+        fit += [((t["core_primitives"] + t["halo_primitives"]) * t["frames"], t["peak_rss_mb"]) for t in tiles]
+        rows.append({
+            "seed": seed, "u": untiled["metrics"], "t": tiled["metrics"],
+            "inst": (untiled["report"]["num_instances"], tiled["report"]["num_instances"]),
+            "split": (split_t, split_u, crossing), "peak": (u_peak, t_peaks),
+            "wall": (untiled["report"]["total_wall_s"], tiled["report"]["total_wall_s"]),
+            "joins": tiled["report"]["tiling"]["seam_joins"], "bands": bands, "weights": weight_change,
+        })  # fmt: skip
+    print(
+        f"| {args.preset} seed | mIoU off / {args.tiles} (delta) | PRQ(T) (delta) | PRQ(S) (delta) | instances "
+        "| crossing GT instances split, tiled / untiled | seam joins | peak MB off / tiles (max ratio) | wall s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        cells = []
+        for key in ("miou", "prq_thing", "prq_stuff"):
+            a, b = r["u"][key], r["t"][key]
+            cells.append(f"{a:.3f} / {b:.3f} ({b - a:+.3f})")
+        split_t, split_u, crossing = r["split"]
+        u_peak, t_peaks = r["peak"]
+        peaks = ", ".join(f"{p:.0f}" for p in t_peaks)
+        print(
+            f"| {r['seed']} | {' | '.join(cells)} | {r['inst'][0]} / {r['inst'][1]} | {split_t} / {split_u} of "
+            f"{crossing} | {r['joins']} | {u_peak:.0f} / {peaks} ({max(t_peaks) / u_peak:.2f}) | "
+            f"{r['wall'][0]:.0f} / {r['wall'][1]:.0f} |"
+        )
+    heads = " | ".join(f"{a:g}-{b:g} m" for a, b in SEAM_BANDS)
+    print(f"\n| seed | wrong class, tiled / untiled, by distance to a seam: {heads} | fusion weight change (median) |")
+    print("|---|" + "---|" * len(SEAM_BANDS) + "---|")
+    for r in rows:
+        cells = " | ".join(f"{t:.3f} / {u:.3f}" for t, u in r["bands"])
+        print(f"| {r['seed']} | {cells} | {r['weights']:.3f} |")
+    x, y = np.array([f[0] for f in fit], float), np.array([f[1] for f in fit], float)
+    slope, intercept = np.polyfit(x, y, 1)
+    print(
+        f"\npeak MB = {intercept:.0f} + {slope * 2**20:.1f} bytes x primitives x frames "
+        f"(least squares over {len(fit)} runs and tiles, {x.min() / 1e6:.1f}-{x.max() / 1e6:.1f} M primitive-frames)"
+    )
+
+
+if __name__ == "__main__":
+    main()

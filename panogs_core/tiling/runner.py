@@ -1,0 +1,298 @@
+"""``run_tiled``: plan, run every tile with :func:`run_pipeline`, merge, write the scene's files (docs/method.md §16).
+
+One process runs the tiles one after another (the CLI and the tests; the service will run them as sub-jobs). A
+scene that the plan leaves whole goes straight to :func:`run_pipeline`, so its files are an untiled run's,
+byte for byte. A tiled run's folder holds the scene's files (docs/architecture.md, "Outputs of a run"), each tile's
+own run folder under ``tiles/<tile name>/`` (its checkpoints: a re-run resumes tile by tile) and ``report.json``
+with the plan and, per tile, its core and halo primitives, frames, wall time and peak memory.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import json
+import logging
+import platform
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from panogs_core import __version__
+from panogs_core.errors import InputError
+from panogs_core.io.bundle import Bundle, open_bundle
+from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
+from panogs_core.pipeline.run import (
+    FIT_SKIPPED,
+    PipelineResult,
+    ResultsFn,
+    StageProgressFn,
+    hash_bundle,
+    resolve_scene_vocabulary,
+    run_pipeline,
+)
+from panogs_core.tiling.merge import TileLabels, merge_tiles
+from panogs_core.tiling.plan import TILES_AUTO, TILES_OFF, TilePlan, TileSpec, TilingConfig, plan_tiles
+from panogs_core.tiling.view import tile_bundle
+from panogs_core.types import Vocabulary
+
+log = logging.getLogger(__name__)
+
+# DEPARTURE (docs/method.md §16.3): a tiled run fits no Gaussian scene; gaussians.ply is the initialisation.
+_NO_FIT_NOTE = "tiled run: the appearance fit does not run per tile; gaussians.ply holds the initialisation"
+
+
+def run_tiled(
+    bundle: str | Path | Bundle,
+    out_dir: str | Path,
+    config: PipelineConfig | None = None,
+    *,
+    tiles: str | tuple[int, int] = TILES_AUTO,
+    tiling: TilingConfig | None = None,
+    vocabulary: str | Vocabulary | None = None,
+    on_progress: StageProgressFn | None = None,
+    resume: bool = True,
+    on_results: ResultsFn | None = None,
+) -> PipelineResult:
+    """Run a scene as tiles and merge them; a scene the plan leaves whole runs as :func:`run_pipeline` does.
+
+    Args:
+        bundle, out_dir, config, vocabulary, on_progress, resume, on_results: as :func:`run_pipeline`.
+            Progress names the stages ``plan``, ``tile <k>/<K> <stage>`` and ``merge``.
+        tiles: ``auto``, ``off`` or ``(nx, ny)`` (``panogs_core.tiling.plan.parse_tiles``).
+        tiling: Planner settings (memory target, halo).
+
+    Raises:
+        InputError: tiles were forced on a bundle without geometry.
+        BundleError, Cancelled: as :func:`run_pipeline`.
+    """
+    cfg = config or PipelineConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    scene = bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out))
+    geometry = scene.read_geometry() if cfg.primitives.use_geometry else None
+    if geometry is None and tiles not in (TILES_AUTO, TILES_OFF):
+        raise InputError("--tiles NxM needs geometry.ply (and primitives.use_geometry): the TSDF path's primitives "
+                         "exist only after stage 1")  # fmt: skip
+    points = None if geometry is None else geometry.points
+    del geometry
+    timings: list[StageStats] = []
+    with StageTimer("plan") as timer:
+        plan = plan_tiles(scene, tiling or TilingConfig(), tiles if points is not None else TILES_OFF, points=points,
+                          on_progress=_named(on_progress, "plan"))  # fmt: skip
+    timings.append(timer.stats)
+    log.info("tiling plan: %s, %d tile(s)", plan.reason, len(plan.tiles))
+    if not plan.tiled:
+        return run_pipeline(scene, out, cfg, vocabulary=vocabulary, on_progress=on_progress, resume=resume,
+                            on_results=on_results)  # fmt: skip
+    assert points is not None
+    vocab = resolve_scene_vocabulary(scene, vocabulary)
+    TILES_FOLDER.path(out).mkdir(parents=True, exist_ok=True)
+    plan.save(plan_path(out))
+    tile_cfg = cfg.with_overrides({"appearance": {"enabled": False}})
+    tile_rows = []
+    for tile in plan.tiles:
+        row, stats = _run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume)
+        tile_rows.append(row)
+        timings.append(stats)
+        _release_memory()
+    with StageTimer("merge") as timer:
+        result, seam_joins = _merge(scene, plan, points, vocab, out, on_progress)
+    timings.append(timer.stats)
+    result.timings = timings
+    result.total_s = time.perf_counter() - t_start
+    result.appearance = {"state": FIT_SKIPPED, "fitted": False, "note": _NO_FIT_NOTE}
+    _write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)
+    if on_results is not None:
+        on_results(result)
+    return result
+
+
+def _release_memory() -> None:
+    """Hand what the last tile freed back to the system, so the next tile's peak is its own: the garbage
+    collector for cycles, then glibc's ``malloc_trim`` for the freed heap it keeps (a no-op elsewhere)."""
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _named(sink: StageProgressFn | None, stage: str) -> Any:
+    if sink is None:
+        return None
+    return lambda done, total: sink(stage, done, total)
+
+
+def plan_path(out: Path) -> Path:
+    """The plan of a tiled run, beside its tiles' folders."""
+    return TILES_FOLDER.path(out) / "plan.json"
+
+
+def tile_folder(out: Path, tile: TileSpec) -> Path:
+    """The run folder of one tile."""
+    return TILES_FOLDER.path(out) / tile.name
+
+
+def _run_tile(
+    scene: Bundle,
+    plan: TilePlan,
+    tile: TileSpec,
+    points: np.ndarray,
+    cfg: PipelineConfig,
+    vocab: Vocabulary,
+    out: Path,
+    on_progress: StageProgressFn | None,
+    resume: bool,
+) -> tuple[dict[str, Any], StageStats]:
+    """Run one tile's stages 1-8 in its own folder; its report row and its timing."""
+    view, core = tile_bundle(scene, plan, tile, points)
+    label = f"tile {tile.index + 1}/{len(plan.tiles)}"
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if on_progress is not None:
+            on_progress(f"{label} {stage}", done, total)
+
+    start = time.perf_counter()
+    result = run_pipeline(view, tile_folder(out, tile), cfg, vocabulary=vocab, on_progress=progress, resume=resume)
+    wall = time.perf_counter() - start
+    # Peak of the tile: the highest of its stages' sampled peaks (the process's lifetime peak would carry the
+    # tiles before it).
+    peak = max((t.peak_rss_mb for t in result.timings), default=0.0)
+    row = {
+        **tile.to_json(),
+        "core_primitives": int(core.sum()),
+        "halo_primitives": int(core.size - core.sum()),
+        "instances": len(result.instances),
+        "unseen_primitives": result.unseen,
+        "wall_s": round(wall, 3),
+        "peak_rss_mb": round(peak, 1),
+    }
+    log.info("%s: %d + %d primitives, %d frames, %.1f s, peak %.0f MB", label, row["core_primitives"],
+             row["halo_primitives"], len(tile.frame_ids), wall, peak)  # fmt: skip
+    return row, StageStats(name=f"tile {tile.index}", wall_s=wall, peak_rss_mb=peak)
+
+
+def _tile_labels(out: Path, plan: TilePlan, points: np.ndarray) -> Iterator[TileLabels]:
+    for tile in plan.tiles:
+        index, core = plan.members(tile, points)
+        yield TileLabels.from_run(tile_folder(out, tile), index, core)
+
+
+def _merge(
+    scene: Bundle,
+    plan: TilePlan,
+    points: np.ndarray,
+    vocab: Vocabulary,
+    out: Path,
+    on_progress: StageProgressFn | None,
+) -> tuple[PipelineResult, int]:
+    """Merge the tiles' labels and write the scene's files with the exporter of an untiled run; the result and
+    the number of seam joins."""
+    from panogs_core.stages.clustering import Clusters
+    from panogs_core.stages.export import write_outputs
+    from panogs_core.stages.superprimitives import SuperPrimitives
+
+    if on_progress is not None:
+        on_progress("merge", 0, 1)
+    merged = merge_tiles(_tile_labels(out, plan, points), points, vocab)
+    prims, fused = _scene_primitives(out, plan, points)
+    files, metrics = write_outputs(
+        out, scene, prims, fused, SuperPrimitives(labels=merged.superprimitive),
+        Clusters(labels=merged.cluster), merged.labels, vocab, gaussians=None,
+    )  # fmt: skip
+    log.info("merge: %d instances, %d seam joins", len(merged.labels.instances), merged.seam_joins)
+    if on_progress is not None:
+        on_progress("merge", 1, 1)
+    result = PipelineResult(
+        out_dir=out,
+        scene_name=scene.name,
+        num_primitives=int(points.shape[0]),
+        instances=[i.to_json() for i in merged.labels.instances],
+        timings=[],
+        metrics=metrics,
+        files=files,
+    )
+    return result, merged.seam_joins
+
+
+def _scene_primitives(out: Path, plan: TilePlan, points: np.ndarray) -> tuple[Any, Any]:
+    """The scene's primitives (normals, scales, colours) gathered from the tiles' cores, and a fused-features
+    stand-in that carries only what the exporter reads of it (no colours: the primitives have them)."""
+    from panogs_core.stages.fusion import FusedFeatures
+    from panogs_core.stages.primitives import Primitives
+
+    n = points.shape[0]
+    normals = np.zeros((n, 3), np.float32)
+    scales = np.zeros((n, 3), np.float32)
+    opacities = np.zeros(n, np.float32)
+    colors = np.full((n, 3), 0.5, np.float32)
+    for tile in plan.tiles:
+        index, core = plan.members(tile, points)
+        stages = STAGES_FOLDER.path(tile_folder(out, tile))
+        tile_prims = Primitives.load(stages / "primitives.npz")
+        own = index[core]
+        normals[own], scales[own], opacities[own] = (tile_prims.normals[core], tile_prims.scales[core],
+                                                     tile_prims.opacities[core])  # fmt: skip
+        if tile_prims.colors is not None:
+            colors[own] = tile_prims.colors[core]
+        else:  # the colours fused from the frames: one array of the fusion's checkpoint, read alone
+            with np.load(stages / "fusion.npz", allow_pickle=False) as npz:
+                if "colors" in npz.files:
+                    colors[own] = npz["colors"][core]
+    prims = Primitives(points=np.asarray(points, np.float32), normals=normals, colors=colors, scales=scales,
+                       opacities=opacities, source="geometry")  # fmt: skip
+    fused = FusedFeatures(
+        features=np.zeros((n, 0), np.float32), weights=np.zeros(n, np.float32), seen_count=np.zeros(n, np.int32),
+        colors=None,
+    )  # fmt: skip
+    return prims, fused
+
+
+def _write_report(
+    out: Path,
+    scene: Bundle,
+    cfg: PipelineConfig,
+    vocabulary_spec: str | Vocabulary | None,
+    plan: TilePlan,
+    tile_rows: list[dict[str, Any]],
+    seam_joins: int,
+    result: PipelineResult,
+) -> None:
+    """``report.json`` of a tiled run: an untiled run's fields, with ``tiling`` (the plan and every tile)."""
+    import torch
+
+    vocabulary = "inline" if isinstance(vocabulary_spec, Vocabulary) else (
+        vocabulary_spec or ("bundle" if scene.vocabulary is not None else "default"))  # fmt: skip
+    report = {
+        "scene": scene.name,
+        "input_sha256": hash_bundle(scene),
+        "num_primitives": result.num_primitives,
+        "num_instances": len(result.instances),
+        "unseen_primitives": {},  # per tile, under "tiling" (a tile counts its halo too)
+        "appearance": result.appearance,
+        "num_frames": len(scene.frames),
+        "feature_space": scene.feature_space,
+        "feature_dim": scene.feature_dim,
+        "vocabulary": vocabulary,
+        "stages": [{**t.to_json(), "device": "cpu"} for t in result.timings],
+        "total_wall_s": round(result.total_s, 3),
+        "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
+        "tiling": {**plan.to_json(), "tiles": tile_rows, "seam_joins": seam_joins},
+        "config": cfg.to_dict(),
+        "versions": {
+            "panogs": __version__,
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "torch": torch.__version__,
+            "cuda": torch.version.cuda,
+        },
+    }
+    REPORT_JSON.path(out).write_text(json.dumps(report, indent=2))
+    result.files[REPORT_JSON.name] = REPORT_JSON.path(out)
