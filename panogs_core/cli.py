@@ -350,7 +350,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
             tiling = TilingConfig()
             if args.tile_memory_gb is not None:
-                tiling = TilingConfig(memory_target_bytes=args.tile_memory_gb * 1e9)
+                limit = args.tile_memory_gb * 1e9
+                tiling = TilingConfig(memory_target_bytes=limit, whole_limit_bytes=limit)
 
             result = run_tiled(
                 args.bundle,
@@ -536,14 +537,15 @@ def build_parser() -> argparse.ArgumentParser:
         type=_tiles_choice,
         default="auto",
         metavar="auto|off|NxM",
-        help="split a scene over the memory target into tiles and merge them (auto, the default: only when it "
-        "does not fit whole), never (off), or into N x M tiles",
+        help="split a scene into tiles and merge them: auto (the default) only when the untiled run is estimated "
+        "over half this machine's memory, never (off), or into N x M tiles",
     )
     p.add_argument(
         "--tile-memory-gb",
         type=float,
         metavar="GB",
-        help="with --tiles auto: the memory target of one tile (default 3; docs/method.md §16)",
+        help="with --tiles auto: the memory one run may use; a scene estimated over it is tiled, in tiles under "
+        "it (default: tiles of 3 GB, for scenes over half this machine's memory; docs/method.md §16)",
     )
     p.set_defaults(func=_cmd_run)
 

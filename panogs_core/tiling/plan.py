@@ -9,8 +9,10 @@ core's rectangle grown by ``halo_m``) is a union of cells too.
 Cost model: a tile costs ``fixed_bytes + bytes_per_primitive_frame x primitives x frames`` (primitives of core and
 halo; frames that see at least ``min_frame_points`` of them), the cost driver measured on a ScanNet-size room
 (docs/benchmarks.md, "Tiling"). The k-d split halves the most expensive region along its longer side, at the
-cell boundary that balances the core primitives, until every tile fits ``memory_target_bytes``. A scene that fits
-whole is not tiled at all, so its results are those of an untiled run.
+cell boundary that balances the core primitives, until every tile fits ``memory_target_bytes``. ``auto`` leaves a
+scene whole when its worst case fits ``whole_limit_bytes`` (by default half of this machine's memory, and never
+less than the tile target): a room that an untiled run handles keeps the untiled run's results, and only a scene
+that would not fit is tiled.
 
 Memory: the points (N x 3 float32), one frame's projection and, per frame, the primitive count of each cell it
 sees (a few hundred cells): nothing N x V, no feature map.
@@ -22,6 +24,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -53,6 +56,10 @@ class TilingConfig:
     cell_m: float = 0.25  # m, planner grid; halo_m must be a whole number of cells (ours: 4 cells per halo)
     # bytes, what one tile may use; ours: the per-tile target of a building job (docs/method.md §16)
     memory_target_bytes: float = 3.0e9
+    # bytes, the most an untiled run may be estimated at for ``auto`` to leave the scene whole; None: half of this
+    # machine's physical memory (ours: tiling changes results a little, docs/benchmarks.md "Tiling", so a scene is
+    # tiled only where one process could not hold it), at least memory_target_bytes
+    whole_limit_bytes: float | None = None
     fixed_bytes: float = 0.8e9  # bytes, a run's fixed cost at ScanNet size (docs/benchmarks.md, "Tiling")
     bytes_per_primitive_frame: float = 74.0  # bytes (docs/benchmarks.md, "Tiling")
     # A frame joins a tile when it sees this many of the tile's primitives (ours: a frame that shows 50 points of
@@ -68,6 +75,9 @@ class TilingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"tiling.{name}: expected a finite value > 0, got {value!r}")
+        limit = self.whole_limit_bytes
+        if limit is not None and not (math.isfinite(limit) and limit > 0):
+            raise ConfigError(f"tiling.whole_limit_bytes: expected a finite value > 0 or null, got {limit!r}")
         if not (math.isfinite(self.fixed_bytes) and 0 <= self.fixed_bytes < self.memory_target_bytes):
             raise ConfigError(
                 f"tiling.fixed_bytes: expected 0 <= fixed_bytes < memory_target_bytes ({self.memory_target_bytes}), "
@@ -84,6 +94,19 @@ class TilingConfig:
     @property
     def halo_cells(self) -> int:
         return round(self.halo_m / self.cell_m)
+
+    def whole_limit(self) -> float:
+        """Bytes up to which ``auto`` runs a scene untiled: ``whole_limit_bytes``, or half the machine's memory."""
+        limit = self.whole_limit_bytes if self.whole_limit_bytes is not None else physical_memory_bytes() / 2
+        return max(limit, self.memory_target_bytes)
+
+
+def physical_memory_bytes() -> float:
+    """This machine's physical memory (``sysconf``); 0 where the system does not say."""
+    try:
+        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return 0.0
 
 
 @dataclass(frozen=True)
@@ -261,7 +284,8 @@ def plan_tiles(
     Args:
         bundle: The opened bundle; its ``geometry.ply`` vertices are the primitives (the geometry path).
         cfg: Planner settings.
-        tiles: ``auto`` (split until every tile fits ``cfg.memory_target_bytes``; untiled when the scene does),
+        tiles: ``auto`` (untiled when the scene fits ``cfg.whole_limit()``; else split until every tile fits
+            ``cfg.memory_target_bytes``),
             ``off`` (one untiled tile), or ``(nx, ny)`` (forced: nx columns of equal primitive count, each cut into
             ny tiles of equal count).
         points: The primitives' centres when already read (else read from the geometry).
@@ -284,8 +308,9 @@ def plan_tiles(
         return _untiled(bundle, points.shape[0], "tiling off")
     # Every key frame sees the whole scene at worst: a scene that fits so is planned without a pass over its frames.
     whole_bytes = cfg.fixed_bytes + cfg.bytes_per_primitive_frame * points.shape[0] * len(frames)
-    if tiles == TILES_AUTO and whole_bytes <= cfg.memory_target_bytes:
-        return _untiled(bundle, points.shape[0], "fits the memory target whole", whole_bytes)
+    if tiles == TILES_AUTO and whole_bytes <= cfg.whole_limit():
+        reason = f"fits whole (estimated {whole_bytes / 1e9:.1f} GB, limit {cfg.whole_limit() / 1e9:.1f} GB)"
+        return _untiled(bundle, points.shape[0], reason, whole_bytes)
     lo = points[:, :2].min(axis=0).astype(np.float64)
     extent = np.floor((points[:, :2].max(axis=0) - lo) / cfg.cell_m).astype(np.int64) + 1
     grid = (int(extent[0]), int(extent[1]))

@@ -106,10 +106,23 @@ def test_a_scene_under_the_budget_is_not_tiled(building: Path, points: np.ndarra
     assert plan.tiles[0].core_points == points.shape[0]
 
 
+def test_auto_leaves_whole_a_scene_over_the_tile_target_that_fits_the_whole_limit(
+    building: Path, points: np.ndarray
+) -> None:
+    bundle = open_bundle(building)
+    whole = 74.0 * points.shape[0] * len(bundle.frames)
+    small_tiles = {"memory_target_bytes": 0.4 * whole, "fixed_bytes": 0.0}
+    assert not plan_tiles(bundle, TilingConfig(**small_tiles, whole_limit_bytes=2 * whole), "auto", points=points).tiled
+    assert plan_tiles(bundle, TilingConfig(**small_tiles, whole_limit_bytes=0.5 * whole), "auto", points=points).tiled
+    assert TilingConfig().whole_limit() >= TilingConfig().memory_target_bytes
+
+
 def test_auto_splits_until_every_tile_fits(building: Path, points: np.ndarray) -> None:
     bundle = open_bundle(building)
     whole = 74.0 * points.shape[0] * len(bundle.frames)
-    cfg = TilingConfig(memory_target_bytes=0.4 * whole, fixed_bytes=0.0, sample_points=10**9)
+    cfg = TilingConfig(
+        memory_target_bytes=0.4 * whole, whole_limit_bytes=0.4 * whole, fixed_bytes=0.0, sample_points=10**9
+    )
     plan = plan_tiles(bundle, cfg, "auto", points=points)
     assert plan.tiled
     assert len(plan.tiles) >= 3
