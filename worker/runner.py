@@ -148,6 +148,7 @@ class _Tracker:
     lease: str
     env: JobEnv
     timings: dict[str, float]
+    cached: list[str] = field(default_factory=list)  # stages taken from another job's checkpoint, earlier attempts'
     started: float = field(default_factory=time.monotonic)
     stage: str | None = None
     stage_started: float = 0.0
@@ -169,6 +170,12 @@ class _Tracker:
             if not best_effort:
                 raise
             logger.warning("job %s: could not store its partial work", self.job_id, exc_info=True)
+
+    def stage_values(self) -> dict[str, Any]:
+        """The per-stage columns as they stand: the stage times and the stages taken from the scene's checkpoints
+        (by an earlier attempt or by this one)."""
+        reused = self.shared.reused if self.shared is not None else []
+        return {"stage_timings": dict(self.timings), "cached_stages": list(dict.fromkeys([*self.cached, *reused]))}
 
     def fraction(self, stage: str, done: int, total: int) -> float:
         if stage not in self.env.stages:
@@ -201,7 +208,7 @@ class _Tracker:
         if self.results_ready and stage == FIT_STAGE:
             self.fit_progress = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
             values["fit_progress"] = self.fit_progress
-        self.write(stage=stage, progress=self.fraction(stage, done, total), stage_timings=dict(self.timings), **values)
+        self.write(stage=stage, progress=self.fraction(stage, done, total), **self.stage_values(), **values)
 
     def write(self, **values: Any) -> None:
         """Progress and heartbeat write; a database that is away is skipped, a lost lease or a cancel
@@ -258,7 +265,9 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
         _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
-    tracker = _Tracker(job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}))
+    tracker = _Tracker(
+        job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}), cached=list(job.cached_stages or [])
+    )
     return _run(job, tracker, env)
 
 
@@ -392,7 +401,7 @@ def _run_in(
     except CancelRequested as exc:
         tracker.close_stage(time.monotonic())
         fit = {"fit_state": FitState.CANCELED, "fit_error": str(exc)} if tracker.results_ready else {}
-        return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings, **fit)
+        return _finish(job.id, tracker.lease, env, JobState.CANCELED, **tracker.stage_values(), **fit)
     except (TimeLimitExceeded, PanoGSError) as exc:
         # Domain errors: the input or the configuration is at fault, retrying cannot help.
         logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
@@ -415,7 +424,7 @@ def _run_in(
         artifacts=artifacts,
         progress=1.0,
         stage=None,
-        stage_timings=timings,
+        **{**tracker.stage_values(), "stage_timings": timings},
         results_at=func.coalesce(Job.results_at, utcnow()),  # a pipeline without on_results: now
         fit_state=fit_state,
         fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
@@ -431,7 +440,7 @@ def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, *
         tracker.lease,
         tracker.env,
         JobState.FAILED,
-        stage_timings=tracker.timings,
+        **tracker.stage_values(),
         error_type=error_type,
         error_message=message,
         **values,
@@ -480,7 +489,7 @@ def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None
 
     def write() -> bool:
         with session_scope(env.session_factory) as session:
-            return crud.record_results(session, job_id, tracker.lease, artifacts, stage_timings=dict(tracker.timings))
+            return crud.record_results(session, job_id, tracker.lease, artifacts, **tracker.stage_values())
 
     if not with_db_retry(write, deadline_s=env.settings.transient_retry_s, what="record the job's results"):
         tracker.lost = True
@@ -503,7 +512,7 @@ def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
 def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
     tracker.close_stage(time.monotonic())
     with session_scope(tracker.env.session_factory) as session:
-        crud.release_job(session, job_id, tracker.lease, stage_timings=dict(tracker.timings))
+        crud.release_job(session, job_id, tracker.lease, **tracker.stage_values())
 
 
 def merge_timings(measured: dict[str, float], reported: Any) -> dict[str, float]:

@@ -133,6 +133,9 @@ class Job(IdMixin, TimestampedMixin, Base):
     stage: Mapped[str | None] = mapped_column(String(64))
     progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0..1 over all stages
     stage_timings: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)  # stage -> seconds
+    # The stages this job took from another job's checkpoint of its scene instead of computing them (the shared
+    # checkpoints, docs/service.md); NULL on rows from before it was recorded: none known.
+    cached_stages: Mapped[list[str] | None] = mapped_column(JSON(none_as_null=True))
     config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # overrides as given
     # The label set: a built-in name in ``vocabulary``, or an inline list in ``vocabulary_classes`` (name and kind per
     # class) with its (L, D) ``vocabulary_embeddings`` (or NULL: the worker embeds the names); both NULL: the

@@ -179,9 +179,10 @@ def _scene(hosts: Hosts) -> str:
         return str(scene.json()["id"])
 
 
-def _job(hosts: Hosts, scene_id: str) -> str:
+def _job(hosts: Hosts, scene_id: str, config: dict[str, Any] | None = None) -> str:
+    body = {"scene_id": scene_id, "config": config or {}, "vocabulary": VOCABULARY_8D}
     with hosts.client() as c:
-        answer = c.post("/v1/jobs", json={"scene_id": scene_id, "config": {}, "vocabulary": VOCABULARY_8D})
+        answer = c.post("/v1/jobs", json=body)
     assert answer.status_code == 202, answer.text
     return str(answer.json()["id"])
 
@@ -208,6 +209,11 @@ def test_session_across_two_hosts(hosts: Hosts) -> None:
         part = c.get(f"/v1/jobs/{job_id}/artifacts/labels.npz", headers={"Range": "bytes=100-"})
         assert part.status_code == 206
         assert part.content == whole.content[100:]
+    assert not any(done["stage_cached"].values())  # the scene's first job computed every stage
+    rerun = hosts.finished(_job(hosts, scene_id, {"settings": {"clustering": 2}}))  # other clustering settings
+    assert rerun["state"] == "succeeded", rerun
+    reused = {"validate", "primitives", "fusion"}  # the stages before clustering, from the first job's checkpoints
+    assert rerun["stage_cached"] == {stage: stage in reused for stage in done["stage_timings"]}
     # Neither host holds the other's files: the API wrote no object to its disk, the workers' scratch is gone.
     assert _files(hosts.tmp / "api-data" / "storage") == []
     assert not [f for f in _files(hosts.tmp / "api-data") if "scratch" in f]
