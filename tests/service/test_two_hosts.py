@@ -25,11 +25,12 @@ from typing import Any
 import httpx
 import pytest
 from pipeline_stand_in import ENV as STAND_IN
-from procs import Procs, wait_for
+from procs import Procs, job_row, wait_for, worker_of
 from seaweedfs import SeaweedFS, seaweedfs
 from service_harness import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
+    HEARTBEAT_TIMEOUT_S,
+    PG_ADMIN_URL,
+    REDIS_URL,
     SCRIPTED_PIPELINE,
     drop_redis_prefix,
     new_redis_prefix,
@@ -41,10 +42,7 @@ from svc_helpers import VOCABULARY_8D, pack, write_tiny_bundle
 
 pytestmark = pytest.mark.slow
 
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 STAGE_S = 0.6  # each of the scripted job's 7 stages
-HEARTBEAT_TIMEOUT_S = 5.0
 MIB = 1024 * 1024
 TUS = {"Tus-Resumable": "1.0.0", "Content-Type": "application/offset+octet-stream"}
 
@@ -88,18 +86,10 @@ class Hosts:
         return self.wait(job_id, lambda j: j["state"] in ("succeeded", "failed", "canceled"), f"job {job_id}", timeout)
 
     def worker_of(self, job_id: str) -> str:
-        pid = int(self.job_row(job_id)["worker"].rsplit("/", 1)[1])
-        return next(name for name, p in self.procs.procs.items() if p.pid == pid)
+        return worker_of(self.procs, self.procs.env["PANOGS_DATABASE_URL"], job_id)
 
     def job_row(self, job_id: str) -> dict[str, Any]:
-        from sqlalchemy import create_engine, text
-
-        engine = create_engine(self.procs.env["PANOGS_DATABASE_URL"])
-        with engine.connect() as conn:
-            row = conn.execute(text("SELECT worker, attempts FROM job WHERE id = :id"), {"id": job_id})
-            out = dict(row.mappings().one())
-        engine.dispose()
-        return out
+        return job_row(self.procs.env["PANOGS_DATABASE_URL"], job_id)
 
     def keys(self, prefix: str) -> list[str]:
         client = self.s3.client()
