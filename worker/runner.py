@@ -95,6 +95,38 @@ class Interrupted(Cancelled):
     """The worker is shutting down; the job goes back to the queue and resumes later."""
 
 
+class StorageStop(Cancelled):
+    """The object storage failed a call the pipeline made (a stage's progress, which stores the stage before it, or
+    a shared checkpoint's fetch or store). Raised as a cancel so that it passes through the appearance fit, which
+    would otherwise record any error as the fit's own failure and let the results stand: the worker then treats
+    ``error`` as it treats a storage error anywhere else (an outage retries the job with backoff, a refusal fails
+    it with its message)."""
+
+    def __init__(self, error: StorageError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def stopping_on_storage_errors(fn: Callable[..., T]) -> Callable[..., T]:
+    """``fn``, its storage errors raised as :class:`StorageStop`."""
+
+    def call(*args: Any, **kwargs: Any) -> T:
+        try:
+            return fn(*args, **kwargs)
+        except StorageError as exc:
+            raise StorageStop(exc) from exc
+
+    return call
+
+
+class _CheckpointsThroughStops:
+    """The scene's checkpoints as the pipeline sees them: their storage errors are :class:`StorageStop`."""
+
+    def __init__(self, shared: SceneCheckpoints) -> None:
+        self.fetch = stopping_on_storage_errors(shared.fetch)
+        self.store = stopping_on_storage_errors(shared.store)
+
+
 @dataclass(frozen=True)
 class JobEnv:
     """Everything a job run needs besides its id; built once per worker process."""
@@ -370,6 +402,8 @@ def _run_in(
         on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
     )
     tracker.shared = shared
+    if tracker.push is not None:
+        tracker.push.skip = shared.kept  # a checkpoint the scene's store keeps is not stored again with the job
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
@@ -378,14 +412,16 @@ def _run_in(
                 out_dir,
                 config,
                 vocabulary=vocabulary,
-                on_progress=tracker.on_progress,
+                on_progress=stopping_on_storage_errors(tracker.on_progress),
                 resume=True,
-                on_results=lambda _result: _record_results(job.id, tracker, out_dir),
-                shared=shared,
+                on_results=stopping_on_storage_errors(lambda _result: _record_results(job.id, tracker, out_dir)),
+                shared=_CheckpointsThroughStops(shared),
             )
         tracker.push_outputs()
     except StorageError:
         raise  # handled by _run, around the workspace
+    except StorageStop as exc:
+        raise exc.error from exc  # likewise
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
         return None

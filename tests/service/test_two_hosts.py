@@ -204,6 +204,10 @@ def test_session_across_two_hosts(hosts: Hosts) -> None:
     assert rerun["state"] == "succeeded", rerun
     reused = {"validate", "primitives", "fusion"}  # the stages before clustering, from the first job's checkpoints
     assert rerun["stage_cached"] == {stage: stage in reused for stage in done["stage_timings"]}
+    checkpoints = [k for k in hosts.keys(f"scenes/{scene_id}/stages/") if k.endswith(".ckpt")]
+    assert len(checkpoints) == 2 * len(done["stage_timings"]) - len(reused)  # one per key, the rerun's new ones too
+    for job in (job_id, rerun["id"]):  # kept once: under the scene, not again with the job's files
+        assert not [k for k in hosts.keys(f"artifacts/{job}/") if k.endswith(".done")], job
     # Neither host holds the other's files: the API wrote no object to its disk, the workers' scratch is gone.
     assert _files(hosts.tmp / "api-data" / "storage") == []
     assert not [f for f in _files(hosts.tmp / "api-data") if "scratch" in f]

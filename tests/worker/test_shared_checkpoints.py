@@ -74,6 +74,10 @@ def test_a_rerun_with_other_clustering_settings_reuses_the_earlier_stages(
     stored = [o.key for o in storage.objects.list_objects(f"scenes/{scene_id}/stages/")]
     assert sum(k.startswith(f"scenes/{scene_id}/stages/clustering/") for k in stored) == 2  # one per key
     assert not [k for k in stored if k.endswith(".lease")]  # every lease released
+    for job_id in (first, second):  # one copy: the job's checkpoint and the scene's are two names of the same bytes
+        fusion = env.storage.job_dir(job_id) / "stages" / "fusion.done"
+        (kept,) = [k for k in stored if k.startswith(f"scenes/{scene_id}/stages/fusion/")]
+        assert fusion.stat().st_ino == storage.objects.path(kept).stat().st_ino  # type: ignore[attr-defined]
     with session_scope(get_session_factory(settings.database)) as session:
         scene = session.get(Scene, scene_id)
         assert scene is not None
