@@ -98,6 +98,10 @@ class Upload(IdMixin, TimestampedMixin, Base):
     expected_sha256: Mapped[str | None] = mapped_column(String(64))
     sha256: Mapped[str | None] = mapped_column(String(64))
     path: Mapped[str] = mapped_column(String(512))
+    # With object storage, the multipart upload the bytes go into at ``offset``: its id, the parts sent (number,
+    # size, tag) and the tail's length (service/storage/parts.py), moved with the offset in one statement. NULL with
+    # the local backend, and on uploads begun before it was kept here (their state is an object).
+    multipart: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
 

@@ -14,6 +14,7 @@ import secrets
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import scripted_pipeline as scripted
@@ -22,11 +23,12 @@ from seaweedfs import SeaweedFS
 from svc_helpers import VOCABULARY_8D, RecordingSender, new_key
 
 from service.api_app import create_app
-from service.db.models import JobState
-from service.db.session import get_session_factory
+from service.db.models import JobState, Upload
+from service.db.session import get_session_factory, session_scope
 from service.settings import Settings
 from service.storage import parts
 from service.storage.backends import open_storage
+from service.storage.objects import Part
 from worker import runner
 
 MIB = 1024 * 1024
@@ -96,6 +98,38 @@ def test_tus_upload_in_4_mib_patches_goes_up_as_parts(
     assert _keys(s3_settings, f"uploads/{upload_id}/") == [f"uploads/{upload_id}/data"]  # no state or tail left
     assert storage.objects.list_multipart("uploads/") == []
     assert _files(s3_settings.data_dir / "storage") == []  # the API wrote nothing of it to its own disk
+
+
+def _multipart_row(settings: Settings, upload_id: str) -> dict[str, Any]:
+    with session_scope(get_session_factory(settings.database)) as session:
+        upload = session.get(Upload, uuid.UUID(upload_id))
+        assert upload is not None
+        assert upload.multipart is not None
+        return dict(upload.multipart)
+
+
+def test_the_part_state_moves_with_the_offset_and_resumes_in_another_process(
+    s3_client: TestClient, s3_auth: dict[str, str], s3_settings: Settings
+) -> None:
+    data = os.urandom(14 * MIB + 3)
+    created = s3_client.post("/v1/uploads", headers={**s3_auth, **TUS, "Upload-Length": str(len(data))})
+    upload_id = created.json()["id"]
+    for offset in (0, 4 * MIB):
+        answer = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[offset : offset + 4 * MIB],
+                                 headers={**s3_auth, **TUS, "Upload-Offset": str(offset)})  # fmt: skip
+        assert answer.status_code == 204, answer.text
+    state = _multipart_row(s3_settings, upload_id)  # in the row, at the row's offset: one 5 MiB part, a 3 MiB tail
+    assert (state["offset"], [p[:2] for p in state["parts"]], state["tail"]) == (8 * MIB, [[1, 5 * MIB]], 3 * MIB)
+    assert not [k for k in _keys(s3_settings, f"uploads/{upload_id}/") if "state-" in k]  # no state object
+    assert f"uploads/{upload_id}/tail-{8 * MIB}" in _keys(s3_settings, f"uploads/{upload_id}/")
+    parts.TAILS.take(f"uploads/{upload_id}/data", 8 * MIB)  # as in another API process: the tail is read back
+    rest = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[8 * MIB :],
+                           headers={**s3_auth, **TUS, "Upload-Offset": str(8 * MIB)})  # fmt: skip
+    assert rest.status_code == 204, rest.text
+    status = s3_client.get(f"/v1/uploads/{upload_id}", headers=s3_auth).json()
+    assert (status["state"], status["sha256"]) == ("complete", hashlib.sha256(data).hexdigest())
+    assert open_storage(s3_settings).objects.get_bytes(f"uploads/{upload_id}/data") == data
+    assert _keys(s3_settings, f"uploads/{upload_id}/") == [f"uploads/{upload_id}/data"]  # every tail gone
 
 
 def test_a_refused_chunk_keeps_the_last_good_state(s3_client: TestClient, s3_auth: dict[str, str]) -> None:
@@ -181,7 +215,9 @@ def test_scene_job_results_range_and_delete(
     )
     assert past.status_code == 416
     assert past.headers["Content-Range"] == f"bytes */{len(stored)}"
-    assert any(k.startswith(f"artifacts/{job_id}/stages/") for k in _keys(s3_settings, f"artifacts/{job_id}/"))
+    # The checkpoints are kept once, under the scene by key, not again with the job's files.
+    assert any(k.endswith(".ckpt") for k in _keys(s3_settings, f"scenes/{scene_id}/stages/"))
+    assert not [k for k in _keys(s3_settings, f"artifacts/{job_id}/") if k.endswith(".done")]
 
     assert s3_client.delete(f"/v1/scenes/{scene_id}", headers=s3_auth).status_code == 204
     assert _keys(s3_settings, f"scenes/{scene_id}/") == []
@@ -201,8 +237,8 @@ def _worker_env(settings: Settings) -> runner.JobEnv:
     )
 
 
-def test_upload_states_are_named_by_offset() -> None:
+def test_upload_tails_are_named_by_offset() -> None:
     assert parts.state_key("uploads/u/data", 7) == "uploads/u/state-7.json"
     assert parts.tail_key("uploads/u/data", 7) == "uploads/u/tail-7"
-    state = parts.UploadState(upload_id="x", offset=3, parts=[], tail=3)
-    assert parts.UploadState.from_json(state.to_json()) == state
+    state = parts.UploadState(upload_id="x", offset=3, parts=[Part(number=1, size=5, etag="e")], tail=3, previous=0)
+    assert parts.UploadState.from_record(state.to_record()) == state
