@@ -33,9 +33,12 @@ from service.storage.objects import MIN_PART_BYTES, ObjectNotFound, ObjectStorag
 
 logger = logging.getLogger(__name__)
 
-# S3's smallest part: the tail a PATCH stores and the next one reads is then at most 5 MiB (10,000 parts hold
-# 48 GiB, three times PANOGS_MAX_UPLOAD_BYTES's default).
+# S3's smallest part: a PATCH that ends with at least this much buffered sends all of it as one part and stores no
+# tail, so that a client's PATCHes of 5 MiB or more go up once each; below it the bytes wait as the tail, which
+# is then under 5 MiB. While a body streams in, a part goes up each time MAX_PART_BYTES are buffered (memory per
+# PATCH stays bounded; 10,000 parts of 5 MiB at least hold 48 GiB, three times PANOGS_MAX_UPLOAD_BYTES's default).
 PART_BYTES = MIN_PART_BYTES
+MAX_PART_BYTES = 16 * 1024 * 1024
 TAILS_KEPT = 8  # tails of the last PATCHes kept in this process (each at most PART_BYTES)
 # The requests sent beside a PATCH's body: its parts and its tail (one of each at a time per PATCH) and the
 # deletes of tails done with; shared by the process's PATCHes.
@@ -173,16 +176,17 @@ class PartWriter:
         self._sending: Future[Part] | None = None
 
     def write(self, data: bytes | bytearray) -> None:
-        """Add ``data``; send every full part (the one before must have gone: one in flight)."""
+        """Add ``data``; send a part each time :data:`MAX_PART_BYTES` are buffered (the part before must have gone:
+        one in flight)."""
         self.buffer += data
         if self.running is not None:
             self.running.update(data)
         if self.chunk_hash is not None:
             self.chunk_hash.update(data)
         self.offset += len(data)
-        while len(self.buffer) >= PART_BYTES:
-            self._send(bytes(self.buffer[:PART_BYTES]))
-            del self.buffer[:PART_BYTES]
+        if len(self.buffer) >= MAX_PART_BYTES:
+            self._send(bytes(self.buffer))
+            self.buffer = bytearray()
 
     def _send(self, data: bytes) -> None:
         self._sent()
@@ -196,7 +200,11 @@ class PartWriter:
             self.state.parts.append(sending.result())
 
     def close(self) -> int:
-        """Store the tail (beside the part in flight) and wait for both; returns the new offset."""
+        """Send what is buffered as a part when it is one (then no tail), else store it as the tail beside the part
+        in flight; wait for both; returns the new offset."""
+        if len(self.buffer) >= PART_BYTES:
+            self._send(bytes(self.buffer))
+            self.buffer = bytearray()
         if self.offset != self.start:
             self.state.previous, self.state.offset = self.start, self.offset
             self.state.tail = len(self.buffer)

@@ -67,6 +67,7 @@ class S3Storage:
         region: str = "us-east-1",
         connect_timeout_s: float = 5.0,
         read_timeout_s: float = 60.0,
+        public_endpoint_url: str | None = None,
     ) -> None:
         self.bucket, self.prefix = parse_s3_url(url)
         self._url = url
@@ -88,6 +89,17 @@ class S3Storage:
             aws_secret_access_key=secret_access_key,
             config=config,
         )
+        # Links for clients are signed for the address they reach the server at (the signature covers the host):
+        # the public endpoint when one is given, else AWS itself; None where only this network reaches the server.
+        self.public_signer = None
+        if public_endpoint_url or not endpoint_url:
+            self.public_signer = session.client(
+                "s3",
+                endpoint_url=public_endpoint_url or None,
+                aws_access_key_id=access_key_id,
+                aws_secret_access_key=secret_access_key,
+                config=config,
+            )
         self._transfer = TransferConfig(
             multipart_threshold=TRANSFER_CHUNK, multipart_chunksize=TRANSFER_CHUNK, max_concurrency=4
         )
@@ -200,6 +212,15 @@ class S3Storage:
     def signed_url(self, key: str, expires_s: int) -> str:
         params = {"Bucket": self.bucket, "Key": self._key(key)}
         return str(self._call(f"sign {key}", self.client.generate_presigned_url, ClientMethod="get_object",
+                              Params=params, ExpiresIn=expires_s))  # fmt: skip
+
+    def public_url(self, key: str, expires_s: int) -> str | None:
+        """A link that downloads the object from where the API's clients are (the public endpoint, or AWS), or None
+        when the server is reachable only from the service's own network."""
+        if self.public_signer is None:
+            return None
+        params = {"Bucket": self.bucket, "Key": self._key(key)}
+        return str(self._call(f"sign {key}", self.public_signer.generate_presigned_url, ClientMethod="get_object",
                               Params=params, ExpiresIn=expires_s))  # fmt: skip
 
     # Multipart uploads ------------------------------------------------------------------------------------------

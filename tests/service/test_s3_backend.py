@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 import scripted_pipeline as scripted
 from fastapi.testclient import TestClient
@@ -114,17 +115,19 @@ def test_the_part_state_moves_with_the_offset_and_resumes_in_another_process(
     data = os.urandom(14 * MIB + 3)
     created = s3_client.post("/v1/uploads", headers={**s3_auth, **TUS, "Upload-Length": str(len(data))})
     upload_id = created.json()["id"]
-    for offset in (0, 4 * MIB):
-        answer = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[offset : offset + 4 * MIB],
+    for offset, size in ((0, 4 * MIB), (4 * MIB, 4 * MIB), (8 * MIB, 2 * MIB)):
+        answer = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[offset : offset + size],
                                  headers={**s3_auth, **TUS, "Upload-Offset": str(offset)})  # fmt: skip
         assert answer.status_code == 204, answer.text
-    state = _multipart_row(s3_settings, upload_id)  # in the row, at the row's offset: one 5 MiB part, a 3 MiB tail
-    assert (state["offset"], [p[:2] for p in state["parts"]], state["tail"]) == (8 * MIB, [[1, 5 * MIB]], 3 * MIB)
+    # In the row, at the row's offset: the first 4 MiB waited as a tail and went up with the next 4 as one part of
+    # 8 MiB (no tail left then); the last 2 MiB are the tail now, an object named by the offset.
+    state = _multipart_row(s3_settings, upload_id)
+    assert (state["offset"], [p[:2] for p in state["parts"]], state["tail"]) == (10 * MIB, [[1, 8 * MIB]], 2 * MIB)
     assert not [k for k in _keys(s3_settings, f"uploads/{upload_id}/") if "state-" in k]  # no state object
-    assert f"uploads/{upload_id}/tail-{8 * MIB}" in _keys(s3_settings, f"uploads/{upload_id}/")
-    parts.TAILS.take(f"uploads/{upload_id}/data", 8 * MIB)  # as in another API process: the tail is read back
-    rest = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[8 * MIB :],
-                           headers={**s3_auth, **TUS, "Upload-Offset": str(8 * MIB)})  # fmt: skip
+    assert f"uploads/{upload_id}/tail-{10 * MIB}" in _keys(s3_settings, f"uploads/{upload_id}/")
+    parts.TAILS.take(f"uploads/{upload_id}/data", 10 * MIB)  # as in another API process: the tail is read back
+    rest = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[10 * MIB :],
+                           headers={**s3_auth, **TUS, "Upload-Offset": str(10 * MIB)})  # fmt: skip
     assert rest.status_code == 204, rest.text
     status = s3_client.get(f"/v1/uploads/{upload_id}", headers=s3_auth).json()
     assert (status["state"], status["sha256"]) == ("complete", hashlib.sha256(data).hexdigest())
@@ -215,6 +218,21 @@ def test_scene_job_results_range_and_delete(
     )
     assert past.status_code == 416
     assert past.headers["Content-Range"] == f"bytes */{len(stored)}"
+    # ?redirect=true: served here while the S3 server is reachable only from the service's network ...
+    inside = s3_client.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply?redirect=true", headers=s3_auth)
+    assert (inside.status_code, inside.content) == (200, stored)
+    # ... and a 307 to a signed link of the store once its address for clients is set (the link works alone).
+    public = s3_settings.model_copy(update={"s3_public_endpoint_url": s3_settings.s3_endpoint_url})
+    with TestClient(create_app(public, sender=RecordingSender(), run_reaper=False)) as c:
+        moved = c.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply?redirect=true", headers=s3_auth,
+                      follow_redirects=False)  # fmt: skip
+        unasked = c.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply", headers=s3_auth)
+    assert moved.status_code == 307
+    assert moved.headers["location"].startswith(f"{s3_settings.s3_endpoint_url}/")
+    assert httpx.get(moved.headers["location"]).content == stored
+    ranged = httpx.get(moved.headers["location"], headers={"Range": "bytes=10-49"})
+    assert (ranged.status_code, ranged.content) == (206, stored[10:50])
+    assert (unasked.status_code, unasked.content) == (200, stored)  # no redirect unless asked
     # The checkpoints are kept once, under the scene by key, not again with the job's files.
     assert any(k.endswith(".ckpt") for k in _keys(s3_settings, f"scenes/{scene_id}/stages/"))
     assert not [k for k in _keys(s3_settings, f"artifacts/{job_id}/") if k.endswith(".done")]
