@@ -22,8 +22,8 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -44,6 +44,7 @@ from service.db.session import session_scope
 from service.settings import Settings
 from service.storage import Storage, TreePush, sha256_file
 from service.storage.objects import StorageError, StorageUnavailable
+from worker.bundle_cache import BundleCache
 from worker.shared_checkpoints import SceneCheckpoints
 
 logger = logging.getLogger(__name__)
@@ -380,10 +381,19 @@ def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, 
         out_dir.mkdir(parents=True, exist_ok=True)
         yield storage.path(bundle_path), out_dir, None
         return
-    with storage.scratch(f"job-{job.id}") as scratch:
-        bundle_dir, out_dir = scratch / "bundle", scratch / "out"
+    bundles = BundleCache(
+        storage, storage.root / "work" / "bundles", env.settings.bundle_cache_bytes, lambda ids: _scenes_alive(env, ids)
+    )
+    with ExitStack() as stack:
+        scratch = stack.enter_context(storage.scratch(f"job-{job.id}"))
+        out_dir = scratch / "out"
         out_dir.mkdir()
-        storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        if env.settings.bundle_cache_bytes > 0:
+            stack.callback(_sweep_quietly, bundles)  # after the job: within the bound, no deleted scene's bundle
+            bundle_dir = stack.enter_context(bundles.use(job.scene_id, bundle_path))
+        else:
+            bundle_dir = scratch / "bundle"
+            storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
         storage.fetch_tree(storage.job_prefix(job.id), out_dir)
         push = TreePush(storage, out_dir, storage.job_prefix(job.id))
         push.mark_present()
@@ -481,6 +491,23 @@ def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, *
         error_message=message,
         **values,
     )
+
+
+def _sweep_quietly(bundles: BundleCache) -> None:
+    """The bundle cache's sweep, whose failure (the database away) must not replace how the job ended."""
+    try:
+        bundles.sweep()
+    except (DBAPIError, OSError):
+        logger.warning("the bundle cache was not swept; the next job's sweep does it", exc_info=True)
+
+
+def _scenes_alive(env: JobEnv, scene_ids: Iterable[uuid.UUID]) -> set[uuid.UUID]:
+    """Which of ``scene_ids`` still exist (a deleted scene's bundle leaves the worker's disk too)."""
+    wanted = list(scene_ids)
+    if not wanted:
+        return set()
+    with session_scope(env.session_factory) as session:
+        return set(session.scalars(select(Scene.id).where(Scene.id.in_(wanted))))
 
 
 def _count_scene_bytes(env: JobEnv, scene_id: uuid.UUID, size: int) -> None:

@@ -196,7 +196,10 @@ def test_scene_job_results_range_and_delete(
     worker_settings = s3_settings.model_copy(update={"data_dir": tmp_path / "worker-data"})
     env = _worker_env(worker_settings)
     assert runner.execute_job(job_id, lease="lease-1", worker="w1", env=env) is JobState.SUCCEEDED
-    assert _files(tmp_path / "worker-data") == []  # its scratch folder is gone with the task
+    # Its scratch folder is gone with the task; the scene's bundle stays in the worker's cache for the next job.
+    kept = _files(tmp_path / "worker-data")
+    assert kept
+    assert all(f.startswith(f"work/bundles/{scene_id}") for f in kept), kept
 
     status = s3_client.get(f"/v1/jobs/{job_id}", headers=s3_auth).json()
     assert status["state"] == "succeeded", status
