@@ -182,6 +182,7 @@ class _Tracker:
     env: JobEnv
     timings: dict[str, float]
     cached: list[str] = field(default_factory=list)  # stages taken from another job's checkpoint, earlier attempts'
+    computed_before: frozenset[str] = frozenset()  # stages an earlier attempt of this job computed (and stored)
     started: float = field(default_factory=time.monotonic)
     stage: str | None = None
     stage_started: float = 0.0
@@ -207,7 +208,8 @@ class _Tracker:
     def stage_values(self) -> dict[str, Any]:
         """The per-stage columns as they stand: the stage times and the stages taken from the scene's checkpoints
         (by an earlier attempt or by this one)."""
-        reused = self.shared.reused if self.shared is not None else []
+        # A stage an earlier attempt computed comes back from the scene's store on a retry: not another job's.
+        reused = [s for s in (self.shared.reused if self.shared else []) if s not in self.computed_before]
         return {"stage_timings": dict(self.timings), "cached_stages": list(dict.fromkeys([*self.cached, *reused]))}
 
     def fraction(self, stage: str, done: int, total: int) -> float:
@@ -298,8 +300,14 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
         _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
+    timings, cached = dict(job.stage_timings or {}), list(job.cached_stages or [])
     tracker = _Tracker(
-        job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}), cached=list(job.cached_stages or [])
+        job_id=job_id,
+        lease=lease,
+        env=env,
+        timings=timings,
+        cached=cached,
+        computed_before=frozenset(timings) - set(cached),
     )
     return _run(job, tracker, env)
 

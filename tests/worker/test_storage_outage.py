@@ -19,6 +19,7 @@ from seaweedfs import SeaweedFS, seaweedfs
 
 from service.db.models import FitState, Job, JobState
 from service.db.session import get_session_factory, session_scope
+from service.jobs import to_public
 from service.settings import Settings
 from service.storage.backends import open_storage
 from worker import runner
@@ -97,3 +98,5 @@ def test_an_outage_retries_the_job_which_then_finishes(
     done = _job(settings, job_id)
     assert done.fit_state is FitState.SUCCEEDED, done.fit_error
     assert done.fit_error is None
+    # The retry took the stages the first attempt stored from the scene's store: still this job's own, not cached.
+    assert to_public(done).stage_cached == dict.fromkeys(scripted.STAGES, False)
