@@ -18,7 +18,7 @@ import secrets
 import shutil
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 from urllib.parse import parse_qs, quote, urlsplit
@@ -120,22 +120,12 @@ class LocalStorage:
     def link_out(self, key: str, path: Path) -> ObjectInfo:
         """Give the object ``key`` a second name ``path`` (a hard link; a copy across file systems), replacing it
         whole; as :meth:`link_in`, for objects replaced only by a rename."""
-        src = self.path(key)
-        if not src.is_file():
-            raise ObjectNotFound(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
         try:
-            os.link(src, tmp)
+            return self._copy_out(key, path, os.link)
         except FileNotFoundError:
             raise ObjectNotFound(key) from None
-        except OSError:
+        except OSError:  # another file system, or links refused
             return self.get_file(key, path)
-        try:
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return self._info(key, src)
 
     def put_stream(self, key: str, stream: BinaryIO) -> ObjectInfo:
         self.path(key)
@@ -153,13 +143,18 @@ class LocalStorage:
             raise ObjectNotFound(key) from None
 
     def get_file(self, key: str, path: Path) -> ObjectInfo:
+        return self._copy_out(key, path, shutil.copyfile)
+
+    def _copy_out(self, key: str, path: Path, make: Callable[[Path, Path], object]) -> ObjectInfo:
+        """``make(object file, temporary name)`` beside ``path``, then renamed over it: ``path`` is whole or as it
+        was."""
         src = self.path(key)
         if not src.is_file():
             raise ObjectNotFound(key)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
         try:
-            shutil.copyfile(src, tmp)
+            make(src, tmp)
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)

@@ -82,24 +82,15 @@ class S3Storage:
             response_checksum_validation="when_required",
         )
         session = boto3.session.Session()  # sessions are not thread-safe; the client made from one is
-        self.client = session.client(
-            "s3",
-            endpoint_url=endpoint_url or None,
-            aws_access_key_id=access_key_id,
-            aws_secret_access_key=secret_access_key,
-            config=config,
-        )
+
+        def client_for(endpoint: str | None) -> Any:
+            return session.client("s3", endpoint_url=endpoint or None, aws_access_key_id=access_key_id,
+                                  aws_secret_access_key=secret_access_key, config=config)  # fmt: skip
+
+        self.client = client_for(endpoint_url)
         # Links for clients are signed for the address they reach the server at (the signature covers the host):
         # the public endpoint when one is given, else AWS itself; None where only this network reaches the server.
-        self.public_signer = None
-        if public_endpoint_url or not endpoint_url:
-            self.public_signer = session.client(
-                "s3",
-                endpoint_url=public_endpoint_url or None,
-                aws_access_key_id=access_key_id,
-                aws_secret_access_key=secret_access_key,
-                config=config,
-            )
+        self.public_signer = client_for(public_endpoint_url) if public_endpoint_url or not endpoint_url else None
         self._transfer = TransferConfig(
             multipart_threshold=TRANSFER_CHUNK, multipart_chunksize=TRANSFER_CHUNK, max_concurrency=4
         )
