@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 
 from fastapi.concurrency import run_in_threadpool
-from starlette.responses import FileResponse, Response, StreamingResponse
+from starlette.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 
 from service.errors import NotFound
 from service.storage import Storage
@@ -37,6 +37,19 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
     if start >= size or end <= start:
         raise RangeNotSatisfiable("range", start, size)
     return start, end
+
+
+async def signed_redirect(storage: Storage, key: str, expires_s: int) -> Response | None:
+    """A 307 to a link of the object store that downloads ``key`` for ``expires_s`` (Range works there too), or None
+    where there is none a client could follow: the local backend (the API is the store), or S3 reachable only from
+    the service's network (no ``PANOGS_S3_PUBLIC_ENDPOINT_URL``)."""
+    public_url = getattr(storage.objects, "public_url", None)
+    if storage.is_local or public_url is None:
+        return None
+    url: str | None = await run_in_threadpool(public_url, key, expires_s)
+    if url is None:
+        return None
+    return RedirectResponse(url, status_code=307, headers={"Cache-Control": "no-store"})
 
 
 async def object_response(

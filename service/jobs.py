@@ -157,6 +157,7 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         stage=job.stage,
         progress=job.progress,
         stage_timings=job.stage_timings or {},
+        stage_cached=stage_cached(job.stage_timings or {}, job.cached_stages or []),
         error=error,
         results_ready=results_ready(job),
         fit=fit_public(job),
@@ -168,6 +169,12 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         started_at=job.started_at,
         finished_at=job.finished_at,
     )
+
+
+def stage_cached(timings: dict[str, float], cached: list[str]) -> dict[str, bool]:
+    """Whether each finished stage was taken from another job's checkpoint (``cached``) or computed."""
+    reused = set(cached)
+    return {stage: stage in reused for stage in timings}
 
 
 def results_ready(job: Job | Row[Any]) -> bool:

@@ -271,6 +271,10 @@ class JobPublic(BaseModel):
     stage: str | None
     progress: float = Field(description="0..1 over all stages")
     stage_timings: dict[str, float] = Field(description="seconds per finished stage")
+    stage_cached: dict[str, bool] = Field(
+        description="per finished stage: true when it was taken from a checkpoint of an earlier job on the scene "
+        "(same inputs and settings), not computed by this job"
+    )
     error: JobError | None
     results_ready: bool = Field(
         description="the instances, queries, viewer scene and label artifacts answer (before the fit is done)"

@@ -40,6 +40,14 @@ class Settings(BaseSettings):
     s3_access_key_id: str | None = None
     s3_secret_access_key: str | None = None
     s3_region: str = "us-east-1"
+    # The S3 server as the API's clients reach it (a published port, a DNS name that names the same server): set, a
+    # download asked with ?redirect=true answers 307 to a link signed for it; empty: downloads go through the API
+    # unless the storage is AWS itself (no endpoint), whose links anyone reaches.
+    s3_public_endpoint_url: str | None = None
+    # With object storage, a worker keeps the bundles of the scenes it ran on its disk up to this many bytes (least
+    # recently used go first), so that a scene's next job does not fetch its bundle again; 0: fetch it every job.
+    bundle_cache_bytes: int = Field(default=8 * 1024**3, ge=0)
+    signed_link_ttl_s: int = Field(default=900, ge=10, le=7 * 24 * 3600)  # s, how long a redirect's link holds
     storage_signing_key: str | None = None  # signs local download links; default: a secret of each process
 
     # Uploads.

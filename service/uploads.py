@@ -111,12 +111,13 @@ def create_upload(
         printable_text(filename, "Upload-Metadata: filename")
     upload_id = uuid.uuid4()
     key = storage.upload_key(upload_id)
+    multipart = None
     if storage.is_local:
         path = storage.upload_file(upload_id)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.touch()
     else:
-        object_parts.begin(storage.objects, key)
+        multipart = object_parts.begin(storage.objects, key)
     upload = Upload(
         id=upload_id,
         api_key_id=tenant_id,
@@ -125,6 +126,7 @@ def create_upload(
         offset=0,
         expected_sha256=expected,
         path=key,
+        multipart=multipart,
     )
     if upload.filename is not None:
         upload.filename = upload.filename[:255]
@@ -172,8 +174,9 @@ class ActiveUploads:
 
 async def receive_body(
     request: Request, upload: Upload, storage: Storage, hashes: HashStates, checksum: tuple[str, bytes] | None
-) -> tuple[int, Any] | None:
-    """Stream the request body to the upload's file at its offset; returns (new offset, running SHA-256).
+) -> tuple[int, Any, dict[str, Any] | None] | None:
+    """Stream the request body to the upload's file at its offset; returns (new offset, running SHA-256, the
+    multipart state at the new offset for the row: None with the local backend).
 
     None when the client disconnected during a chunk that carried a checksum (the chunk is discarded).
     """
@@ -192,7 +195,7 @@ async def receive_body(
     else:  # S3: parts of a multipart upload; a hash not kept here is made from the joined object at the end
         cached = hashes.take(upload.id, None, upload.offset)
         writer = await anyio.to_thread.run_sync(
-            object_parts.PartWriter, storage.objects, upload.path, upload.offset, cached, algo
+            object_parts.PartWriter, storage.objects, upload.path, upload.offset, upload.multipart, cached, algo
         )
     buffer = bytearray()
     try:
@@ -219,11 +222,14 @@ async def receive_body(
         raise ChecksumMismatch("Upload-Checksum does not match the bytes received; the chunk was discarded")
     offset = await anyio.to_thread.run_sync(writer.close)
     running = writer.running
-    if isinstance(writer, object_parts.PartWriter) and offset == upload.length:
-        running = await anyio.to_thread.run_sync(_join, storage, writer)
+    multipart = None
+    if isinstance(writer, object_parts.PartWriter):
+        if offset == upload.length:
+            running = await anyio.to_thread.run_sync(_join, storage, writer)
+        multipart = writer.record()
     if running is not None:
         hashes.put(upload.id, offset, running)
-    return offset, running
+    return offset, running, multipart
 
 
 def _join(storage: Storage, writer: object_parts.PartWriter) -> Any:
@@ -248,10 +254,18 @@ def _discard(writer: ChunkWriter | object_parts.PartWriter, hashes: HashStates, 
 
 
 def record_bytes(
-    session: Session, storage: Storage, hashes: HashStates, upload: Upload, new_offset: int, running: Any
+    session: Session,
+    storage: Storage,
+    hashes: HashStates,
+    upload: Upload,
+    new_offset: int,
+    running: Any,
+    multipart: dict[str, Any] | None = None,
 ) -> Upload:
-    """Move the offset in the database; complete (and verify) the upload when the last byte is in."""
-    if new_offset != upload.offset and not crud.advance_upload(session, upload.id, upload.offset, new_offset):
+    """Move the offset in the database (and the multipart state with it); complete (and verify) the upload when the
+    last byte is in."""
+    moved = {} if multipart is None else {"multipart": multipart}
+    if new_offset != upload.offset and not crud.advance_upload(session, upload.id, upload.offset, new_offset, **moved):
         raise Conflict(f"upload {upload.id}: the offset moved while this request was writing; HEAD and retry")
     session.refresh(upload)
     if upload.offset < upload.length or upload.state != UploadState.RECEIVING:

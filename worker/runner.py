@@ -22,8 +22,8 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -44,6 +44,7 @@ from service.db.session import session_scope
 from service.settings import Settings
 from service.storage import Storage, TreePush, sha256_file
 from service.storage.objects import StorageError, StorageUnavailable
+from worker.bundle_cache import BundleCache
 from worker.shared_checkpoints import SceneCheckpoints
 
 logger = logging.getLogger(__name__)
@@ -93,6 +94,38 @@ class TimeLimitExceeded(Cancelled):
 
 class Interrupted(Cancelled):
     """The worker is shutting down; the job goes back to the queue and resumes later."""
+
+
+class StorageStop(Cancelled):
+    """The object storage failed a call the pipeline made (a stage's progress, which stores the stage before it, or
+    a shared checkpoint's fetch or store). Raised as a cancel so that it passes through the appearance fit, which
+    would otherwise record any error as the fit's own failure and let the results stand: the worker then treats
+    ``error`` as it treats a storage error anywhere else (an outage retries the job with backoff, a refusal fails
+    it with its message)."""
+
+    def __init__(self, error: StorageError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def stopping_on_storage_errors(fn: Callable[..., T]) -> Callable[..., T]:
+    """``fn``, its storage errors raised as :class:`StorageStop`."""
+
+    def call(*args: Any, **kwargs: Any) -> T:
+        try:
+            return fn(*args, **kwargs)
+        except StorageError as exc:
+            raise StorageStop(exc) from exc
+
+    return call
+
+
+class _CheckpointsThroughStops:
+    """The scene's checkpoints as the pipeline sees them: their storage errors are :class:`StorageStop`."""
+
+    def __init__(self, shared: SceneCheckpoints) -> None:
+        self.fetch = stopping_on_storage_errors(shared.fetch)
+        self.store = stopping_on_storage_errors(shared.store)
 
 
 @dataclass(frozen=True)
@@ -148,6 +181,8 @@ class _Tracker:
     lease: str
     env: JobEnv
     timings: dict[str, float]
+    cached: list[str] = field(default_factory=list)  # stages taken from another job's checkpoint, earlier attempts'
+    computed_before: frozenset[str] = frozenset()  # stages an earlier attempt of this job computed (and stored)
     started: float = field(default_factory=time.monotonic)
     stage: str | None = None
     stage_started: float = 0.0
@@ -169,6 +204,13 @@ class _Tracker:
             if not best_effort:
                 raise
             logger.warning("job %s: could not store its partial work", self.job_id, exc_info=True)
+
+    def stage_values(self) -> dict[str, Any]:
+        """The per-stage columns as they stand: the stage times and the stages taken from the scene's checkpoints
+        (by an earlier attempt or by this one)."""
+        # A stage an earlier attempt computed comes back from the scene's store on a retry: not another job's.
+        reused = [s for s in (self.shared.reused if self.shared else []) if s not in self.computed_before]
+        return {"stage_timings": dict(self.timings), "cached_stages": list(dict.fromkeys([*self.cached, *reused]))}
 
     def fraction(self, stage: str, done: int, total: int) -> float:
         if stage not in self.env.stages:
@@ -201,7 +243,7 @@ class _Tracker:
         if self.results_ready and stage == FIT_STAGE:
             self.fit_progress = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
             values["fit_progress"] = self.fit_progress
-        self.write(stage=stage, progress=self.fraction(stage, done, total), stage_timings=dict(self.timings), **values)
+        self.write(stage=stage, progress=self.fraction(stage, done, total), **self.stage_values(), **values)
 
     def write(self, **values: Any) -> None:
         """Progress and heartbeat write; a database that is away is skipped, a lost lease or a cancel
@@ -258,7 +300,15 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
         _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
-    tracker = _Tracker(job_id=job_id, lease=lease, env=env, timings=dict(job.stage_timings or {}))
+    timings, cached = dict(job.stage_timings or {}), list(job.cached_stages or [])
+    tracker = _Tracker(
+        job_id=job_id,
+        lease=lease,
+        env=env,
+        timings=timings,
+        cached=cached,
+        computed_before=frozenset(timings) - set(cached),
+    )
     return _run(job, tracker, env)
 
 
@@ -339,10 +389,19 @@ def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, 
         out_dir.mkdir(parents=True, exist_ok=True)
         yield storage.path(bundle_path), out_dir, None
         return
-    with storage.scratch(f"job-{job.id}") as scratch:
-        bundle_dir, out_dir = scratch / "bundle", scratch / "out"
+    bundles = BundleCache(
+        storage, storage.root / "work" / "bundles", env.settings.bundle_cache_bytes, lambda ids: _scenes_alive(env, ids)
+    )
+    with ExitStack() as stack:
+        scratch = stack.enter_context(storage.scratch(f"job-{job.id}"))
+        out_dir = scratch / "out"
         out_dir.mkdir()
-        storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        if env.settings.bundle_cache_bytes > 0:
+            stack.callback(_sweep_quietly, bundles)  # after the job: within the bound, no deleted scene's bundle
+            bundle_dir = stack.enter_context(bundles.use(job.scene_id, bundle_path))
+        else:
+            bundle_dir = scratch / "bundle"
+            storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
         storage.fetch_tree(storage.job_prefix(job.id), out_dir)
         push = TreePush(storage, out_dir, storage.job_prefix(job.id))
         push.mark_present()
@@ -361,6 +420,8 @@ def _run_in(
         on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
     )
     tracker.shared = shared
+    if tracker.push is not None:
+        tracker.push.skip = shared.kept  # a checkpoint the scene's store keeps is not stored again with the job
     try:
         config = env.make_config(job.config or {})
         with tracker.beating():
@@ -369,14 +430,16 @@ def _run_in(
                 out_dir,
                 config,
                 vocabulary=vocabulary,
-                on_progress=tracker.on_progress,
+                on_progress=stopping_on_storage_errors(tracker.on_progress),
                 resume=True,
-                on_results=lambda _result: _record_results(job.id, tracker, out_dir),
-                shared=shared,
+                on_results=stopping_on_storage_errors(lambda _result: _record_results(job.id, tracker, out_dir)),
+                shared=_CheckpointsThroughStops(shared),
             )
         tracker.push_outputs()
     except StorageError:
         raise  # handled by _run, around the workspace
+    except StorageStop as exc:
+        raise exc.error from exc  # likewise
     except LeaseLost:
         logger.warning("job %s: stopped, another worker holds it", job.id)
         return None
@@ -392,7 +455,7 @@ def _run_in(
     except CancelRequested as exc:
         tracker.close_stage(time.monotonic())
         fit = {"fit_state": FitState.CANCELED, "fit_error": str(exc)} if tracker.results_ready else {}
-        return _finish(job.id, tracker.lease, env, JobState.CANCELED, stage_timings=tracker.timings, **fit)
+        return _finish(job.id, tracker.lease, env, JobState.CANCELED, **tracker.stage_values(), **fit)
     except (TimeLimitExceeded, PanoGSError) as exc:
         # Domain errors: the input or the configuration is at fault, retrying cannot help.
         logger.info("job %s: failed: %s: %s", job.id, type(exc).__name__, exc)
@@ -415,7 +478,7 @@ def _run_in(
         artifacts=artifacts,
         progress=1.0,
         stage=None,
-        stage_timings=timings,
+        **{**tracker.stage_values(), "stage_timings": timings},
         results_at=func.coalesce(Job.results_at, utcnow()),  # a pipeline without on_results: now
         fit_state=fit_state,
         fit_progress=1.0 if fit_state.scene_ready else tracker.fit_progress,
@@ -431,11 +494,28 @@ def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, *
         tracker.lease,
         tracker.env,
         JobState.FAILED,
-        stage_timings=tracker.timings,
+        **tracker.stage_values(),
         error_type=error_type,
         error_message=message,
         **values,
     )
+
+
+def _sweep_quietly(bundles: BundleCache) -> None:
+    """The bundle cache's sweep, whose failure (the database away) must not replace how the job ended."""
+    try:
+        bundles.sweep()
+    except (DBAPIError, OSError):
+        logger.warning("the bundle cache was not swept; the next job's sweep does it", exc_info=True)
+
+
+def _scenes_alive(env: JobEnv, scene_ids: Iterable[uuid.UUID]) -> set[uuid.UUID]:
+    """Which of ``scene_ids`` still exist (a deleted scene's bundle leaves the worker's disk too)."""
+    wanted = list(scene_ids)
+    if not wanted:
+        return set()
+    with session_scope(env.session_factory) as session:
+        return set(session.scalars(select(Scene.id).where(Scene.id.in_(wanted))))
 
 
 def _count_scene_bytes(env: JobEnv, scene_id: uuid.UUID, size: int) -> None:
@@ -480,7 +560,7 @@ def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None
 
     def write() -> bool:
         with session_scope(env.session_factory) as session:
-            return crud.record_results(session, job_id, tracker.lease, artifacts, stage_timings=dict(tracker.timings))
+            return crud.record_results(session, job_id, tracker.lease, artifacts, **tracker.stage_values())
 
     if not with_db_retry(write, deadline_s=env.settings.transient_retry_s, what="record the job's results"):
         tracker.lost = True
@@ -503,7 +583,7 @@ def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
 def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
     tracker.close_stage(time.monotonic())
     with session_scope(tracker.env.session_factory) as session:
-        crud.release_job(session, job_id, tracker.lease, stage_timings=dict(tracker.timings))
+        crud.release_job(session, job_id, tracker.lease, **tracker.stage_values())
 
 
 def merge_timings(measured: dict[str, float], reported: Any) -> dict[str, float]:

@@ -11,6 +11,10 @@ fetches those checkpoints instead of computing them: ``scenes/<scene id>/stages/
   job's progress callback each poll (a cancel or a lost lease stops it). The holder refreshes its leases with its
   heartbeat; a lease older than ``lease_s`` belongs to a dead worker and is taken over. Two takers of one stale
   lease may both compute the stage: the result is the same and each write is whole.
+- **One copy.** A checkpoint is kept once: with the local backend the job's file and the scene's object are two
+  names of the same bytes (hard links; both sides only ever replace a checkpoint by a rename), and with object
+  storage the job's own folder does not store the checkpoints kept here (:attr:`SceneCheckpoints.kept`: the
+  output folder's push skips them; a retry fetches them from here again).
 - **Counted and deleted with the scene.** Each stored checkpoint's bytes are added to the scene's ``size_bytes``
   (the tenant's quota); deleting the scene deletes its prefix, checkpoints included.
 """
@@ -26,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from service.storage import Storage
+from service.storage.local import LocalStorage
 from service.storage.objects import AlreadyExists, ObjectNotFound, StorageError
 
 logger = logging.getLogger(__name__)
@@ -53,6 +58,7 @@ class SceneCheckpoints:
         self.on_wait = on_wait
         self.on_stored = on_stored
         self.reused: list[str] = []  # the stages fetched from another job's checkpoint
+        self.kept: set[Path] = set()  # the run folder's files that are checkpoints of this store (fetched, stored)
         self._held: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
 
@@ -70,9 +76,13 @@ class SceneCheckpoints:
         while True:
             if objects.stat(self._object(stage, key)) is not None:
                 try:
-                    objects.get_file(self._object(stage, key), dest)
+                    if isinstance(objects, LocalStorage):
+                        objects.link_out(self._object(stage, key), dest)
+                    else:
+                        objects.get_file(self._object(stage, key), dest)
                 except ObjectNotFound:  # deleted between the two calls (the scene is going): compute it
                     return False
+                self.kept.add(dest)
                 self.reused.append(stage)
                 logger.info("stage %s: checkpoint %s of this scene reused", stage, key)
                 return True
@@ -103,7 +113,12 @@ class SceneCheckpoints:
         return bool(time.time() - float(holder.get("at", 0)) > self.lease_s)
 
     def store(self, stage: str, key: str, path: Path) -> None:
-        info = self.storage.objects.put_file(self._object(stage, key), path)
+        objects = self.storage.objects
+        if isinstance(objects, LocalStorage):
+            info = objects.link_in(self._object(stage, key), path)
+        else:
+            info = objects.put_file(self._object(stage, key), path)
+        self.kept.add(path)
         if self.on_stored is not None:
             self.on_stored(info.size)
         self._release(stage, key)

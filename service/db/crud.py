@@ -62,12 +62,13 @@ def read_job_row(conn: Connection, job_id: uuid.UUID, tenant_id: uuid.UUID) -> R
 # Uploads ---------------------------------------------------------------------------------------------------
 
 
-def advance_upload(session: Session, upload_id: uuid.UUID, old_offset: int, new_offset: int) -> bool:
-    """Move an upload's offset forward, only if nobody else moved it meanwhile."""
+def advance_upload(session: Session, upload_id: uuid.UUID, old_offset: int, new_offset: int, **values: Any) -> bool:
+    """Move an upload's offset forward (with ``values``: its multipart state), only if nobody else moved it
+    meanwhile."""
     result = session.execute(
         update(Upload)
         .where(Upload.id == upload_id, Upload.offset == old_offset)
-        .values(offset=new_offset, updated_at=utcnow())
+        .values(offset=new_offset, updated_at=utcnow(), **values)
     )
     session.commit()
     return _one_row(result)

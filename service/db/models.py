@@ -98,6 +98,10 @@ class Upload(IdMixin, TimestampedMixin, Base):
     expected_sha256: Mapped[str | None] = mapped_column(String(64))
     sha256: Mapped[str | None] = mapped_column(String(64))
     path: Mapped[str] = mapped_column(String(512))
+    # With object storage, the multipart upload the bytes go into at ``offset``: its id, the parts sent (number,
+    # size, tag) and the tail's length (service/storage/parts.py), moved with the offset in one statement. NULL with
+    # the local backend, and on uploads begun before it was kept here (their state is an object).
+    multipart: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
 
@@ -133,6 +137,9 @@ class Job(IdMixin, TimestampedMixin, Base):
     stage: Mapped[str | None] = mapped_column(String(64))
     progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0..1 over all stages
     stage_timings: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)  # stage -> seconds
+    # The stages this job took from another job's checkpoint of its scene instead of computing them (the shared
+    # checkpoints, docs/service.md); NULL on rows from before it was recorded: none known.
+    cached_stages: Mapped[list[str] | None] = mapped_column(JSON(none_as_null=True))
     config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # overrides as given
     # The label set: a built-in name in ``vocabulary``, or an inline list in ``vocabulary_classes`` (name and kind per
     # class) with its (L, D) ``vocabulary_embeddings`` (or NULL: the worker embeds the names); both NULL: the

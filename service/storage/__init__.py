@@ -149,7 +149,8 @@ class TreePush:
     as objects under a prefix: a job's scratch output folder, pushed after each stage and at the end.
 
     Temporary files of the pipeline (``*.tmp``, ``*.tmp.npz``) are never pushed: a checkpoint is stored once it
-    has its name, so a half-written one never reaches the storage.
+    has its name, so a half-written one never reaches the storage; nor the files in :attr:`skip` (kept under
+    another key already: a job's checkpoints that the scene's shared store holds).
     """
 
     def __init__(self, storage: Storage, folder: Path, prefix: str) -> None:
@@ -157,6 +158,7 @@ class TreePush:
         self.folder = folder
         self.prefix = prefix
         self._seen: dict[str, tuple[int, int]] = {}
+        self.skip: set[Path] = set()
 
     def mark_present(self) -> None:
         """Take the folder's current files as stored already (they were just fetched from the prefix)."""
@@ -166,7 +168,7 @@ class TreePush:
 
     def _files(self) -> Iterator[tuple[Path, str]]:
         for path in sorted(self.folder.rglob("*")):
-            if path.is_file() and not path.is_symlink() and ".tmp" not in path.name:
+            if path.is_file() and not path.is_symlink() and ".tmp" not in path.name and path not in self.skip:
                 yield path, path.relative_to(self.folder).as_posix()
 
     def push(self) -> int:

@@ -18,7 +18,7 @@ import secrets
 import shutil
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 from urllib.parse import parse_qs, quote, urlsplit
@@ -103,6 +103,30 @@ class LocalStorage:
         with path.open("rb") as f:
             return self.put_stream(key, f)
 
+    def link_in(self, key: str, path: Path) -> ObjectInfo:
+        """Keep the file at ``path`` as the object ``key`` without copying its bytes: a hard link, placed like any
+        write (a copy where ``path`` is on another file system). For files that are only ever replaced by a rename,
+        never written in place (the pipeline's checkpoints), since the two names share the bytes."""
+        self.path(key)
+        staged = self._stage()
+        try:
+            os.link(path, staged)
+        except OSError:  # another file system, or links refused
+            return self.put_file(key, path)
+        with staged.open("rb") as f:
+            os.fsync(f.fileno())  # durable as put_stream's copy would be
+        return self._place(staged, key)
+
+    def link_out(self, key: str, path: Path) -> ObjectInfo:
+        """Give the object ``key`` a second name ``path`` (a hard link; a copy across file systems), replacing it
+        whole; as :meth:`link_in`, for objects replaced only by a rename."""
+        try:
+            return self._copy_out(key, path, os.link)
+        except FileNotFoundError:
+            raise ObjectNotFound(key) from None
+        except OSError:  # another file system, or links refused
+            return self.get_file(key, path)
+
     def put_stream(self, key: str, stream: BinaryIO) -> ObjectInfo:
         self.path(key)
         staged = self._stage()
@@ -119,13 +143,18 @@ class LocalStorage:
             raise ObjectNotFound(key) from None
 
     def get_file(self, key: str, path: Path) -> ObjectInfo:
+        return self._copy_out(key, path, shutil.copyfile)
+
+    def _copy_out(self, key: str, path: Path, make: Callable[[Path, Path], object]) -> ObjectInfo:
+        """``make(object file, temporary name)`` beside ``path``, then renamed over it: ``path`` is whole or as it
+        was."""
         src = self.path(key)
         if not src.is_file():
             raise ObjectNotFound(key)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
         try:
-            shutil.copyfile(src, tmp)
+            make(src, tmp)
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)

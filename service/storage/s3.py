@@ -67,6 +67,7 @@ class S3Storage:
         region: str = "us-east-1",
         connect_timeout_s: float = 5.0,
         read_timeout_s: float = 60.0,
+        public_endpoint_url: str | None = None,
     ) -> None:
         self.bucket, self.prefix = parse_s3_url(url)
         self._url = url
@@ -81,13 +82,15 @@ class S3Storage:
             response_checksum_validation="when_required",
         )
         session = boto3.session.Session()  # sessions are not thread-safe; the client made from one is
-        self.client = session.client(
-            "s3",
-            endpoint_url=endpoint_url or None,
-            aws_access_key_id=access_key_id,
-            aws_secret_access_key=secret_access_key,
-            config=config,
-        )
+
+        def client_for(endpoint: str | None) -> Any:
+            return session.client("s3", endpoint_url=endpoint or None, aws_access_key_id=access_key_id,
+                                  aws_secret_access_key=secret_access_key, config=config)  # fmt: skip
+
+        self.client = client_for(endpoint_url)
+        # Links for clients are signed for the address they reach the server at (the signature covers the host):
+        # the public endpoint when one is given, else AWS itself; None where only this network reaches the server.
+        self.public_signer = client_for(public_endpoint_url) if public_endpoint_url or not endpoint_url else None
         self._transfer = TransferConfig(
             multipart_threshold=TRANSFER_CHUNK, multipart_chunksize=TRANSFER_CHUNK, max_concurrency=4
         )
@@ -110,39 +113,27 @@ class S3Storage:
         except BotoCoreError as exc:
             raise StorageError(f"{what}: {type(exc).__name__}: {exc}") from exc
 
+    def _on_key(self, what: str, fn: Callable[..., T], key: str, **kwargs: Any) -> T:
+        """``fn`` on the object ``key`` of this bucket (``Bucket`` and the full ``Key`` given), through ``_call``."""
+        return self._call(what, fn, Bucket=self.bucket, Key=self._key(key), **kwargs)
+
     # Whole objects ----------------------------------------------------------------------------------------------
 
     def put_bytes(self, key: str, data: bytes, *, if_absent: bool = False) -> ObjectInfo:
         extra = {"IfNoneMatch": "*"} if if_absent else {}
-        answer = self._call(
-            f"put {key}", self.client.put_object, Bucket=self.bucket, Key=self._key(key), Body=data, **extra
-        )
+        answer = self._on_key(f"put {key}", self.client.put_object, key, Body=data, **extra)
         return ObjectInfo(key=key, size=len(data), etag=_etag(answer))
 
     def put_file(self, key: str, path: Path) -> ObjectInfo:
-        self._call(
-            f"upload {key}",
-            self.client.upload_file,
-            Filename=str(path),
-            Bucket=self.bucket,
-            Key=self._key(key),
-            Config=self._transfer,
-        )
+        self._on_key(f"upload {key}", self.client.upload_file, key, Filename=str(path), Config=self._transfer)
         return self._head(key)
 
     def put_stream(self, key: str, stream: BinaryIO) -> ObjectInfo:
-        self._call(
-            f"upload {key}",
-            self.client.upload_fileobj,
-            Fileobj=stream,
-            Bucket=self.bucket,
-            Key=self._key(key),
-            Config=self._transfer,
-        )
+        self._on_key(f"upload {key}", self.client.upload_fileobj, key, Fileobj=stream, Config=self._transfer)
         return self._head(key)
 
     def get_bytes(self, key: str) -> bytes:
-        answer = self._call(f"get {key}", self.client.get_object, Bucket=self.bucket, Key=self._key(key))
+        answer = self._on_key(f"get {key}", self.client.get_object, key)
         with answer["Body"] as body:
             return bytes(self._call(f"read {key}", body.read))
 
@@ -151,14 +142,7 @@ class S3Storage:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
         try:
-            self._call(
-                f"download {key}",
-                self.client.download_file,
-                Bucket=self.bucket,
-                Key=self._key(key),
-                Filename=str(tmp),
-                Config=self._transfer,
-            )
+            self._on_key(f"download {key}", self.client.download_file, key, Filename=str(tmp), Config=self._transfer)
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)
@@ -174,13 +158,13 @@ class S3Storage:
         if start > 0 or end is not None:
             extra["Range"] = f"bytes={start}-{'' if end is None else end - 1}"
         try:
-            answer = self._call(f"get {key}", self.client.get_object, Bucket=self.bucket, Key=self._key(key), **extra)
+            answer = self._on_key(f"get {key}", self.client.get_object, key, **extra)
         except _RangeRefused:
             raise RangeNotSatisfiable(key, start, self._head(key).size) from None
         return _stream(answer["Body"], block, f"read {key}")
 
     def _head(self, key: str) -> ObjectInfo:
-        answer = self._call(f"head {key}", self.client.head_object, Bucket=self.bucket, Key=self._key(key))
+        answer = self._on_key(f"head {key}", self.client.head_object, key)
         return ObjectInfo(key=key, size=int(answer["ContentLength"]), etag=_etag(answer))
 
     def stat(self, key: str) -> ObjectInfo | None:
@@ -200,7 +184,7 @@ class S3Storage:
 
     def delete(self, key: str) -> None:
         try:
-            self._call(f"delete {key}", self.client.delete_object, Bucket=self.bucket, Key=self._key(key))
+            self._on_key(f"delete {key}", self.client.delete_object, key)
         except ObjectNotFound:
             return
 
@@ -221,21 +205,27 @@ class S3Storage:
         return str(self._call(f"sign {key}", self.client.generate_presigned_url, ClientMethod="get_object",
                               Params=params, ExpiresIn=expires_s))  # fmt: skip
 
+    def public_url(self, key: str, expires_s: int) -> str | None:
+        """A link that downloads the object from where the API's clients are (the public endpoint, or AWS), or None
+        when the server is reachable only from the service's own network."""
+        if self.public_signer is None:
+            return None
+        params = {"Bucket": self.bucket, "Key": self._key(key)}
+        return str(self._call(f"sign {key}", self.public_signer.generate_presigned_url, ClientMethod="get_object",
+                              Params=params, ExpiresIn=expires_s))  # fmt: skip
+
     # Multipart uploads ------------------------------------------------------------------------------------------
 
     def start_multipart(self, key: str) -> str:
-        answer = self._call(
-            f"start upload {key}", self.client.create_multipart_upload, Bucket=self.bucket, Key=self._key(key)
-        )
+        answer = self._on_key(f"start upload {key}", self.client.create_multipart_upload, key)
         return str(answer["UploadId"])
 
     def put_part(self, key: str, upload_id: str, number: int, data: bytes) -> Part:
         check_part_number(number)
-        answer = self._call(
+        answer = self._on_key(
             f"upload part {number} of {key}",
             self.client.upload_part,
-            Bucket=self.bucket,
-            Key=self._key(key),
+            key,
             UploadId=upload_id,
             PartNumber=number,
             Body=data,
@@ -259,11 +249,10 @@ class S3Storage:
     def complete_multipart(self, key: str, upload_id: str, parts: Iterable[Part]) -> ObjectInfo:
         ordered = check_parts(key, list(parts))
         body = {"Parts": [{"PartNumber": p.number, "ETag": f'"{p.etag}"'} for p in ordered]}
-        self._call(
+        self._on_key(
             f"complete upload {key}",
             self.client.complete_multipart_upload,
-            Bucket=self.bucket,
-            Key=self._key(key),
+            key,
             UploadId=upload_id,
             MultipartUpload=body,
         )
@@ -271,13 +260,7 @@ class S3Storage:
 
     def abort_multipart(self, key: str, upload_id: str) -> None:
         try:
-            self._call(
-                f"abort upload {key}",
-                self.client.abort_multipart_upload,
-                Bucket=self.bucket,
-                Key=self._key(key),
-                UploadId=upload_id,
-            )
+            self._on_key(f"abort upload {key}", self.client.abort_multipart_upload, key, UploadId=upload_id)
         except ObjectNotFound:
             return
 

@@ -4,7 +4,6 @@ and the same scripts from an installed wheel."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,13 +12,11 @@ import pytest
 from alembic import command
 from alembic.script import ScriptDirectory
 from fresh_install import install
-from service_harness import DEFAULT_PG_ADMIN_URL, require_postgres, temp_postgres
+from service_harness import PG_ADMIN_URL, require_postgres, temp_postgres
 from sqlalchemy import create_engine, inspect
 
 from service.db.base import Base
 from service.db.migrate import alembic_config
-
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
 
 
 @pytest.fixture(params=["postgres", "sqlite"])

@@ -9,7 +9,6 @@ under CI (``CI=true``), where it fails them with the command that starts it.
 
 from __future__ import annotations
 
-import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -20,8 +19,8 @@ from fastapi.testclient import TestClient
 from pipeline_stand_in import use
 from seaweedfs import SeaweedFS, seaweedfs
 from service_harness import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
+    PG_ADMIN_URL,
+    REDIS_URL,
     SCRIPTED_PIPELINE,
     drop_redis_prefix,
     new_redis_prefix,
@@ -38,8 +37,6 @@ from service.db.models import Base
 from service.db.session import get_engine
 from service.settings import Settings
 
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 # Children first: a DELETE per table, which on the few rows a test leaves takes under 1 ms where TRUNCATE took
 # 18 (it rewrites every table's files), before each of the ~160 PostgreSQL tests.
 TABLES = ("artifact", "job", "scene", "upload", "app_session", "api_key")

@@ -11,10 +11,29 @@ import socket
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from service_harness import REPO, Procs, compose_command, free_port, wait_for
 
-__all__ = ["REPO", "Procs", "TcpProxy", "compose_command", "free_port", "wait_for"]
+__all__ = ["REPO", "Procs", "TcpProxy", "compose_command", "free_port", "job_row", "wait_for", "worker_of"]
+
+
+def job_row(database_url: str, job_id: str) -> dict[str, Any]:
+    """The job's ``worker``, ``attempts`` and ``state`` as the database holds them (not as the API shows them)."""
+    from sqlalchemy import create_engine, text
+
+    engine = create_engine(database_url)
+    with engine.connect() as conn:
+        row = conn.execute(text("SELECT worker, attempts, state FROM job WHERE id = :id"), {"id": job_id})
+        out = dict(row.mappings().one())
+    engine.dispose()
+    return out
+
+
+def worker_of(procs: Procs, database_url: str, job_id: str) -> str:
+    """The name of the worker process running the job (its pid ends the job's ``worker``)."""
+    pid = int(job_row(database_url, job_id)["worker"].rsplit("/", 1)[1])
+    return next(name for name, p in procs.procs.items() if p.pid == pid)
 
 
 class TcpProxy:

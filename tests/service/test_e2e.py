@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 from procs import Procs, free_port, wait_for
 from service_harness import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
+    PG_ADMIN_URL,
+    REDIS_URL,
     drop_redis_prefix,
     new_redis_prefix,
     python_path,
@@ -37,8 +37,6 @@ from service_harness import (
 
 pytestmark = pytest.mark.slow
 
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 PREFERRED_QUERY = "chair"
 JOB_TIMEOUT_S = 400.0
 # No stage's labels read the appearance fit (its checkpoint key feeds none of them): two iterations leave the

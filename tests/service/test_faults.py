@@ -9,7 +9,6 @@ the test can cut, which is how an outage looks to the service without stopping s
 from __future__ import annotations
 
 import itertools
-import os
 import subprocess
 import sys
 import time
@@ -21,10 +20,11 @@ from typing import Any
 import httpx
 import pytest
 from pipeline_stand_in import ENV as STAND_IN
-from procs import REPO, Procs, TcpProxy, wait_for
+from procs import REPO, Procs, TcpProxy, wait_for, worker_of
 from service_harness import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
+    HEARTBEAT_TIMEOUT_S,
+    PG_ADMIN_URL,
+    REDIS_URL,
     SCRIPTED_PIPELINE,
     drop_redis_prefix,
     new_redis_prefix,
@@ -36,10 +36,7 @@ from svc_helpers import pack, write_tiny_bundle
 
 pytestmark = pytest.mark.slow
 
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 STAGE_S = 0.4  # the scripted job takes 6 stages x 0.4 s
-HEARTBEAT_TIMEOUT_S = 5.0  # the outages below last 2 s: well inside it
 
 
 @dataclass
@@ -94,19 +91,7 @@ class Cluster:
         return seen
 
     def worker_of(self, job_id: str) -> str:
-        """The name of the worker process running the job (its pid is in the job's ``worker``)."""
-        pid = int(self.job_row(job_id)["worker"].rsplit("/", 1)[1])
-        return next(name for name, p in self.procs.procs.items() if p.pid == pid)
-
-    def job_row(self, job_id: str) -> dict[str, Any]:
-        from sqlalchemy import create_engine, text
-
-        engine = create_engine(self.procs.env["PANOGS_DATABASE_URL_DIRECT"])
-        with engine.connect() as conn:
-            row = conn.execute(text("SELECT worker, attempts, state FROM job WHERE id = :id"), {"id": job_id})
-            out = dict(row.mappings().one())
-        engine.dispose()
-        return out
+        return worker_of(self.procs, self.procs.env["PANOGS_DATABASE_URL_DIRECT"], job_id)
 
     def add_worker(self) -> str:
         name = f"worker{next(self.serial)}"

@@ -14,7 +14,9 @@ import secrets
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
+import httpx
 import pytest
 import scripted_pipeline as scripted
 from fastapi.testclient import TestClient
@@ -22,11 +24,12 @@ from seaweedfs import SeaweedFS
 from svc_helpers import VOCABULARY_8D, RecordingSender, new_key
 
 from service.api_app import create_app
-from service.db.models import JobState
-from service.db.session import get_session_factory
+from service.db.models import JobState, Upload
+from service.db.session import get_session_factory, session_scope
 from service.settings import Settings
 from service.storage import parts
 from service.storage.backends import open_storage
+from service.storage.objects import Part
 from worker import runner
 
 MIB = 1024 * 1024
@@ -98,6 +101,40 @@ def test_tus_upload_in_4_mib_patches_goes_up_as_parts(
     assert _files(s3_settings.data_dir / "storage") == []  # the API wrote nothing of it to its own disk
 
 
+def _multipart_row(settings: Settings, upload_id: str) -> dict[str, Any]:
+    with session_scope(get_session_factory(settings.database)) as session:
+        upload = session.get(Upload, uuid.UUID(upload_id))
+        assert upload is not None
+        assert upload.multipart is not None
+        return dict(upload.multipart)
+
+
+def test_the_part_state_moves_with_the_offset_and_resumes_in_another_process(
+    s3_client: TestClient, s3_auth: dict[str, str], s3_settings: Settings
+) -> None:
+    data = os.urandom(14 * MIB + 3)
+    created = s3_client.post("/v1/uploads", headers={**s3_auth, **TUS, "Upload-Length": str(len(data))})
+    upload_id = created.json()["id"]
+    for offset, size in ((0, 4 * MIB), (4 * MIB, 4 * MIB), (8 * MIB, 2 * MIB)):
+        answer = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[offset : offset + size],
+                                 headers={**s3_auth, **TUS, "Upload-Offset": str(offset)})  # fmt: skip
+        assert answer.status_code == 204, answer.text
+    # In the row, at the row's offset: the first 4 MiB waited as a tail and went up with the next 4 as one part of
+    # 8 MiB (no tail left then); the last 2 MiB are the tail now, an object named by the offset.
+    state = _multipart_row(s3_settings, upload_id)
+    assert (state["offset"], [p[:2] for p in state["parts"]], state["tail"]) == (10 * MIB, [[1, 8 * MIB]], 2 * MIB)
+    assert not [k for k in _keys(s3_settings, f"uploads/{upload_id}/") if "state-" in k]  # no state object
+    assert f"uploads/{upload_id}/tail-{10 * MIB}" in _keys(s3_settings, f"uploads/{upload_id}/")
+    parts.TAILS.take(f"uploads/{upload_id}/data", 10 * MIB)  # as in another API process: the tail is read back
+    rest = s3_client.patch(f"/v1/uploads/{upload_id}", content=data[10 * MIB :],
+                           headers={**s3_auth, **TUS, "Upload-Offset": str(10 * MIB)})  # fmt: skip
+    assert rest.status_code == 204, rest.text
+    status = s3_client.get(f"/v1/uploads/{upload_id}", headers=s3_auth).json()
+    assert (status["state"], status["sha256"]) == ("complete", hashlib.sha256(data).hexdigest())
+    assert open_storage(s3_settings).objects.get_bytes(f"uploads/{upload_id}/data") == data
+    assert _keys(s3_settings, f"uploads/{upload_id}/") == [f"uploads/{upload_id}/data"]  # every tail gone
+
+
 def test_a_refused_chunk_keeps_the_last_good_state(s3_client: TestClient, s3_auth: dict[str, str]) -> None:
     data = os.urandom(12 * MIB)
     created = s3_client.post("/v1/uploads", headers={**s3_auth, **TUS, "Upload-Length": str(len(data))})
@@ -159,7 +196,10 @@ def test_scene_job_results_range_and_delete(
     worker_settings = s3_settings.model_copy(update={"data_dir": tmp_path / "worker-data"})
     env = _worker_env(worker_settings)
     assert runner.execute_job(job_id, lease="lease-1", worker="w1", env=env) is JobState.SUCCEEDED
-    assert _files(tmp_path / "worker-data") == []  # its scratch folder is gone with the task
+    # Its scratch folder is gone with the task; the scene's bundle stays in the worker's cache for the next job.
+    kept = _files(tmp_path / "worker-data")
+    assert kept
+    assert all(f.startswith(f"work/bundles/{scene_id}") for f in kept), kept
 
     status = s3_client.get(f"/v1/jobs/{job_id}", headers=s3_auth).json()
     assert status["state"] == "succeeded", status
@@ -181,7 +221,24 @@ def test_scene_job_results_range_and_delete(
     )
     assert past.status_code == 416
     assert past.headers["Content-Range"] == f"bytes */{len(stored)}"
-    assert any(k.startswith(f"artifacts/{job_id}/stages/") for k in _keys(s3_settings, f"artifacts/{job_id}/"))
+    # ?redirect=true: served here while the S3 server is reachable only from the service's network ...
+    inside = s3_client.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply?redirect=true", headers=s3_auth)
+    assert (inside.status_code, inside.content) == (200, stored)
+    # ... and a 307 to a signed link of the store once its address for clients is set (the link works alone).
+    public = s3_settings.model_copy(update={"s3_public_endpoint_url": s3_settings.s3_endpoint_url})
+    with TestClient(create_app(public, sender=RecordingSender(), run_reaper=False)) as c:
+        moved = c.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply?redirect=true", headers=s3_auth,
+                      follow_redirects=False)  # fmt: skip
+        unasked = c.get(f"/v1/jobs/{job_id}/artifacts/panoptic.ply", headers=s3_auth)
+    assert moved.status_code == 307
+    assert moved.headers["location"].startswith(f"{s3_settings.s3_endpoint_url}/")
+    assert httpx.get(moved.headers["location"]).content == stored
+    ranged = httpx.get(moved.headers["location"], headers={"Range": "bytes=10-49"})
+    assert (ranged.status_code, ranged.content) == (206, stored[10:50])
+    assert (unasked.status_code, unasked.content) == (200, stored)  # no redirect unless asked
+    # The checkpoints are kept once, under the scene by key, not again with the job's files.
+    assert any(k.endswith(".ckpt") for k in _keys(s3_settings, f"scenes/{scene_id}/stages/"))
+    assert not [k for k in _keys(s3_settings, f"artifacts/{job_id}/") if k.endswith(".done")]
 
     assert s3_client.delete(f"/v1/scenes/{scene_id}", headers=s3_auth).status_code == 204
     assert _keys(s3_settings, f"scenes/{scene_id}/") == []
@@ -201,8 +258,8 @@ def _worker_env(settings: Settings) -> runner.JobEnv:
     )
 
 
-def test_upload_states_are_named_by_offset() -> None:
+def test_upload_tails_are_named_by_offset() -> None:
     assert parts.state_key("uploads/u/data", 7) == "uploads/u/state-7.json"
     assert parts.tail_key("uploads/u/data", 7) == "uploads/u/tail-7"
-    state = parts.UploadState(upload_id="x", offset=3, parts=[], tail=3)
-    assert parts.UploadState.from_json(state.to_json()) == state
+    state = parts.UploadState(upload_id="x", offset=3, parts=[Part(number=1, size=5, etag="e")], tail=3, previous=0)
+    assert parts.UploadState.from_record(state.to_record()) == state

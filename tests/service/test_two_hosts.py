@@ -25,11 +25,12 @@ from typing import Any
 import httpx
 import pytest
 from pipeline_stand_in import ENV as STAND_IN
-from procs import Procs, wait_for
+from procs import Procs, job_row, wait_for, worker_of
 from seaweedfs import SeaweedFS, seaweedfs
 from service_harness import (
-    DEFAULT_PG_ADMIN_URL,
-    DEFAULT_REDIS_URL,
+    HEARTBEAT_TIMEOUT_S,
+    PG_ADMIN_URL,
+    REDIS_URL,
     SCRIPTED_PIPELINE,
     drop_redis_prefix,
     new_redis_prefix,
@@ -41,10 +42,7 @@ from svc_helpers import VOCABULARY_8D, pack, write_tiny_bundle
 
 pytestmark = pytest.mark.slow
 
-PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
-REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
 STAGE_S = 0.6  # each of the scripted job's 7 stages
-HEARTBEAT_TIMEOUT_S = 5.0
 MIB = 1024 * 1024
 TUS = {"Tus-Resumable": "1.0.0", "Content-Type": "application/offset+octet-stream"}
 
@@ -88,18 +86,10 @@ class Hosts:
         return self.wait(job_id, lambda j: j["state"] in ("succeeded", "failed", "canceled"), f"job {job_id}", timeout)
 
     def worker_of(self, job_id: str) -> str:
-        pid = int(self.job_row(job_id)["worker"].rsplit("/", 1)[1])
-        return next(name for name, p in self.procs.procs.items() if p.pid == pid)
+        return worker_of(self.procs, self.procs.env["PANOGS_DATABASE_URL"], job_id)
 
     def job_row(self, job_id: str) -> dict[str, Any]:
-        from sqlalchemy import create_engine, text
-
-        engine = create_engine(self.procs.env["PANOGS_DATABASE_URL"])
-        with engine.connect() as conn:
-            row = conn.execute(text("SELECT worker, attempts FROM job WHERE id = :id"), {"id": job_id})
-            out = dict(row.mappings().one())
-        engine.dispose()
-        return out
+        return job_row(self.procs.env["PANOGS_DATABASE_URL"], job_id)
 
     def keys(self, prefix: str) -> list[str]:
         client = self.s3.client()
@@ -179,9 +169,10 @@ def _scene(hosts: Hosts) -> str:
         return str(scene.json()["id"])
 
 
-def _job(hosts: Hosts, scene_id: str) -> str:
+def _job(hosts: Hosts, scene_id: str, config: dict[str, Any] | None = None) -> str:
+    body = {"scene_id": scene_id, "config": config or {}, "vocabulary": VOCABULARY_8D}
     with hosts.client() as c:
-        answer = c.post("/v1/jobs", json={"scene_id": scene_id, "config": {}, "vocabulary": VOCABULARY_8D})
+        answer = c.post("/v1/jobs", json=body)
     assert answer.status_code == 202, answer.text
     return str(answer.json()["id"])
 
@@ -208,11 +199,21 @@ def test_session_across_two_hosts(hosts: Hosts) -> None:
         part = c.get(f"/v1/jobs/{job_id}/artifacts/labels.npz", headers={"Range": "bytes=100-"})
         assert part.status_code == 206
         assert part.content == whole.content[100:]
+    assert not any(done["stage_cached"].values())  # the scene's first job computed every stage
+    rerun = hosts.finished(_job(hosts, scene_id, {"settings": {"clustering": 2}}))  # other clustering settings
+    assert rerun["state"] == "succeeded", rerun
+    reused = {"validate", "primitives", "fusion"}  # the stages before clustering, from the first job's checkpoints
+    assert rerun["stage_cached"] == {stage: stage in reused for stage in done["stage_timings"]}
+    checkpoints = [k for k in hosts.keys(f"scenes/{scene_id}/stages/") if k.endswith(".ckpt")]
+    assert len(checkpoints) == 2 * len(done["stage_timings"]) - len(reused)  # one per key, the rerun's new ones too
+    for job in (job_id, rerun["id"]):  # kept once: under the scene, not again with the job's files
+        assert not [k for k in hosts.keys(f"artifacts/{job}/") if k.endswith(".done")], job
     # Neither host holds the other's files: the API wrote no object to its disk, the workers' scratch is gone.
     assert _files(hosts.tmp / "api-data" / "storage") == []
     assert not [f for f in _files(hosts.tmp / "api-data") if "scratch" in f]
-    for name in hosts.workers:
-        assert _files(hosts.tmp / f"{name}-data") == [], name
+    for name in hosts.workers:  # nothing but the bundle cache: this scene's bundle, kept for its next job
+        kept = _files(hosts.tmp / f"{name}-data")
+        assert all(f.startswith(f"work/bundles/{scene_id}") for f in kept), (name, kept)
     with hosts.client() as c:
         assert c.delete(f"/v1/scenes/{scene_id}").status_code == 204
     assert hosts.keys(f"scenes/{scene_id}/") == []

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from panogs_core.errors import ConfigError, NumericalError
+from panogs_core.errors import Cancelled, ConfigError, NumericalError
 from panogs_core.types import Vocabulary
 
 STAGES = ("validate", "primitives", "fusion", "clustering", "labeling", "export", "appearance")
@@ -94,10 +94,10 @@ def run_pipeline(
     for stage in STAGES:
         try:
             _run_stage(stage, out, config, stage_s, timings, on_progress, resume, shared)
-        except NumericalError as exc:
-            if stage != "appearance":
+        except Exception as exc:  # as the real pipeline: any error of the fit but a cancel is the fit's failure
+            if stage != "appearance" or isinstance(exc, Cancelled):
                 raise
-            result.appearance = {"state": "failed", "error": f"NumericalError: {exc}"}
+            result.appearance = {"state": "failed", "error": f"{type(exc).__name__}: {exc}"}
             return result
         if stage == RESULTS_AFTER:
             result.instances = _write_outputs(out, Path(bundle), vocabulary, device_of(config))

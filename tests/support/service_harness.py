@@ -33,6 +33,13 @@ REPO = Path(__file__).resolve().parents[2]
 SUPPORT = Path(__file__).resolve().parent  # this folder: the test doubles a started worker imports
 DEFAULT_PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
+# The servers the tests use: from the environment (a database this user may create databases from, a Redis), else
+# the local defaults.
+PG_ADMIN_URL = os.environ.get("PANOGS_TEST_PG_ADMIN_URL", DEFAULT_PG_ADMIN_URL)
+REDIS_URL = os.environ.get("PANOGS_TEST_REDIS_URL", DEFAULT_REDIS_URL)
+# The heartbeat timeout of the service the process tests start: a killed worker's job is re-queued after it, and
+# the storage and database outages they make (2 s) stay well inside it.
+HEARTBEAT_TIMEOUT_S = 5.0
 SCRIPTED_PIPELINE = "scripted_pipeline"  # the test double of the pipeline (pipeline_stand_in.py)
 
 # How to start each service on a Debian machine like CI's (the commands .ci/run runs).

@@ -317,6 +317,28 @@ def test_rerun_with_other_settings_then_cancel(
     page.wait_for_selector(f'tr[data-job-id="{new_id}"][data-state=canceled]', timeout=60_000)
 
 
+def test_a_rerun_with_other_clustering_settings_shows_the_stages_it_reused(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    first = api.get(f"/v1/jobs/{job_id}").json()
+    row.locator("[data-action=re-run]").click()
+    config = {**first["config"], "clustering": {"thresholds": [0.9, 0.75, 0.6]}}  # the vocabulary field as it was
+    row.locator("textarea").fill(json.dumps(config))
+    before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
+    row.locator("form button[type=submit]").click()
+    known = ",".join(f'[data-job-id="{j}"]' for j in before)
+    new_id = page.wait_for_selector(f"#jobs tbody tr[data-job-id]:not({known})").get_attribute("data-job-id")
+    done = page.wait_for_selector(f'tr[data-job-id="{new_id}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
+    reused = set((done.get_attribute("data-cached") or "").split())
+    assert {"primitives", "fusion", "language_field"} <= reused  # taken from the first job's checkpoints
+    assert "clustering" not in reused  # its settings changed: computed again
+    assert "reused: " in done.inner_text()
+    shown = api.get(f"/v1/jobs/{new_id}").json()["stage_cached"]
+    assert reused == {stage for stage, cached in shown.items() if cached}
+
+
 def test_deleting_the_job_removes_it_and_its_files(
     page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
 ) -> None:

@@ -15,6 +15,7 @@ import scripted_pipeline as scripted
 
 from service.db.models import Job, JobState, Scene
 from service.db.session import get_session_factory, session_scope
+from service.jobs import to_public
 from service.lifecycle import delete_scene
 from service.settings import Settings
 from service.storage import Storage
@@ -33,6 +34,14 @@ def _second_job(settings: Settings, first: uuid.UUID, config: dict[str, Any]) ->
         session.add(again)
         session.commit()
         return again.id
+
+
+def _shown_cached(settings: Settings, job_id: uuid.UUID) -> dict[str, bool]:
+    """``stage_cached`` of the job's status as the API answers it."""
+    with session_scope(get_session_factory(settings.database)) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        return to_public(job).stage_cached
 
 
 def _scene(settings: Settings, job_id: uuid.UUID) -> Scene:
@@ -56,12 +65,19 @@ def test_a_rerun_with_other_clustering_settings_reuses_the_earlier_stages(
     assert runner.execute_job(second, lease="b", worker="w", env=env) is JobState.SUCCEEDED
     reused = scripted.CACHED[str(env.storage.job_dir(second))]
     assert reused == {"validate", "primitives", "fusion"}  # clustering and every later stage computed again
+    assert _shown_cached(settings, first) == dict.fromkeys(scripted.STAGES, False)  # the first computed each
+    shown = _shown_cached(settings, second)  # the job's status says which stages came from the first job
+    assert shown == {stage: stage in reused for stage in scripted.STAGES}
     assert _scene(settings, first).size_bytes > size_after_first  # the new keys' checkpoints
     storage = Storage(settings.storage)
     scene_id = _scene(settings, first).id
     stored = [o.key for o in storage.objects.list_objects(f"scenes/{scene_id}/stages/")]
     assert sum(k.startswith(f"scenes/{scene_id}/stages/clustering/") for k in stored) == 2  # one per key
     assert not [k for k in stored if k.endswith(".lease")]  # every lease released
+    for job_id in (first, second):  # one copy: the job's checkpoint and the scene's are two names of the same bytes
+        fusion = env.storage.job_dir(job_id) / "stages" / "fusion.done"
+        (kept,) = [k for k in stored if k.startswith(f"scenes/{scene_id}/stages/fusion/")]
+        assert fusion.stat().st_ino == storage.objects.path(kept).stat().st_ino  # type: ignore[attr-defined]
     with session_scope(get_session_factory(settings.database)) as session:
         scene = session.get(Scene, scene_id)
         assert scene is not None

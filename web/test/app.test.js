@@ -6,6 +6,8 @@ import { parseRoute, routePath, viewerHash } from "../src/app/routes.js";
 import {
   POLL_IDLE_MS,
   POLL_LIVE_MS,
+  cachedStages,
+  cachedStagesText,
   fitRunning,
   fitText,
   jobProgressText,
@@ -52,6 +54,16 @@ describe("job rows and polling", () => {
     assert.equal(jobStateText({ state: "canceled", cancel_requested: true }), "canceled");
     assert.equal(jobProgressText({ state: "running", progress: 0.426 }), "43%");
     assert.equal(jobProgressText({ state: "succeeded", progress: 1 }), "");
+  });
+});
+
+describe("stages reused from an earlier job", () => {
+  it("names the stages taken from the scene's checkpoints, in the status's order", () => {
+    const rerun = { stage_cached: { validate: true, primitives: true, fusion: true, clustering: false } };
+    assert.deepEqual(cachedStages(rerun), ["validate", "primitives", "fusion"]);
+    assert.equal(cachedStagesText(rerun), "reused: validate, primitives, fusion");
+    assert.equal(cachedStagesText({ stage_cached: { validate: false, clustering: false } }), "");
+    assert.equal(cachedStagesText({}), ""); // a server from before the field
   });
 });
 

@@ -6,13 +6,13 @@ once the fit is done, and answers 409 ``fit_not_ready`` with the fit's progress 
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, Response
 
 from panogs_core.io.run_folder import DOWNLOADABLE, GAUSSIANS_PLY
-from service.api.deps import JobDep, StorageDep
+from service.api.deps import JobDep, SettingsDep, StorageDep
 from service.db.models import Job
-from service.downloads import object_response
+from service.downloads import object_response, signed_redirect
 from service.errors import Conflict, NotFound
 from service.job_results import check_fitted
 from service.schemas import ArtifactPublic, ArtifactsPublic, error_responses
@@ -51,18 +51,32 @@ def list_artifacts(job: JobDep) -> ArtifactsPublic:
         **_ERRORS,
         200: {"content": {"application/octet-stream": {}}},
         206: {"description": "a byte range"},
+        307: {"description": "with redirect=true on S3 reachable by clients: a signed link to the object"},
     },
 )
-async def download_artifact(job: JobDep, name: str, storage: StorageDep, request: Request) -> Response:
+async def download_artifact(
+    job: JobDep,
+    name: str,
+    storage: StorageDep,
+    settings: SettingsDep,
+    request: Request,
+    redirect: bool = Query(False, description="answer 307 to a signed link of the object store, where it has one"),
+) -> Response:
     """Download one file of ``panogs_core.io.run_folder.DOWNLOADABLE`` (``panoptic.ply``, ``gaussians.ply`` ...).
 
-    Supports ``Range: bytes=start-end`` (206) to resume an interrupted download.
+    Supports ``Range: bytes=start-end`` (206) to resume an interrupted download. With ``redirect=true`` and object
+    storage that the client can reach, the answer is a 307 to a signed link (the bytes then come from the store,
+    not through the API); otherwise the file is served here as without it.
     """
     if name == GAUSSIANS_PLY.name:
         check_fitted(job)  # 409 fit_not_ready with the fit's progress until the fitted scene is there
     artifact = next((a for a in _finished(job).artifacts if a.name == name), None)
     if artifact is None or name not in DOWNLOADABLE:
         raise NotFound("artifact", name)
+    if redirect:
+        moved = await signed_redirect(storage, artifact.path, settings.signed_link_ttl_s)
+        if moved is not None:
+            return moved
     return await object_response(
         storage,
         artifact.path,

@@ -90,7 +90,7 @@ async def create_upload(
             await run_in_threadpool(_in_session, factory, _discard_by_id, storage, upload.id)
             raise
     elif upload.length == 0:
-        upload = await run_in_threadpool(_record, factory, request, storage, upload, 0, hashlib.sha256())
+        upload = await run_in_threadpool(_record, factory, request, storage, upload, 0, hashlib.sha256(), None)
     body = UploadPublic.model_validate(upload).model_dump_json()
     headers = up.tus_headers(Location=f"/v1/uploads/{upload.id}", Upload_Offset=upload.offset)
     return Response(body, status_code=201, headers=headers, media_type="application/json")
@@ -194,10 +194,11 @@ def _record(
     upload: Upload,
     offset: int,
     running: Any,
+    multipart: dict[str, Any] | None,
 ) -> Upload:
     with session_scope(factory) as session:
         upload = session.merge(upload)
-        return up.record_bytes(session, storage, request.app.state.hashes, upload, offset, running)
+        return up.record_bytes(session, storage, request.app.state.hashes, upload, offset, running, multipart)
 
 
 async def _write(

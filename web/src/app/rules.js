@@ -26,6 +26,19 @@ export function jobProgressText(job) {
   return isTerminal(job.state) ? "" : `${Math.round(job.progress * 100)}%`;
 }
 
+// The stages a job took from an earlier job's checkpoints of its scene (same inputs and settings, so not computed
+// again: docs/service.md, "Stage checkpoints shared by a scene's jobs"), in the order the status lists them.
+export function cachedStages(job) {
+  return Object.entries(job.stage_cached || {})
+    .filter(([, cached]) => cached)
+    .map(([stage]) => stage);
+}
+
+export function cachedStagesText(job) {
+  const stages = cachedStages(job);
+  return stages.length ? `reused: ${stages.join(", ")}` : "";
+}
+
 // The results (labels, instances, queries, the viewer's point modes) come before the Gaussian fit, which goes on
 // after them with its own progress (docs/service.md, "Results before the fit").
 export function resultsReady(job) {

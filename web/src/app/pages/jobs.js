@@ -1,10 +1,12 @@
-// The job table's rows: state, stage, progress, the Gaussian fit (after the results), error, and the actions (open
+// The job table's rows: state, stage (and the stages reused from an earlier job's checkpoints), progress, the Gaussian fit (after the results), error, and the actions (open
 // the viewer once the results are ready, cancel, re-run with other settings, delete). A row's data-state,
-// data-results and data-fit are what the browser tests wait on.
+// data-results, data-fit and data-cached are what the browser tests wait on.
 import { h } from "../../dom.js";
 import { api } from "../api-client.js";
 import { showError } from "../messages.js";
 import {
+  cachedStages,
+  cachedStagesText,
   fitRunning,
   fitText,
   isTerminal,
@@ -72,11 +74,12 @@ export function jobRow(job, scenes, refresh) {
       "data-state": job.state,
       "data-results": resultsReady(job) ? "ready" : "pending",
       "data-fit": job.fit?.state || "",
+      "data-cached": cachedStages(job).join(" "),
     },
     h("td", {}, h("code", {}, shortId(job.id))),
     h("td", {}, sceneName),
     h("td", { class: `pgs-state-${job.state}` }, jobStateText(job)),
-    h("td", {}, job.stage || ""),
+    h("td", {}, job.stage || "", cachedStagesText(job) ? h("div", { class: "pgs-cached" }, cachedStagesText(job)) : ""),
     h("td", {}, terminal ? "" : h("progress", { max: 1, value: job.progress }), " ", jobProgressText(job)),
     fitCell(job),
     h(
