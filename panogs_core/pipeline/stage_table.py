@@ -29,7 +29,7 @@ from panogs_core.progress import ProgressFn
 from panogs_core.stages.affinity import AffinityConfig, segment_affinity
 from panogs_core.stages.clustering import Clusters, progressive_clustering
 from panogs_core.stages.fusion import FusedFeatures, fuse_features
-from panogs_core.stages.labeling import PanopticLabels, assign_panoptic
+from panogs_core.stages.labeling import FusedEvidence, PanopticLabels, assign_panoptic, unit_embeddings
 from panogs_core.stages.language_field import LanguageField, fit_language_field
 from panogs_core.stages.masks import MaskObservations, observe_masks
 from panogs_core.stages.neighbors import KnnGraph, build_knn
@@ -174,6 +174,12 @@ def primitive_features(field: LanguageField | None, fused: FusedFeatures) -> np.
     return feats / np.maximum(norms, 1e-12)
 
 
+def fused_evidence(fused: FusedFeatures, vocab: Vocabulary) -> FusedEvidence:
+    """What the labelling reads of the fused features (``(N, L)`` cosines and the seen rows), so that the pipeline
+    can drop the ``(N, D)`` features once the field is fitted."""
+    return FusedEvidence.of(np.asarray(fused.features, np.float32), unit_embeddings(vocab))
+
+
 def masks(bundle: Bundle, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
 
     return observe_masks(bundle, vis, cfg.affinity.mask_lookup(), on_progress=progress)
@@ -215,7 +221,7 @@ def clustering(
 def labeling(
     prims: Primitives,
     features: np.ndarray,
-    fused: FusedFeatures,
+    fused: FusedEvidence,
     sp: SuperPrimitives,
     knn: KnnGraph,
     clusters: Clusters,
@@ -231,5 +237,5 @@ def labeling(
         vocab,
         cfg.labeling,
         neighbors=knn.neighbors,
-        fused=np.asarray(fused.features, np.float32),
+        fused=fused,
     )
