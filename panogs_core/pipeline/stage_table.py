@@ -156,8 +156,11 @@ def visibility(bundle: Bundle, prims: Primitives, cfg: PipelineConfig, progress:
 def fusion(
     bundle: Bundle, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
 ) -> FusedFeatures:
-
-    return fuse_features(bundle, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
+    """The fused features; colours only for primitives that have none of their own (the export reads the
+    geometry's first, so fusing them would read every colour frame for nothing). The input's hash, in the key,
+    says which."""
+    settings = cfg.fusion if prims.colors is None else dataclasses.replace(cfg.fusion, fuse_colors=False)
+    return fuse_features(bundle, vis, int(prims.points.shape[0]), settings, on_progress=progress)
 
 
 def language_field(prims: Primitives, fused: FusedFeatures, cfg: PipelineConfig, progress: ProgressFn) -> LanguageField:
