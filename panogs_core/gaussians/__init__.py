@@ -93,14 +93,18 @@ def fit_appearance(
         snapshot: Where the fit keeps its partial state (module docstring); None keeps none.
 
     Returns:
-        The fitted scene; the initialisation with a note when the stage is off or no frame has colour.
+        The fitted scene; the initialisation with a note when the stage is off or no frame has colour (when it is
+        off, the primitives' own: the surface initialisation reads every fit frame's colour for a start that no fit
+        uses, and an unfitted scene is written from the primitives anyway, ``export.write_gaussians``).
     """
     import torch
 
+    if not cfg.enabled:
+        return _with(
+            initial_gaussians(prims, colors), note="appearance fitting is turned off (appearance.enabled: false)"
+        )
     fit_frames, held, no_color = split_frames(bundle, cfg)
     start = initialise(bundle, prims, colors, fit_frames, cfg)
-    if not cfg.enabled:
-        return _with(start, note="appearance fitting is turned off (appearance.enabled: false)")
     if not fit_frames:
         note = (
             f"appearance fitting skipped: none of the {len(bundle.frames)} frames has a colour image"

@@ -17,7 +17,7 @@ import platform
 import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -437,9 +437,10 @@ def _label_scene(
     """The labelling stages and the results' files; returns the result and what the Gaussian scene's file needs
     (the primitives' colours, semantic and instance labels).
 
-    Every stage output lives only as long as a later stage reads it: the visibility goes after the masks, the
-    masks after the clustering, and the features, segments and fused features (161 MB each at ScanNet size) when
-    this returns, so the appearance fit runs without them.
+    Every stage output lives only as long as a later stage reads it: the fused features (161 MB at ScanNet size)
+    once the field is fitted (the labelling reads their cosines with the classes), the visibility after the masks,
+    the masks after the clustering, and the decoded features and segments when this returns, so the appearance
+    fit runs without them.
     """
     from panogs_core.stages.export import primitive_colors, write_outputs
 
@@ -449,6 +450,9 @@ def _label_scene(
     if cfg.features_source == "field":
         field_ = runner.stage(st.LANGUAGE_FIELD, keys, lambda p: st.language_field(prims, fused, cfg, p))
     features = st.primitive_features(field_, fused)
+    # The (N, D) fused features are read no more: the labelling reads their (N, L) cosines, the export their
+    # colours. Dropped here, they are never held beside the decoded ones (161 MB each at ScanNet size).
+    evidence, fused = st.fused_evidence(fused, vocab), _colours_only(fused)
     masks = runner.stage(st.MASKS, keys, partial(st.masks, scene, vis, cfg))
     del vis
     knn = runner.stage(st.NEIGHBORS, keys, lambda _: st.neighbors(prims, cfg))
@@ -456,7 +460,7 @@ def _label_scene(
     clusters = runner.stage(st.CLUSTERING, keys, partial(st.clustering, sp, knn, masks, features, cfg))
     del masks
     labels = runner.stage(
-        st.LABELING, keys, lambda _: st.labeling(prims, features, fused, sp, knn, clusters, vocab, cfg)
+        st.LABELING, keys, lambda _: st.labeling(prims, features, evidence, sp, knn, clusters, vocab, cfg)
     )
 
     def export(_: ProgressFn) -> PipelineResult:
@@ -477,6 +481,11 @@ def _label_scene(
 
     result = runner.step("export", export)
     return result, primitive_colors(prims, fused), labels.semantic, labels.instance
+
+
+def _colours_only(fused: st.FusedFeatures) -> st.FusedFeatures:
+    """``fused`` without its features (an ``(N, 0)`` array): the weights, seen counts and colours stay."""
+    return replace(fused, features=np.empty((fused.features.shape[0], 0), np.float32))
 
 
 def _error_text(exc: BaseException) -> str:

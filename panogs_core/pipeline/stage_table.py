@@ -29,7 +29,7 @@ from panogs_core.progress import ProgressFn
 from panogs_core.stages.affinity import AffinityConfig, segment_affinity
 from panogs_core.stages.clustering import Clusters, progressive_clustering
 from panogs_core.stages.fusion import FusedFeatures, fuse_features
-from panogs_core.stages.labeling import PanopticLabels, assign_panoptic
+from panogs_core.stages.labeling import FusedEvidence, PanopticLabels, assign_panoptic, unit_embeddings
 from panogs_core.stages.language_field import LanguageField, fit_language_field
 from panogs_core.stages.masks import MaskObservations, observe_masks
 from panogs_core.stages.neighbors import KnnGraph, build_knn
@@ -156,8 +156,11 @@ def visibility(bundle: Bundle, prims: Primitives, cfg: PipelineConfig, progress:
 def fusion(
     bundle: Bundle, vis: Visibility, prims: Primitives, cfg: PipelineConfig, progress: ProgressFn
 ) -> FusedFeatures:
-
-    return fuse_features(bundle, vis, int(prims.points.shape[0]), cfg.fusion, on_progress=progress)
+    """The fused features; colours only for primitives that have none of their own (the export reads the
+    geometry's first, so fusing them would read every colour frame for nothing). The input's hash, in the key,
+    says which."""
+    settings = cfg.fusion if prims.colors is None else dataclasses.replace(cfg.fusion, fuse_colors=False)
+    return fuse_features(bundle, vis, int(prims.points.shape[0]), settings, on_progress=progress)
 
 
 def language_field(prims: Primitives, fused: FusedFeatures, cfg: PipelineConfig, progress: ProgressFn) -> LanguageField:
@@ -172,6 +175,12 @@ def primitive_features(field: LanguageField | None, fused: FusedFeatures) -> np.
     feats = np.asarray(fused.features, dtype=np.float32)
     norms = np.linalg.norm(feats, axis=1, keepdims=True)
     return feats / np.maximum(norms, 1e-12)
+
+
+def fused_evidence(fused: FusedFeatures, vocab: Vocabulary) -> FusedEvidence:
+    """What the labelling reads of the fused features (``(N, L)`` cosines and the seen rows), so that the pipeline
+    can drop the ``(N, D)`` features once the field is fitted."""
+    return FusedEvidence.of(np.asarray(fused.features, np.float32), unit_embeddings(vocab))
 
 
 def masks(bundle: Bundle, vis: Visibility, cfg: PipelineConfig, progress: ProgressFn) -> MaskObservations:
@@ -215,7 +224,7 @@ def clustering(
 def labeling(
     prims: Primitives,
     features: np.ndarray,
-    fused: FusedFeatures,
+    fused: FusedEvidence,
     sp: SuperPrimitives,
     knn: KnnGraph,
     clusters: Clusters,
@@ -231,5 +240,5 @@ def labeling(
         vocab,
         cfg.labeling,
         neighbors=knn.neighbors,
-        fused=np.asarray(fused.features, np.float32),
+        fused=fused,
     )

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -298,7 +299,7 @@ class _FeatureSum:
             masks = bundle.read_masks(frame)
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
             table, index = _rows_blended_with_masks(
-                cells, inv_norm, src, masks, mask_pixel, fmap.shape[:2], mask_pooling
+                cells, inv_norm, src, masks, mask_pixel, fmap.shape[:2], mask_pooling, self._buffers
             )
         else:
             cell, index = np.unique(src, return_inverse=True)  # the cells in use, and each primitive's
@@ -316,15 +317,31 @@ class _FeatureSum:
 
 
 class _CellBuffers:
-    """The (C, D) float32 rows of one feature map, and its raw float16 copy, kept from frame to frame.
+    """The (C, D) float32 rows of one feature map, the blended rows of a frame and the mask pixels' cells, kept
+    from frame to frame.
 
     A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself
-    (docs/benchmarks.md, "Speed at ScanNet size").
+    (docs/benchmarks.md, "Speed at ScanNet size"); the blended rows' temporaries did the same on a smaller scale.
     """
 
     def __init__(self) -> None:
         self.cells: np.ndarray | None = None  # (C, D) float32
-        self.raw: np.ndarray | None = None  # (C, D) float16
+        self._rows: list[np.ndarray] = []  # two (capacity, D) float32 row buffers
+        self._pixel_cells: dict[tuple[tuple[int, int], tuple[int, int]], tuple[np.ndarray, np.ndarray]] = {}
+
+    def rows(self, count: int, dim: int) -> tuple[np.ndarray, np.ndarray]:  # two (count, D) float32 views
+        """Two row buffers of ``count`` rows, valid until the next call."""
+        if not self._rows or self._rows[0].shape[0] < count or self._rows[0].shape[1] != dim:
+            capacity = max(count, 2 * self._rows[0].shape[0] if self._rows else 0)
+            self._rows = [np.empty((capacity, dim), dtype=np.float32) for _ in range(2)]
+        return self._rows[0][:count], self._rows[1][:count]
+
+    def pixel_cells(self, mask_hw: tuple[int, int], feature_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`mask_pixel_cells` of these sizes, computed once (every frame of a bundle has the same)."""
+        key = (mask_hw, feature_hw)
+        if key not in self._pixel_cells:
+            self._pixel_cells[key] = mask_pixel_cells(mask_hw, feature_hw)
+        return self._pixel_cells[key]
 
     def read(self, fmap: np.ndarray) -> np.ndarray:  # (C, D) float32, valid until the next call
         """The map's cells as float32 rows (a private copy: callers may write into it)."""
@@ -333,12 +350,13 @@ class _CellBuffers:
         hf, wf, d = fmap.shape
         flat = fmap.reshape(hf * wf, d)
         if self.cells is None or self.cells.shape != flat.shape:
-            self.cells, self.raw = np.empty(flat.shape, dtype=np.float32), None
+            self.cells = np.empty(flat.shape, dtype=np.float32)
         if flat.dtype == np.dtype(np.float16):  # torch converts float16 several times faster than numpy
-            if self.raw is None:
-                self.raw = np.empty(flat.shape, dtype=np.float16)
-            np.copyto(self.raw, flat)  # reads the memory-mapped file once
-            torch.from_numpy(self.cells).copy_(torch.from_numpy(self.raw))
+            # Straight from the memory-mapped file: a float16 copy first cost as much again (its page faults).
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+                source = torch.from_numpy(np.asarray(flat))  # read-only map: torch only reads it
+            torch.from_numpy(self.cells).copy_(source)
         else:
             np.copyto(self.cells, flat, casting="unsafe")
         return self.cells
@@ -372,21 +390,29 @@ def _rows_blended_with_masks(
     mask_pixel: np.ndarray,  # (T_v,) int64 flat mask pixel of each primitive
     feature_hw: tuple[int, int],
     weight: float,
+    buffers: _CellBuffers,
 ) -> tuple[np.ndarray, np.ndarray]:  # (U, D) float32 rows (not yet unit), (T_v,) int64 each primitive's row
     """One row per (cell, mask) pair in use: the unit cell, blended towards the mask's pooled feature.
 
     The blend of cell c with mask m is ``(1 - weight) f_c / |f_c| + weight pool_m`` (made unit by the caller); the
     pairs without a mask (m = 0) and masks without a pooled feature have ``pool_m = 0``: the plain unit cell. Rows
-    are per pair, not per primitive: many primitives share a cell when the maps are coarse.
+    are per pair, not per primitive: many primitives share a cell when the maps are coarse. The rows are written
+    into ``buffers`` (valid until its next use).
     """
+    import torch
+
     dense, mask_values = _dense_mask_ids(masks)  # (Hm Wm,) ids renumbered 0..M (0 stays "no mask")
     num_masks = len(mask_values)
     pair, index = np.unique(src * num_masks + dense[mask_pixel], return_inverse=True)  # (U,), (T_v,)
     cell, mask = pair // num_masks, pair % num_masks
-    pooled = _pool_cells(cells, inv_norm, dense, num_masks, masks.shape, feature_hw)  # (M + 1, D), row 0 zero
-    table = cells[cell]  # (U, D)
+    pixel_cells = buffers.pixel_cells(masks.shape, feature_hw)
+    pooled = _pool_cells(cells, inv_norm, dense, num_masks, pixel_cells)  # (M + 1, D), row 0 zero
+    table, blend = buffers.rows(len(pair), cells.shape[1])  # (U, D) each
+    # torch's gather into a kept buffer: numpy's np.take(out=) took twice as long as a fresh cells[cell].
+    torch.index_select(torch.from_numpy(cells), 0, torch.from_numpy(cell), out=torch.from_numpy(table))
     table *= ((1.0 - weight) * inv_norm[cell])[:, None]
-    table += weight * pooled[mask]
+    scaled_pool = torch.from_numpy(weight * pooled)  # (weight pool)[m] is weight (pool[m]), exactly
+    table += torch.index_select(scaled_pool, 0, torch.from_numpy(mask), out=torch.from_numpy(blend)).numpy()
     return table, index.reshape(-1)
 
 
@@ -412,7 +438,7 @@ def mask_pooled_features(
     fmap = np.asarray(fmap)
     cells, inv_norm = _cells_and_inverse_norms(fmap, min_norm)
     dense, mask_values = _dense_mask_ids(masks)
-    pooled = _pool_cells(cells, inv_norm, dense, len(mask_values), masks.shape, fmap.shape[:2])
+    pooled = _pool_cells(cells, inv_norm, dense, len(mask_values), mask_pixel_cells(masks.shape, fmap.shape[:2]))
     has = np.linalg.norm(pooled, axis=1) > 0.5  # unit rows, or zero
     top = int(mask_values[-1])
     by_id = np.zeros((top + 1, fmap.shape[2]), dtype=np.float32)
@@ -435,13 +461,32 @@ def _dense_mask_ids(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (Hm 
     return number[ids], np.flatnonzero(present)
 
 
+def mask_pixel_cells(
+    mask_hw: tuple[int, int], feature_hw: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:  # (Hm Wm,) int64 flat feature cell of each mask pixel, (C,) pixels per cell
+    """The feature cell every mask pixel lies in (by the sampling rule of docs/scene_format.md), and how many
+    mask pixels each cell holds.
+
+    Example:
+        >>> cell, count = mask_pixel_cells((2, 4), (1, 2))
+        >>> cell.tolist(), count.tolist()
+        ([0, 0, 1, 1, 0, 0, 1, 1], [4, 4])
+    """
+    hf, wf = feature_hw
+    hm, wm = mask_hw
+    # The cell rows and columns of the pixel rows and columns (separable).
+    row_cell = feature_cells(np.arange(hm), np.zeros(hm, np.int64), (hm, wm), (hf, wf)) // wf  # (Hm,)
+    col_cell = feature_cells(np.zeros(wm, np.int64), np.arange(wm), (hm, wm), (hf, wf))  # (Wm,)
+    cell = (row_cell[:, None] * wf + col_cell[None, :]).reshape(-1)  # (Hm Wm,)
+    return cell, np.bincount(cell, minlength=hf * wf)
+
+
 def _pool_cells(
     cells: np.ndarray,  # (C, D) float32 cells as read
     inv_norm: np.ndarray,  # (C,) 1 / |f_c|, 0 where no feature
     dense: np.ndarray,  # (Hm Wm,) int64 dense mask number of every mask pixel
     num_masks: int,  # M + 1
-    mask_hw: tuple[int, int],
-    feature_hw: tuple[int, int],
+    pixel_cells: tuple[np.ndarray, np.ndarray],  # mask_pixel_cells(mask_hw, feature_hw)
     min_norm: float = 1e-6,
 ) -> np.ndarray:  # (M + 1, D) float32: unit rows, zero for "no mask" (row 0) and masks without a feature
     """Weighted mean of the unit cells under each mask (weights of :func:`mask_pooled_features`).
@@ -450,14 +495,8 @@ def _pool_cells(
     each weight times the cell's ``1 / |f_c|``. Torch's CPU ``index_add_`` of the same terms adds them one row at a
     time and was most of the stage at ScanNet size (docs/benchmarks.md, "Speed at ScanNet size").
     """
-    hf, wf = feature_hw
-    hm, wm = mask_hw
-    num_cells = hf * wf
-    # Feature cell of every mask pixel: the cell rows and columns of the pixel rows and columns (separable).
-    row_cell = feature_cells(np.arange(hm), np.zeros(hm, np.int64), (hm, wm), (hf, wf)) // wf  # (Hm,)
-    col_cell = feature_cells(np.zeros(wm, np.int64), np.arange(wm), (hm, wm), (hf, wf))  # (Wm,)
-    cell = (row_cell[:, None] * wf + col_cell[None, :]).reshape(-1)  # (Hm Wm,)
-    pixels_in_cell = np.bincount(cell, minlength=num_cells)  # (C,)
+    cell, pixels_in_cell = pixel_cells  # (Hm Wm,), (C,)
+    num_cells = len(pixels_in_cell)
     n_mc = np.bincount(dense * num_cells + cell, minlength=num_masks * num_cells)  # (M + 1) C pixel counts
     pair = np.flatnonzero(n_mc[num_cells:]) + num_cells  # sorted by mask, then cell; no mask pools nothing
     mask_of, cell_of = pair // num_cells, pair % num_cells

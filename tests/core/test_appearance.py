@@ -203,9 +203,12 @@ def test_a_bundle_without_colour_skips_the_stage_with_a_message(tmp_path: Path) 
     assert fitted.psnr_after is None
 
 
-def test_turned_off_returns_the_initialisation(wall_bundle: Path) -> None:
+@pytest.mark.parametrize("initialisation", ["reference", "surface"])
+def test_turned_off_returns_the_initialisation(wall_bundle: Path, initialisation: str) -> None:
+    # Off, the stage returns the primitives' own initialisation whatever cfg.initialisation says: the pipeline
+    # writes an unfitted scene from the primitives, so the surface initialisation would be work for nothing.
     points, _ = _wall()
-    fitted = _fit(wall_bundle, enabled=False, initialisation="reference")
+    fitted = _fit(wall_bundle, enabled=False, initialisation=initialisation)
     assert not fitted.fitted
     assert "turned off" in fitted.note
     assert np.allclose(fitted.sh[:, 0], 0.0)  # grey: DC coefficient (0.5 - 0.5) / C0
@@ -213,8 +216,12 @@ def test_turned_off_returns_the_initialisation(wall_bundle: Path) -> None:
 
 
 def test_the_surface_initialisation_is_flat_covering_and_takes_the_frames_colours(wall_bundle: Path) -> None:
-    _, colors = _wall()
-    start = _fit(wall_bundle, enabled=False)  # the default: surface
+    from panogs_core.gaussians import initialise, split_frames
+
+    points, colors = _wall()
+    scene, cfg = open_bundle(wall_bundle), AppearanceConfig(fit_width=48, device="cpu")  # the default: surface
+    grey = np.full((len(points), 3), 0.5, np.float32)
+    start = initialise(scene, _prims(points), grey, split_frames(scene, cfg)[0], cfg)
     assert not start.fitted
     scales = np.exp(start.log_scales)
     rot = np.stack([_rotation(q) for q in start.quats])

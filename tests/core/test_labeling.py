@@ -434,16 +434,19 @@ class TestLabellingRules:
     """The labelling rules of docs/method.md §7.5: fused evidence, island vote, unseen fill, class components."""
 
     def test_fused_evidence_beats_a_smoothed_field(self) -> None:
-        from panogs_core.stages.labeling import primitive_classes
+        from panogs_core.stages.labeling import FusedEvidence, primitive_classes
 
         emb = np.eye(4, dtype=np.float32)
         field_sims = np.eye(4, dtype=np.float32)[[WALL, WALL, WALL]]  # the field smoothed all into wall
         fused = np.eye(4, dtype=np.float32)[[WALL, CHAIR, TABLE]] * 0.5
         fused[2] = 0.0  # never seen
+        evidence = FusedEvidence.of(fused, emb)
+        np.testing.assert_allclose(evidence.cosines[:2].max(axis=1), 1.0, rtol=1e-6)  # cosines, not dot products
+        assert evidence.seen.tolist() == [True, True, False]
         cfg = LabelingConfig(evidence_fused_weight=1.0)
-        assert primitive_classes(field_sims, fused, emb, cfg)[0].tolist() == [WALL, CHAIR, -1]
+        assert primitive_classes(field_sims, evidence, cfg)[0].tolist() == [WALL, CHAIR, -1]
         cfg = LabelingConfig(evidence_fused_weight=0.0)
-        assert primitive_classes(field_sims, fused, emb, cfg)[0].tolist() == [WALL, WALL, -1]
+        assert primitive_classes(field_sims, evidence, cfg)[0].tolist() == [WALL, WALL, -1]
 
     def test_island_vote_keeps_large_patches(self) -> None:
         from panogs_core.stages.labeling import vote_islands
@@ -588,6 +591,15 @@ class TestLabellingRules:
         out = assign_panoptic(*args, neighbors=nbr, fused=fused)
         assert len(np.unique(out.instance)) == 1
         assert (out.semantic == CHAIR).all()
+        # The pipeline passes the fused features' evidence instead of the (N, D) features: the same labels.
+        from panogs_core.stages.labeling import FusedEvidence, unit_embeddings
+
+        evidence = FusedEvidence.of(fused, unit_embeddings(_vocab()))
+        by_evidence = assign_panoptic(*args, neighbors=nbr, fused=evidence)
+        np.testing.assert_array_equal(by_evidence.semantic, out.semantic)
+        np.testing.assert_array_equal(by_evidence.instance, out.instance)
+        with pytest.raises(ShapeError, match="fused"):
+            assign_panoptic(*args, neighbors=nbr, fused=FusedEvidence.of(fused[:-1], unit_embeddings(_vocab())))
 
     def test_every_primitive_gets_a_class(self) -> None:
         points, feats, cls, cluster = _scene()

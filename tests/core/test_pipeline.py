@@ -72,6 +72,23 @@ def test_outputs_written_and_consistent(tiny_run: tuple[Path, object, list]) -> 
     assert {"f_dc_0", "opacity", "scale_0", "rot_0", "semantic"} <= set(gauss)
 
 
+def test_colours_are_fused_only_for_primitives_without_their_own(tiny_bundle: Path) -> None:
+    # The export takes the geometry's colours first: with them, the fusion reads no colour frame.
+    import dataclasses
+
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.pipeline import stage_table as st
+
+    scene, cfg = open_bundle(tiny_bundle), PipelineConfig()
+    prims = st.primitives(scene, cfg, lambda *_: None)
+    vis = st.visibility(scene, prims, cfg, lambda *_: None)
+    assert prims.colors is not None
+    assert st.fusion(scene, vis, prims, cfg, lambda *_: None).colors is None
+    fused = st.fusion(scene, vis, dataclasses.replace(prims, colors=None), cfg, lambda *_: None)
+    assert fused.colors is not None
+    assert fused.colors.shape == (prims.points.shape[0], 3)
+
+
 @pytest.mark.slow  # reads tiny_run, a whole pipeline run
 def test_the_run_folder_holds_what_its_declaration_lists(tiny_run: tuple[Path, object, list]) -> None:
     """Every file the exporter and the pipeline write is declared, and every file a run always has is there."""

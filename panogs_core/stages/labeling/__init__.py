@@ -30,10 +30,11 @@ from panogs_core.stages.labeling.config import LabelingConfig, point_spacing, sc
 from panogs_core.stages.labeling.instances import assemble, assemble_components, assemble_split, instance_infos
 from panogs_core.stages.labeling.output import InstanceInfo, PanopticLabels, instances_to_json
 from panogs_core.stages.labeling.unseen import label_unseen
-from panogs_core.stages.labeling.votes import primitive_classes, vote_in_segments, vote_islands
+from panogs_core.stages.labeling.votes import FusedEvidence, primitive_classes, vote_in_segments, vote_islands
 from panogs_core.types import Vocabulary
 
 __all__ = [
+    "FusedEvidence",
     "InstanceInfo",
     "LabelingConfig",
     "PanopticLabels",
@@ -43,6 +44,7 @@ __all__ = [
     "point_spacing",
     "primitive_classes",
     "scaled_to_spacing",
+    "unit_embeddings",
     "vote_in_segments",
     "vote_islands",
 ]
@@ -64,7 +66,7 @@ def assign_panoptic(
     cfg: LabelingConfig,
     *,
     neighbors: np.ndarray | None = None,  # (N, K) int64 kNN of the points (self excluded), or None
-    fused: np.ndarray | None = None,  # (N, D) fused mean features (zero rows = unseen), or None
+    fused: np.ndarray | FusedEvidence | None = None,  # (N, D) fused mean features (zero rows = unseen), or None
 ) -> PanopticLabels:
     """Class and instance for every primitive, and the instance table.
 
@@ -76,6 +78,8 @@ def assign_panoptic(
         vocabulary: Label set with embeddings ``(L, D)``.
         cfg: Vote, minimum instance size, score temperature, class split.
         neighbors: kNN graph of ``points`` (self excluded) for the class split; built when None.
+        fused: The fused mean features, or their :class:`FusedEvidence` (what the pipeline passes: it drops the
+            ``(N, D)`` features once the field is fitted); None labels from ``features`` alone.
 
     Returns:
         Per primitive: class (-1 = no evidence) and instance id (-1 = none). Thing instances: with
@@ -115,7 +119,10 @@ def assign_panoptic(
         # DEPARTURE (a zero feature has no evidence: class -1, not class 0 by accident of argmax): docs/method.md §7.2.
         cls = np.where(sq_norm > 1e-12, np.argmax(field_sims, axis=1), -1).astype(np.int64)
     else:
-        cls, scores = primitive_classes(field_sims, fused, emb, cfg)
+        evidence = fused if isinstance(fused, FusedEvidence) else FusedEvidence.of(np.asarray(fused, np.float32), emb)
+        if evidence.cosines.shape != field_sims.shape:
+            raise ShapeError(f"fused: expected cosines of shape {field_sims.shape}, found {evidence.cosines.shape}")
+        cls, scores = primitive_classes(field_sims, evidence, cfg)
         seen = cls >= 0  # -1 exactly where no key frame saw the primitive (a zero fused feature)
     if cfg.vote == "superprimitive":
         cls = vote_in_segments(cls, segments, cfg.vote_min_fraction)
@@ -140,14 +147,10 @@ def assign_panoptic(
 def _check_inputs(
     points: np.ndarray, features: np.ndarray, sp_labels: np.ndarray, cl_labels: np.ndarray, vocabulary: Vocabulary
 ) -> np.ndarray:  # (L, D) float32 unit
-    if vocabulary.embeddings is None:
-        raise InputError(
-            "assign_panoptic: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)"
-        )
+    emb = unit_embeddings(vocabulary)
     n = np.shape(points)[0] if np.ndim(points) == 2 else -1
     if np.shape(points) != (n, 3) or n < 0:
         raise ShapeError(f"points: expected (N, 3), found {np.shape(points)}")
-    emb = np.asarray(vocabulary.embeddings, np.float32)
     if np.shape(features) != (n, emb.shape[1]):
         raise ShapeError(f"features: expected ({n}, {emb.shape[1]}) (N, vocabulary D), found {np.shape(features)}")
     for name, lab in (("superprimitives.labels", sp_labels), ("clusters.labels", cl_labels)):
@@ -155,4 +158,14 @@ def _check_inputs(
             raise ShapeError(f"{name}: expected ({n},), found {np.shape(lab)}")
     if np.any(np.asarray(sp_labels) < 0):
         raise InputError("superprimitives.labels: expected ids >= 0 (dense, no void)")
+    return emb
+
+
+def unit_embeddings(vocabulary: Vocabulary) -> np.ndarray:  # (L, D) float32 unit rows
+    """The vocabulary's class embeddings scaled to unit length, as :func:`assign_panoptic` scores with them."""
+    if vocabulary.embeddings is None:
+        raise InputError(
+            "assign_panoptic: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)"
+        )
+    emb = np.asarray(vocabulary.embeddings, np.float32)
     return emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)

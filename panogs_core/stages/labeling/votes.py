@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
@@ -10,10 +12,28 @@ from scipy.sparse import csgraph
 from panogs_core.stages.labeling.config import LabelingConfig
 
 
+@dataclass(frozen=True)
+class FusedEvidence:
+    """What the labelling reads of the fused features: their cosines with the classes and which rows were seen.
+
+    ``(N, L)`` instead of the ``(N, D)`` features (161 MB at ScanNet size): the pipeline makes it once the field is
+    fitted and drops the fused features, so the later stages never hold them beside the decoded ones.
+    """
+
+    cosines: np.ndarray  # (N, L) float32, cos(F, e) of the fused mean F with each unit class embedding; 0 unseen
+    seen: np.ndarray  # (N,) bool, some key frame saw the primitive (its fused mean is not zero)
+
+    @classmethod
+    def of(cls, fused: np.ndarray, emb: np.ndarray) -> FusedEvidence:
+        """From the ``(N, D)`` fused mean features (zero rows where unseen) and the ``(L, D)`` unit embeddings."""
+        sq_norm = np.einsum("nd,nd->n", fused, fused)  # (N,) no normalised (N, D) copy (0.3 GB at 150k)
+        cosines = (fused @ emb.T) / np.maximum(np.sqrt(sq_norm), 1e-12)[:, None]
+        return cls(cosines=cosines, seen=sq_norm > 1e-12)
+
+
 def primitive_classes(
     field_sims: np.ndarray,  # (N, L) cosines of the field features with the class embeddings
-    fused: np.ndarray,  # (N, D) fused mean features, zero rows where no key frame saw the primitive
-    emb: np.ndarray,  # (L, D) unit class embeddings
+    fused: FusedEvidence,  # the fused features' cosines, and the primitives some key frame saw
     cfg: LabelingConfig,
 ) -> tuple[np.ndarray, np.ndarray]:  # (N,) int64 class (-1 where unseen), (N, L) the scores
     """Class of each seen primitive from its fused and field cosines; -1 where no key frame saw it.
@@ -22,12 +42,10 @@ def primitive_classes(
     into the large ones beside them. ``evidence_fused_weight`` mixes the two cosines (1 = fused only).
     """
     w = cfg.evidence_fused_weight
-    seen = np.einsum("nd,nd->n", fused, fused) > 1e-12
+    seen = fused.seen
     scores = field_sims * (1.0 - w) if w < 1.0 else np.zeros_like(field_sims)
-    if w > 0.0:  # cosines as (F e) / |F|: no normalised (N, D) copy of the fused features (0.3 GB at 150k)
-        norm = np.sqrt(np.einsum("nd,nd->n", fused, fused))
-        cos = (fused @ emb.T) / np.maximum(norm, 1e-12)[:, None]
-        scores[seen] += w * cos[seen]
+    if w > 0.0:
+        scores[seen] += w * fused.cosines[seen]
     return np.where(seen, np.argmax(scores, axis=1), -1).astype(np.int64), scores
 
 

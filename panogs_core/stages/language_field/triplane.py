@@ -104,13 +104,19 @@ def decode_features(model: _TriplaneDecoder, points: np.ndarray, bounds: np.ndar
     """Decoded unit features of world points, in batches. ``(P, 3)`` -> ``(P, D)`` float32."""
     device = model.planes[0].device
     bounds_t = torch.from_numpy(bounds.astype(np.float32)).to(device)
-    out = np.zeros((points.shape[0], model.mlp[-1].shape[0]), dtype=np.float32)  # (P, D)
+    out = np.empty((points.shape[0], model.mlp[-1].shape[0]), dtype=np.float32)  # (P, D), every row written
+    rows = torch.from_numpy(out)
     for start in range(0, points.shape[0], _DECODE_BATCH):
         chunk = torch.from_numpy(points[start : start + _DECODE_BATCH].astype(np.float32)).to(device)
-        pred = model(_to_unit_cube(chunk, bounds_t))
+        hidden = model.hidden(model.encode(_to_unit_cube(chunk, bounds_t)))  # (B, H)
+        if device.type == "cpu":  # straight into the output: no (B, D) temporaries (32 MiB a batch at D = 512)
+            pred = torch.mm(hidden, model.mlp[-1].t(), out=rows[start : start + chunk.shape[0]])
+        else:
+            pred = hidden @ model.mlp[-1].t()
         # Rows the decoder maps exactly to 0 stay 0 rather than becoming NaN.
-        pred = pred / pred.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        out[start : start + chunk.shape[0]] = pred.cpu().numpy()
+        pred.div_(pred.norm(dim=1, keepdim=True).clamp_min(1e-12))
+        if device.type != "cpu":
+            rows[start : start + chunk.shape[0]] = pred.cpu()
     return out
 
 
@@ -169,10 +175,14 @@ def bilinear_corners(
     """The plane cells a point samples and their bilinear weights, in the layout of :func:`plane_table`.
 
     The same sampling as :meth:`_TriplaneDecoder.encode` (``grid_sample``, bilinear, ``align_corners=True``,
-    border padding): ``latent = sum_k weight_k * table[cell_k]``.
+    border padding): ``latent = sum_k weight_k * table[cell_k]``. Written column by column into the two
+    results, so no list of K columns is held beside them. The cells stay int64: torch's CPU ``index_select``
+    and ``index_add_`` took 2.5x as long with int32 indices (1,024 points of 24 corners, one thread).
     """
-    cells, weights = [], []
-    offset = 0
+    count, corners = coords.shape[0], 12 * len(resolutions)
+    cells = torch.empty((count, corners), dtype=torch.int64, device=coords.device)
+    weights = torch.empty((count, corners), dtype=torch.float32, device=coords.device)
+    offset, column = 0, 0
     for res in resolutions:
         for a, b in _PLANE_AXES:
             x = ((coords[:, a] + 1.0) * 0.5 * (res - 1)).clamp(0.0, res - 1.0)  # width position
@@ -181,10 +191,17 @@ def bilinear_corners(
             y0 = y.floor().clamp(max=res - 2)
             fx, fy = x - x0, y - y0
             base = offset + y0.long() * res + x0.long()
-            cells += [base, base + 1, base + res, base + res + 1]
-            weights += [(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
+            for cell, weight in (
+                (base, (1 - fx) * (1 - fy)),
+                (base + 1, fx * (1 - fy)),
+                (base + res, (1 - fx) * fy),
+                (base + res + 1, fx * fy),
+            ):
+                cells[:, column] = cell
+                weights[:, column] = weight
+                column += 1
             offset += res * res
-    return torch.stack(cells, dim=1), torch.stack(weights, dim=1).float()
+    return cells, weights
 
 
 def plane_table(planes: list[torch.Tensor]) -> torch.Tensor:  # (cells, C)
@@ -206,43 +223,100 @@ def planes_from_table(table: torch.Tensor, resolutions: list[int]) -> list[torch
 _FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps", "xpu")
 
 
-def _optimizer(model: _TriplaneDecoder, table: torch.Tensor, cfg: LanguageFieldConfig) -> torch.optim.Optimizer:
-    """Adam with the reference's two groups: planes (eps 1e-15, no decay) and decoder (L2 weight decay).
+class _Adam:
+    """Adam over a list of tensors whose gradients the caller computes: torch's update rule (no amsgrad), here
+    because ``torch.optim.Adam`` imports ``torch._dynamo`` when it is built (about 1 s and 70 MB of a run at
+    ScanNet size, docs/benchmarks.md, "Speed at ScanNet size, third pass").
 
-    The planes are trained as their one ``(cells, C)`` table (:func:`plane_table`): Adam is element-wise, so
-    the update of every plane value is the one it would get in its ``(3, C, R, R)`` plane.
-
-    DEPARTURE (fused Adam, docs/method.md §3.3): torch's fused kernel where the device has one, instead of the
-    per-tensor loop torch picks on the CPU; the same update rule, rounded differently.
+    DEPARTURE (fused Adam, docs/method.md §3.3): torch's fused kernel (the op ``torch.optim.Adam(fused=True)``
+    calls) where the device has one, instead of the per-tensor loop torch picks on the CPU; the same update rule,
+    rounded differently. Elsewhere the per-tensor formula of ``torch.optim.Adam``.
     """
-    groups = [
-        {"params": [table], "lr": cfg.plane_lr, "eps": 1e-15, "weight_decay": 0.0},
-        {"params": list(model.mlp), "lr": cfg.lr, "weight_decay": cfg.weight_decay},
-    ]
-    device = table.device.type
-    return torch.optim.Adam(groups, betas=cfg.betas, fused=device in _FUSED_ADAM_DEVICES)
+
+    def __init__(
+        self, params: list[torch.Tensor], *, lr: float, betas: tuple[float, float], eps: float, weight_decay: float
+    ) -> None:
+        self.params = params
+        self.lr, self.betas, self.eps, self.weight_decay = lr, betas, eps, weight_decay
+        self.exp_avgs = [torch.zeros_like(p) for p in params]
+        self.exp_avg_sqs = [torch.zeros_like(p) for p in params]
+        self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in params]  # as torch keeps them
+        self.fused = params[0].device.type in _FUSED_ADAM_DEVICES and hasattr(torch, "_fused_adam_")
+
+    @torch.no_grad()
+    def step(self, grads: list[torch.Tensor]) -> None:
+        """One update of every tensor with its gradient (``grads`` in the order of ``params``)."""
+        torch._foreach_add_(self.steps, 1)
+        beta1, beta2 = self.betas
+        if self.fused:
+            torch._fused_adam_(
+                self.params, grads, self.exp_avgs, self.exp_avg_sqs, [], self.steps,
+                lr=self.lr, beta1=beta1, beta2=beta2, weight_decay=self.weight_decay, eps=self.eps,
+                amsgrad=False, maximize=False,
+            )  # fmt: skip
+            return
+        step = float(self.steps[0])
+        bias_correction1, bias_correction2_sqrt = 1 - beta1**step, math.sqrt(1 - beta2**step)
+        for param, grad, exp_avg, exp_avg_sq in zip(self.params, grads, self.exp_avgs, self.exp_avg_sqs, strict=True):
+            if self.weight_decay:
+                grad = grad.add(param, alpha=self.weight_decay)
+            exp_avg.lerp_(grad, 1 - beta1)
+            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+            param.addcdiv_(exp_avg, denom, value=-self.lr / bias_correction1)
 
 
-def _cosine_to_targets(
-    model: _TriplaneDecoder,
+def _cosine_loss_and_gradients(
+    mlp: list[torch.Tensor],  # each (out, in), the last (D, H) linear
     latent: torch.Tensor,  # (B, C)
-    targets: torch.Tensor,  # (B, D)
+    targets: torch.Tensor,  # (B, D) as fused, not unit
     inverse_norms: torch.Tensor,  # (B,) 1 / |target|
-) -> torch.Tensor:  # (B,)
-    """``cos(W h, t)`` for the decoded feature ``W h`` without forming the ``(B, D)`` prediction.
+    sample_weights: torch.Tensor,  # (B,)
+) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:  # loss (), latent's gradient (B, C), each layer's
+    """``mean_i w_i (1 - cos(W h_i, t_i))`` and its gradients, forward and backward by hand.
 
     With the last layer ``W`` (D, H) linear and bias-free, ``W h . t = h . (W^T t)`` and
-    ``|W h|^2 = h^T (W^T W) h``: one (B, D) x (D, H) product forward and one backward instead of three, and no
-    (B, D) element-wise work (the targets' lengths scale the (B, H) product); the value is the same cosine as
-    torch.cosine_similarity (eps 1e-8) against the unit targets. This is most of the training time on a CPU.
+    ``|W h|^2 = h^T (W^T W) h``: the ``(B, D)`` prediction is never formed, and the targets' lengths scale the
+    ``(B, H)`` product (the same cosine as torch.cosine_similarity, eps 1e-8, against unit targets). The backward
+    reuses ``h (W^T W)`` for the gradient of the norm, where autograd computes a second ``(B, H) x (H, H)``
+    product, and it runs no autograd graph (its bookkeeping was a third of a step at ScanNet size). The matrix
+    products are most of the training time on a CPU.
     """
-    h = model.hidden(latent)  # (B, H)
-    last = model.mlp[-1]  # (D, H)
+    inputs, pre_activations = [latent], []
+    h = latent
+    for weight in mlp[:-1]:
+        pre = h @ weight.t()
+        pre_activations.append(pre)
+        h = torch.relu(pre)
+        inputs.append(h)
+    last = mlp[-1]  # (D, H)
     projected = (targets @ last) * inverse_norms.unsqueeze(1)  # (B, H), as if the targets were unit rows
     gram = last.t() @ last  # (H, H)
-    dot = (h * projected).sum(dim=1)
-    sq_norm = ((h @ gram) * h).sum(dim=1)
-    return dot / sq_norm.clamp_min(0.0).sqrt().clamp_min(1e-8)
+    h_gram = h @ gram  # (B, H)
+    dot = (h * projected).sum(dim=1)  # (B,)
+    norm = (h_gram * h).sum(dim=1).clamp_min(0.0).sqrt()  # (B,) |W h|
+    live = norm > 1e-8  # where the 1e-8 floor holds, the cosine does not depend on the norm
+    norm_floor = norm.clamp_min(1e-8)
+    cos = dot / norm_floor
+    loss = (sample_weights * (1.0 - cos)).mean()
+    # d loss / d cos = -w / B; cos = dot / n, n = sqrt(h^T G h), d n / d h = G h / n.
+    d_cos = sample_weights * (-1.0 / sample_weights.shape[0])  # (B,)
+    d_dot = d_cos / norm_floor  # (B,)
+    d_sq = torch.where(live, -d_cos * dot / (2.0 * norm_floor**3), 0.0)  # (B,) d loss / d (h^T G h)
+    d_h = projected * d_dot.unsqueeze(1) + h_gram * (2.0 * d_sq).unsqueeze(1)  # (B, H)
+    # W's gradient: through W^T t (the targets' rows, scaled as above) and through G = W^T W.
+    d_last = targets.t() @ (h * (d_dot * inverse_norms).unsqueeze(1))  # (D, H)
+    d_gram = h.t() @ (h * d_sq.unsqueeze(1))  # (H, H), symmetric
+    d_last.addmm_(last, d_gram, alpha=2.0)
+    grads = [d_last]
+    for weight, pre, layer_input in zip(
+        reversed(mlp[:-1]), reversed(pre_activations), reversed(inputs[:-1]), strict=True
+    ):
+        d_pre = d_h * (pre > 0)  # relu
+        grads.append(d_pre.t() @ layer_input)  # (out, in)
+        d_h = d_pre @ weight  # (B, in)
+    grads.reverse()
+    return loss, d_h, grads
 
 
 def _gathered_latent(
@@ -279,36 +353,39 @@ def train_model(
 ) -> None:
     """Mini-batch Adam over shuffled primitives; the shuffle uses its own generator (seeded, reproducible).
 
-    The planes train as one table (:func:`plane_table`), written back into ``model.planes`` at the end.
+    The planes train as one table (:func:`plane_table`), written back into ``model.planes`` at the end; the
+    decoder's weights are updated in place. Adam keeps the reference's two groups: planes (eps 1e-15, no decay)
+    and decoder (L2 weight decay); Adam is element-wise, so the update of every plane value is the one it would
+    get in its ``(3, C, R, R)`` plane. Gradients are computed by hand (:func:`_cosine_loss_and_gradients`,
+    :func:`_add_table_gradient`): no autograd graph is built.
     """
     resolutions = [int(p.shape[-1]) for p in model.planes]
-    table = torch.nn.Parameter(plane_table([p.detach() for p in model.planes]))  # (cells, C), a copy
-    optimizer = _optimizer(model, table, cfg)
+    table = plane_table([p.detach() for p in model.planes])  # (cells, C), a copy
+    mlp = [w.detach() for w in model.mlp]  # the decoder's own storage: its updates land in the model
+    planes_adam = _Adam([table], lr=cfg.plane_lr, betas=cfg.betas, eps=1e-15, weight_decay=0.0)
+    mlp_adam = _Adam(mlp, lr=cfg.lr, betas=cfg.betas, eps=1e-8, weight_decay=cfg.weight_decay)  # torch's eps
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     weights = data.weights  # (M,) > 0
     count = len(data)
     steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
     epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
     table_grad = torch.zeros_like(table)  # (cells, C), reused by every step
-    for epoch in range(epochs):
-        order = torch.randperm(count, generator=gen).to(weights.device)
-        for start in range(0, count, cfg.batch_size):
-            idx = order[start : start + cfg.batch_size]
-            cells, corner_weights = data.cells.index_select(0, idx), data.corner_weights.index_select(0, idx)
-            with torch.no_grad():
-                latent = _gathered_latent(table, cells, corner_weights)  # (B, C)
-            latent.requires_grad_(True)
-            cos = _cosine_to_targets(model, latent, data.targets(idx), data.inverse_norms.index_select(0, idx))
-            loss = (weights.index_select(0, idx) * (1.0 - cos)).mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            assert latent.grad is not None
-            _add_table_gradient(table_grad, cells, corner_weights, latent.grad)
-            table.grad = table_grad
-            optimizer.step()
-        if not math.isfinite(float(loss.detach())):
-            raise NumericalError(f"language field: the loss became {float(loss.detach())} at epoch {epoch + 1}")
-        report(on_progress, epoch + 1, epochs)
     with torch.no_grad():
-        for plane, trained in zip(model.planes, planes_from_table(table.detach(), resolutions), strict=True):
+        for epoch in range(epochs):
+            order = torch.randperm(count, generator=gen).to(weights.device)
+            for start in range(0, count, cfg.batch_size):
+                idx = order[start : start + cfg.batch_size]
+                cells, corner_weights = data.cells.index_select(0, idx), data.corner_weights.index_select(0, idx)
+                latent = _gathered_latent(table, cells, corner_weights)  # (B, C)
+                inverse_norms, sample_weights = data.inverse_norms.index_select(0, idx), weights.index_select(0, idx)
+                loss, latent_grad, mlp_grads = _cosine_loss_and_gradients(
+                    mlp, latent, data.targets(idx), inverse_norms, sample_weights
+                )
+                _add_table_gradient(table_grad, cells, corner_weights, latent_grad)
+                planes_adam.step([table_grad])
+                mlp_adam.step(mlp_grads)
+            if not math.isfinite(float(loss)):
+                raise NumericalError(f"language field: the loss became {float(loss)} at epoch {epoch + 1}")
+            report(on_progress, epoch + 1, epochs)
+        for plane, trained in zip(model.planes, planes_from_table(table, resolutions), strict=True):
             plane.copy_(trained)
