@@ -1,15 +1,17 @@
 """Tiling benchmark: untiled against forced tiles on the same scenes (docs/method.md §16, docs/benchmarks.md "Tiling").
 
 Usage:
-    python bench/tiling.py [--preset large] [--seeds 0 1 2] [--tiles 2x2] [--root /tmp/tiling-bench] [--regen]
+    python bench/tiling.py [--preset large] [--seeds 0 1 2] [--tiles 2x2] [--halo 1.0] [--set SECTION.KEY=VALUE ...]
+                           [--root /tmp/tiling-bench] [--regen]
 
-Per seed: ``panogs synth`` (kept under ``--root`` unless ``--regen``), then ``panogs run --tiles off`` and
-``panogs run --tiles NxM`` (appearance fit off in both: a tiled run fits none), each in its own process so that
-peak memory is its own. Prints a markdown table: standard-mode mIoU, PRQ(T), PRQ(S) of both and their deltas,
-instance counts, the share of ground-truth thing instances that cross a tile border and come out split there
-(the majority predicted instance differs between two tiles' cores; the untiled run's share on the same instances
-beside it), the peak of the untiled run and of every tile (the highest of its stages' sampled peaks) and their
-ratio, and a least-squares fit of peak memory against primitives x frames over the runs and tiles.
+Per seed: ``panogs synth`` (kept under ``--root`` unless ``--regen``), then ``panogs run --tiles off`` and ``panogs
+run --tiles NxM`` (appearance fit off in both: a tiled run fits none), each in its own process so that peak memory
+is its own. ``--halo`` (metres) and ``--set`` (pipeline overrides, both runs) name variants: their run folders get a
+suffix, so one root holds them side by side. Prints a markdown table: standard-mode mIoU, PRQ(T), PRQ(S) of both and
+their deltas, instance counts, the share of ground-truth thing instances that cross a tile border and come out split
+there (the majority predicted instance differs between two tiles' cores; the untiled run's share on the same
+instances beside it), the peak of the untiled run and of every tile (the highest of its stages' sampled peaks) and
+their ratio, and a least-squares fit of peak memory against primitives x frames over the runs and tiles.
 """
 
 from __future__ import annotations
@@ -37,9 +39,14 @@ def _cli(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "panogs_core.cli", *args], cwd=REPO, check=True, capture_output=True)
 
 
-def _run(bundle: Path, out: Path, tiles: str) -> dict:
+def _run(bundle: Path, out: Path, tiles: str, halo: float | None = None, sets: tuple[str, ...] = ()) -> dict:
     if not (out / "report.json").is_file():
-        _cli("run", str(bundle), "--out", str(out), "--tiles", tiles, "-q", "--set", "appearance.enabled=false")
+        settings = [a for kv in ("appearance.enabled=false", *sets) for a in ("--set", kv)]
+        if halo is None:
+            _cli("run", str(bundle), "--out", str(out), "--tiles", tiles, "-q", *settings)
+        else:  # the CLI keeps the planner's halo: run the tiles through run_tiled in a process of its own
+            subprocess.run([sys.executable, __file__, "--one-run", str(bundle), str(out), tiles, str(halo), *sets],
+                           cwd=REPO, check=True, capture_output=True)  # fmt: skip
     report = json.loads((out / "report.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())["standard"]
     labels = np.load(out / "labels.npz")
@@ -63,6 +70,12 @@ def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarra
             majors.add(int(ids[np.argmax(n)]))
         split += len(majors) > 1
     return split, crossing
+
+
+def _suffix(halo: float | None, sets: list[str]) -> str:
+    """The run folder's suffix of a variant: its halo and overrides, in a file-name-safe form."""
+    parts = ([] if halo is None else [f"halo{halo:g}"]) + [kv.replace("=", "-") for kv in sets]
+    return "".join(f"-{p}" for p in parts).replace("/", "_")
 
 
 SEAM_BANDS = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, np.inf))  # metres from the nearest seam
@@ -99,11 +112,39 @@ def _weight_change(root: Path, plan, points: np.ndarray) -> float:
     return float(np.median(np.concatenate(changes)))
 
 
+def _one_run(bundle: str, out: str, tiles: str, halo: str, *sets: str) -> None:
+    """One tiled run with a halo of ``halo`` metres (``--one-run``, in its own process)."""
+    import yaml
+
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.tiling.runner import run_tiled
+
+    overrides: dict = {"appearance": {"enabled": False}}
+    for kv in sets:
+        key, value = kv.split("=", 1)
+        section, name = key.split(".", 1)
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    config = PipelineConfig().with_overrides(overrides)
+    run_tiled(bundle, out, config, tiles=parse_tiles(tiles), tiling=TilingConfig(halo_m=float(halo)))
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--one-run":
+        _one_run(*sys.argv[2:])
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="large")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--tiles", default="2x2")
+    parser.add_argument("--halo", type=float, default=None, help="the tiled runs' halo, m (default: the planner's)")
+    parser.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="a pipeline override for both runs of every seed (repeatable)",
+    )
     parser.add_argument("--root", type=Path, default=Path("/tmp/tiling-bench"))
     parser.add_argument("--regen", action="store_true")
     args = parser.parse_args()
@@ -112,14 +153,19 @@ def main() -> None:
         bundle = args.root / f"{args.preset}-{seed}"
         if args.regen or not (bundle / "scene.json").is_file():
             _cli("synth", str(bundle), "--preset", args.preset, "--seed", str(seed))
-        untiled = _run(bundle, args.root / f"{args.preset}-{seed}-off", "off")
-        tiled = _run(bundle, args.root / f"{args.preset}-{seed}-{args.tiles}", args.tiles)
+        folders = {
+            "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, args.sets)}",
+            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, args.sets)}",
+        }
+        untiled = _run(bundle, folders["off"], "off", sets=tuple(args.sets))
+        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(args.sets))
         scene = open_bundle(bundle)
         geometry, gt = scene.read_geometry(), scene.read_ground_truth()
         assert geometry is not None
         assert gt is not None
         assert scene.vocabulary is not None
-        plan = plan_tiles(scene, TilingConfig(), parse_tiles(args.tiles), points=geometry.points)
+        tiling = TilingConfig() if args.halo is None else TilingConfig(halo_m=args.halo)
+        plan = plan_tiles(scene, tiling, parse_tiles(args.tiles), points=geometry.points)
         owner = plan.core_of(geometry.points)
         gt_thing = (gt.semantic >= 0) & scene.vocabulary.is_thing[np.maximum(gt.semantic, 0)]
         split_t, crossing = _split_share(owner, gt.instance, gt_thing, tiled["instance"])
@@ -132,10 +178,6 @@ def main() -> None:
             wrong_t = tiled["semantic"][band] != gt.semantic[band]
             wrong_u = untiled["semantic"][band] != gt.semantic[band]
             bands.append((float(wrong_t.mean()), float(wrong_u.mean())))
-        folders = {
-            "off": args.root / f"{args.preset}-{seed}-off",
-            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}",
-        }
         weight_change = _weight_change(folders, plan, geometry.points)
         u_peak = max(s["peak_rss_mb"] for s in untiled["report"]["stages"])
         tiles = tiled["report"]["tiling"]["tiles"]
