@@ -265,7 +265,9 @@ class Tracker:
 
     @contextmanager
     def beating(self) -> Iterator[None]:
-        """Heartbeats from a thread while the body runs; stopped before the outcome is written."""
+        """Heartbeats from a thread while the body runs; stopped before the outcome is written. May be entered again
+        (a job that asked for tiles beats while it plans, then, left whole, while it runs)."""
+        self.stop.clear()
         beat = threading.Thread(target=self.heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
         beat.start()
         try:

@@ -184,3 +184,20 @@ def test_a_failed_tile_fails_the_job_and_stops_its_siblings(settings: Settings, 
     assert [r.state for r in _rows(env, job_id)] == [TileState.FAILED, TileState.CANCELED, TileState.CANCELED]
     assert tiles.execute_part(tile1.id, lease="t1", worker="w/1", env=env) is None  # its job ended: not claimed
     assert not any(name == TaskName.MERGE_TILES for name, _ in sender.sent)
+
+
+def test_a_plan_that_leaves_the_scene_whole_runs_the_job_as_before(
+    settings: Settings, building: Path, tmp_path: Path
+) -> None:
+    sender = Recorder()
+    env = _env(settings, sender)
+    job_id = _job(settings, building, {"tiles": "auto"})  # two tiny rooms: far under the limit, not tiled
+    assert runner.execute_job(job_id, lease="job-1", worker="w/1", env=env) == JobState.SUCCEEDED
+    assert _rows(env, job_id) == []
+    assert sender.sent == []
+    plain = tmp_path / "plain"
+    run_pipeline(building, plain, PipelineConfig.from_dict(NO_FIT))
+    out = env.storage.job_dir(job_id)
+    for name in COMPARED:
+        assert (out / name).read_bytes() == (plain / name).read_bytes(), name
+    assert "tiling" not in json.loads((out / "report.json").read_text())
