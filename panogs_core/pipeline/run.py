@@ -494,11 +494,24 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-def _vocabulary_label(spec: str | Vocabulary | None, scene: Bundle) -> str:
+def vocabulary_label(spec: str | Vocabulary | None, scene: Bundle) -> str:
     """What report.json says of the run's label set: its built-in name, ``inline``, ``bundle`` or ``default``."""
     if isinstance(spec, Vocabulary):
         return "inline"
     return spec or ("bundle" if scene.vocabulary is not None else "default")
+
+
+def report_versions() -> dict[str, str | None]:
+    """The ``versions`` of report.json: panogs, Python, numpy, torch and its CUDA (None in a CPU build)."""
+    import torch
+
+    return {
+        "panogs": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+    }
 
 
 def _write_report(
@@ -531,18 +544,12 @@ def _write_report(
         "num_frames": len(scene.frames),
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,
-        "vocabulary": _vocabulary_label(vocabulary_spec, scene),
+        "vocabulary": vocabulary_label(vocabulary_spec, scene),
         "stages": stages,
         "total_wall_s": round(total_s, 3),
         "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
         "config": cfg.to_dict(),
-        "versions": {
-            "panogs": __version__,
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "torch": torch.__version__,
-            "cuda": torch.version.cuda,  # None in a CPU build of torch
-        },
+        "versions": report_versions(),
     }
     REPORT_JSON.path(out).write_text(json.dumps(report, indent=2))
     result.files[REPORT_JSON.name] = REPORT_JSON.path(out)

@@ -13,7 +13,6 @@ import ctypes
 import gc
 import json
 import logging
-import platform
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from panogs_core import __version__
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import Bundle, open_bundle
 from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
@@ -33,8 +31,10 @@ from panogs_core.pipeline.run import (
     ResultsFn,
     StageProgressFn,
     hash_bundle,
+    report_versions,
     resolve_scene_vocabulary,
     run_pipeline,
+    vocabulary_label,
 )
 from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TILES_AUTO, TILES_OFF, TilePlan, TileSpec, TilingConfig, plan_tiles
@@ -266,10 +266,7 @@ def _write_report(
     result: PipelineResult,
 ) -> None:
     """``report.json`` of a tiled run: an untiled run's fields, with ``tiling`` (the plan and every tile)."""
-    import torch
 
-    vocabulary = "inline" if isinstance(vocabulary_spec, Vocabulary) else (
-        vocabulary_spec or ("bundle" if scene.vocabulary is not None else "default"))  # fmt: skip
     report = {
         "scene": scene.name,
         "input_sha256": hash_bundle(scene),
@@ -280,19 +277,13 @@ def _write_report(
         "num_frames": len(scene.frames),
         "feature_space": scene.feature_space,
         "feature_dim": scene.feature_dim,
-        "vocabulary": vocabulary,
+        "vocabulary": vocabulary_label(vocabulary_spec, scene),
         "stages": [{**t.to_json(), "device": "cpu"} for t in result.timings],
         "total_wall_s": round(result.total_s, 3),
         "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
         "tiling": {**plan.to_json(), "tiles": tile_rows, "seam_joins": seam_joins},
         "config": cfg.to_dict(),
-        "versions": {
-            "panogs": __version__,
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "torch": torch.__version__,
-            "cuda": torch.version.cuda,
-        },
+        "versions": report_versions(),
     }
     REPORT_JSON.path(out).write_text(json.dumps(report, indent=2))
     result.files[REPORT_JSON.name] = REPORT_JSON.path(out)
