@@ -294,6 +294,25 @@ def test_another_tenants_job_cannot_be_opened(browser: Any, job_id: str, served:
         context.close()
 
 
+def test_an_open_rerun_form_keeps_its_text_and_focus_while_the_table_polls(
+    page: Any, job_id: str, served: dict[str, Any]
+) -> None:
+    page.goto("about:blank")
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    row.locator("[data-action=re-run]").click()
+    settings = row.locator("textarea")
+    settings.fill('{"clustering": {"thresholds": [0.8]}}')
+    for _ in range(2):  # two polls of the table: each used to move every row, which takes the focus away
+        with page.expect_response(lambda r: "/v1/jobs?limit=" in r.url, timeout=15_000):
+            pass
+        page.wait_for_timeout(100)  # the answer is drawn
+    assert settings.evaluate("el => el === document.activeElement")
+    page.keyboard.type(" ")  # typing goes on where it was
+    assert settings.input_value() == '{"clustering": {"thresholds": [0.8]}} '
+    row.locator("[data-action=re-run]").click()  # the next test opens its own form
+
+
 def test_rerun_with_other_settings_then_cancel(
     page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
 ) -> None:

@@ -3,8 +3,8 @@
 import { h } from "../../dom.js";
 import { api } from "../api-client.js";
 import { showError } from "../messages.js";
-import { POLL_RETRY_MS, isTerminal, pollDelay, sceneText } from "../rules.js";
-import { JOB_COLUMNS, jobRow } from "./jobs.js";
+import { POLL_RETRY_MS, pollDelay, sceneText } from "../rules.js";
+import { JOB_COLUMNS, jobRow, updateJobRow } from "./jobs.js";
 import { signInPage } from "./sign-in.js";
 import { uploadCard } from "./upload.js";
 
@@ -46,14 +46,18 @@ export function homePage(ctx) {
       return;
     }
     const byId = new Map(scenes.data.map((s) => [s.id, s]));
-    // Keep an open re-run form: rebuild only the rows whose job changed.
-    jobsBody.replaceChildren(
-      ...jobs.data.map((job) => {
-        const old = jobsBody.querySelector(`[data-job-id="${job.id}"]`);
-        if (old && old.dataset.state === job.state && isTerminal(job.state)) return old;
-        return jobRow(job, byId, refresh);
-      }),
-    );
+    // Rows are updated in place and moved only when the order changes: moving an element takes its focus away,
+    // and a re-run form open in a row must keep what is being typed into it while other jobs run.
+    const rows = jobs.data.map((job) => {
+      const old = jobsBody.querySelector(`tr[data-job-id="${job.id}"]`);
+      if (!old) return jobRow(job, byId, refresh);
+      updateJobRow(old, job, byId, refresh);
+      return old;
+    });
+    rows.forEach((row, i) => {
+      if (jobsBody.children[i] !== row) jobsBody.insertBefore(row, jobsBody.children[i] || null);
+    });
+    while (jobsBody.children.length > rows.length) jobsBody.lastElementChild.remove();
     scenesList.replaceChildren(...scenes.data.map((s) => sceneItem(s, listMessage, refresh)));
     timer = setTimeout(refresh, pollDelay(jobs.data));
   };

@@ -27,10 +27,46 @@ function fitCell(job) {
   return cell;
 }
 
+// One row per job, made once and then updated in place as the job moves on (updateJobRow): its message box, and a
+// re-run form open in it, stay the same elements, so what is typed there and its focus outlive the table's polls.
 // scenes: Map id -> scene; refresh(): reload the table after an action
 export function jobRow(job, scenes, refresh) {
+  const message = h("div", { class: "pgs-message", "data-role": "message" });
+  const row = h("tr", { "data-job-id": job.id });
+  row.append(...jobCells(job, scenes, refresh, message));
+  row.children[MESSAGE_CELL].append(message);
+  setRowState(row, job);
+  return row;
+}
+
+// Bring a row made by jobRow to the job's latest status; nothing is done when the job shows as it did.
+export function updateJobRow(row, job, scenes, refresh) {
+  const shown = JSON.stringify(job);
+  if (row.pgsShown === shown) return;
+  const message = row.querySelector("[data-role=message]");
+  jobCells(job, scenes, refresh, message).forEach((cell, i) => {
+    const old = row.children[i];
+    if (i !== MESSAGE_CELL) return old.replaceWith(cell);
+    old.querySelector("[data-role=error]").replaceWith(cell.querySelector("[data-role=error]"));
+  });
+  setRowState(row, job);
+}
+
+function setRowState(row, job) {
+  row.pgsShown = JSON.stringify(job);
+  Object.assign(row.dataset, {
+    state: job.state,
+    results: resultsReady(job) ? "ready" : "pending",
+    fit: job.fit?.state || "",
+    cached: cachedStages(job).join(" "),
+  });
+}
+
+const MESSAGE_CELL = 6; // the error and message box; the message box itself is the row's own (jobRow)
+
+// The row's cells, the message cell holding only the error: the actions show their errors in `message`.
+function jobCells(job, scenes, refresh, message) {
   const sceneName = scenes.get(job.scene_id)?.name || shortId(job.scene_id);
-  const message = h("div", { class: "pgs-message" });
   const act = (label, fn) =>
     h(
       "button",
@@ -67,29 +103,19 @@ export function jobRow(job, scenes, refresh) {
     }),
   );
   const terminal = isTerminal(job.state);
-  return h(
-    "tr",
-    {
-      "data-job-id": job.id,
-      "data-state": job.state,
-      "data-results": resultsReady(job) ? "ready" : "pending",
-      "data-fit": job.fit?.state || "",
-      "data-cached": cachedStages(job).join(" "),
-    },
+  const error = job.error
+    ? h("span", { class: "pgs-message pgs-bad", "data-role": "error" }, `${job.error.type}: ${job.error.message}`)
+    : h("span", { "data-role": "error" });
+  return [
     h("td", {}, h("code", {}, shortId(job.id))),
     h("td", {}, sceneName),
     h("td", { class: `pgs-state-${job.state}` }, jobStateText(job)),
     h("td", {}, job.stage || "", cachedStagesText(job) ? h("div", { class: "pgs-cached" }, cachedStagesText(job)) : ""),
     h("td", {}, terminal ? "" : h("progress", { max: 1, value: job.progress }), " ", jobProgressText(job)),
     fitCell(job),
-    h(
-      "td",
-      {},
-      job.error ? h("span", { class: "pgs-message pgs-bad" }, `${job.error.type}: ${job.error.message}`) : "",
-      message,
-    ),
+    h("td", {}, error),
     actions,
-  );
+  ];
 }
 
 // The re-run form, shown in the row's message box: the job's settings as JSON and its vocabulary, both editable.
