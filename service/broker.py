@@ -33,6 +33,8 @@ class TaskName(StrEnum):
     """Registered task names: the API publishes by name, so it never imports task code."""
 
     RUN_JOB = "panogs.run_job"
+    RUN_TILE = "panogs.run_tile"  # one tile of a tiled job (docs/service.md, "Tiled jobs")
+    MERGE_TILES = "panogs.merge_tiles"  # a tiled job's merge, published by the tile that completes last
 
 
 class QueueName(StrEnum):
@@ -68,7 +70,7 @@ def create_celery_app(settings: Settings) -> Celery:
         task_queues=[Queue(q.value) for q in QueueName],  # type: ignore[no-untyped-call]
         task_default_queue=QueueName.CPU.value,
         task_create_missing_queues=False,
-        task_routes={TaskName.RUN_JOB.value: {"queue": settings.job_queue}},
+        task_routes={name.value: {"queue": settings.job_queue} for name in TaskName},
         # The API publishes while a request waits: give up quickly when the broker is away (the reaper
         # publishes again).
         task_publish_retry=True,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import uuid
+from collections.abc import Sequence
 from typing import Any
 
 from sqlalchemy import Engine, Row
@@ -15,7 +16,16 @@ from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
 from service.lifecycle import check_job_quota
-from service.schemas import FitPublic, InlineVocabulary, InlineVocabularyPublic, JobCreate, JobError, JobPublic
+from service.schemas import (
+    FitPublic,
+    InlineVocabulary,
+    InlineVocabularyPublic,
+    JobCreate,
+    JobError,
+    JobPublic,
+    JobTiling,
+    TilePublic,
+)
 from service.settings import Settings
 from service.stored_text import printable_text
 
@@ -47,9 +57,25 @@ def _shortened(message: str) -> str:
     return f"{message[:MAX_PROBLEM_CHARS]} ... ({len(message) - MAX_PROBLEM_CHARS} more characters)"
 
 
+def validate_tiling(tiling: JobTiling | None) -> None:
+    """Refuse planner settings that the planner refuses, with its message."""
+    from panogs_core.errors import ConfigError
+    from panogs_core.tiling.plan import TilingConfig
+
+    if tiling is None:
+        return
+    try:
+        TilingConfig(**tiling.model_dump(exclude={"tiles"}, exclude_none=True))
+    except ConfigError as exc:
+        raise InvalidInput("the tiling settings are not valid", problems=[_shortened(str(exc))]) from exc
+
+
 def request_hash(body: JobCreate) -> str:
     """Fingerprint of a creation request, to tell a retry from a reuse of its Idempotency-Key."""
-    canonical = json.dumps(body.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    fields = body.model_dump(mode="json")
+    if fields.get("tiling") is None:
+        fields.pop("tiling", None)  # a request without tiling keeps the fingerprint it had before tiling existed
+    canonical = json.dumps(fields, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
@@ -72,6 +98,7 @@ def create_job(
     if scene is None:
         raise NotFound("scene", body.scene_id)
     validate_config(body.config)
+    validate_tiling(body.tiling)
     check_vocabulary(body, scene)
     check_job_quota(session, settings, tenant_id)
     job = Job(
@@ -79,6 +106,7 @@ def create_job(
         scene_id=body.scene_id,
         state=JobState.QUEUED,
         config=body.config,
+        tiling=None if body.tiling is None else body.tiling.model_dump(mode="json"),
         **vocabulary_columns(body),
         queue=settings.job_queue,
         idempotency_key=idempotency_key,
@@ -142,13 +170,14 @@ def read_public(engine: Engine, job_id: uuid.UUID, tenant_id: uuid.UUID) -> JobP
     """A tenant's job as the API shows it: the status-poll path, one autocommit statement and no ORM."""
     with engine.connect() as conn:
         row = crud.read_job_row(conn, job_id, tenant_id)
+        tiles = crud.tile_rows(conn, [job_id]).get(job_id, []) if row is not None else []
     if row is None:
         raise NotFound("job", job_id)
-    return to_public(row)
+    return to_public(row, tiles)
 
 
-def to_public(job: Job | Row[Any]) -> JobPublic:
-    """The API view of a job."""
+def to_public(job: Job | Row[Any], tiles: Sequence[Row[Any]] = ()) -> JobPublic:
+    """The API view of a job, with its tile rows (``crud.tile_rows``) when it was tiled."""
     error = JobError(type=job.error_type, message=job.error_message or "") if job.error_type else None
     return JobPublic(
         id=job.id,
@@ -163,11 +192,29 @@ def to_public(job: Job | Row[Any]) -> JobPublic:
         fit=fit_public(job),
         config=job.config or {},
         vocabulary=public_vocabulary(job.vocabulary, job.vocabulary_classes),
+        tiling=None if job.tiling is None else JobTiling.model_validate(job.tiling),
+        tiles=[tile_public(t) for t in tiles],
         cancel_requested=job.cancel_requested,
         attempts=job.attempts,
         created_at=job.created_at,
         started_at=job.started_at,
         finished_at=job.finished_at,
+    )
+
+
+def tile_public(tile: Row[Any]) -> TilePublic:
+    """The API view of one tile (or merge) row."""
+    return TilePublic(
+        index=tile.tile_index,
+        kind=tile.kind,
+        name=tile.name,
+        state=tile.state,
+        stage=tile.stage,
+        progress=round(float(tile.progress), 4),
+        weight=float(tile.weight),
+        attempts=tile.attempts,
+        wall_s=tile.wall_s,
+        peak_rss_mb=tile.peak_rss_mb,
     )
 
 

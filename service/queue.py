@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.broker import TaskName, create_celery_app
 from service.db import crud
+from service.db.models import TileKind
 from service.db.session import session_scope
 from service.settings import Settings
 
@@ -45,4 +46,21 @@ def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, 
         return False
     with session_scope(factory) as session:
         crud.mark_enqueued(session, job_id)
+    return True
+
+
+TILE_TASKS = {TileKind.TILE: TaskName.RUN_TILE, TileKind.MERGE: TaskName.MERGE_TILES}
+
+
+def dispatch_tile(
+    factory: sessionmaker[Session], sender: Sender, tile_id: uuid.UUID, kind: TileKind, queue: str
+) -> bool:
+    """Publish a committed tile's (or merge's) message, then record it, as :func:`dispatch` does for a job."""
+    try:
+        sender.send_task(TILE_TASKS[kind].value, args=[str(tile_id)], queue=queue)
+    except Exception as exc:  # any broker failure: the row stays queued and undispatched; the reaper retries
+        logger.warning("%s %s: broker refused the message (%s); the reaper will retry", kind, tile_id, exc)
+        return False
+    with session_scope(factory) as session:
+        crud.mark_tile_enqueued(session, tile_id)
     return True

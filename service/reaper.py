@@ -7,6 +7,8 @@ once do each thing once.
   back to ``queued`` and is published again, to be resumed by another worker from its last finished stage,
   or is ``failed`` with ``WorkerLost`` once it has been started ``max_attempts`` times.
 - A ``queued`` job whose message never reached the broker (the broker was away) is published.
+- The tiles and merge of a tiled job follow the same rules on their own rows: a lost one is re-queued and
+  published again (or fails the job with ``WorkerLost`` after ``max_attempts``), an unpublished one is published.
 - An upload untouched for ``upload_ttl_s`` is deleted with its bytes.
 - Finished jobs past ``retention_days`` are deleted with their results; job and scene folders without rows (an
   interrupted delete) are removed.
@@ -17,14 +19,17 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+import uuid
+from datetime import datetime
 
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import crud
+from service.db.models import JobState, TileKind
 from service.db.session import session_scope
 from service.lifecycle import sweep_orphans, sweep_retention
-from service.queue import Sender, dispatch
+from service.queue import Sender, dispatch, dispatch_tile
 from service.settings import Settings
 from service.storage import Storage, upload_folder
 
@@ -54,7 +59,10 @@ def sweep(
             elif crud.requeue_lost(session, job, silent_since):
                 logger.warning("job %s: worker %s lost (attempt %d); re-queued", job.id, job.worker, job.attempts)
                 counts["requeued"] += 1
+        requeued_tiles = _reap_tiles(session, settings, silent_since, counts)
         pending = [(job.id, job.queue) for job in crud.undispatched_jobs(session, crud.stale_cutoff(DISPATCH_GRACE_S))]
+        pending_tiles = crud.undispatched_tiles(session, crud.stale_cutoff(DISPATCH_GRACE_S))
+        pending_tiles += [t for t in requeued_tiles if t not in pending_tiles]
         stale = [(u.id, u.path) for u in crud.stale_uploads(session, crud.stale_cutoff(settings.upload_ttl_s))]
         for upload_id, rel in stale:
             storage.delete_prefix(upload_folder(rel))
@@ -66,7 +74,33 @@ def sweep(
             counts["orphans"] = sweep_orphans(session, storage)
     for job_id, queue in pending:
         counts["published"] += dispatch(factory, sender, job_id, queue)
+    for tile_id, kind, queue in pending_tiles:
+        counts["published"] += dispatch_tile(factory, sender, tile_id, kind, queue)
     return counts
+
+
+def _reap_tiles(
+    session: Session, settings: Settings, silent_since: datetime, counts: dict[str, int]
+) -> list[tuple[uuid.UUID, TileKind, str]]:
+    """Lost tiles and merges: re-queued, or their job failed for good. Returns the re-queued ones (id, kind, queue),
+    which this pass publishes at once (nothing else will; the outbox's grace is for the fan-out's own publish)."""
+    requeued = []
+    for tile in crud.lost_tiles(session, silent_since):
+        if tile.attempts >= settings.max_attempts:
+            message = (
+                f"the worker running {tile.kind} {tile.name} stopped responding (no heartbeat for "
+                f"{settings.heartbeat_timeout_s:g} s), {tile.attempts} time(s); giving up"
+            )
+            failed = crud.end_tiled_job(
+                session, tile.job_id, JobState.FAILED, tile_id=tile.id, error_type="WorkerLost", message=message
+            )
+            counts["failed"] += failed
+        elif crud.requeue_lost_tile(session, tile, silent_since):
+            logger.warning("job %s: %s %s lost (worker %s, attempt %d); re-queued", tile.job_id, tile.kind,
+                           tile.name, tile.worker, tile.attempts)  # fmt: skip
+            counts["requeued"] += 1
+            requeued.append((tile.id, tile.kind, crud.job_queue(session, tile.job_id)))
+    return requeued
 
 
 def embedded_worker_name(pid: int) -> str:
@@ -76,10 +110,12 @@ def embedded_worker_name(pid: int) -> str:
 
 
 def requeue_dead_worker(factory: sessionmaker[Session], pid: int) -> int:
-    """Put the running jobs of a worker process that is known dead back in the queue at once (the supervisor saw
-    it exit), instead of waiting out the heartbeat timeout; the sweep publishes them. Returns how many."""
+    """Put the running jobs and tiles of a worker process that is known dead back in the queue at once (the
+    supervisor saw it exit), instead of waiting out the heartbeat timeout; the sweep publishes them.
+    Returns how many."""
     with session_scope(factory) as session:
         count = crud.requeue_worker_jobs(session, embedded_worker_name(pid))
+        count += crud.requeue_worker_tiles(session, embedded_worker_name(pid))
     if count:
         logger.warning("worker %d died; re-queued its %d running job(s) at once", pid, count)
     return count

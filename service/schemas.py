@@ -20,7 +20,7 @@ from pydantic import (
 )
 
 from panogs_core.language.label_sets import BUILTIN_VOCABULARIES, describe_name, is_builtin_name
-from service.db.models import FitState, JobState, UploadState
+from service.db.models import FitState, JobState, TileState, UploadState
 
 MAX_QUERY_CHARS = 1_000
 MAX_VECTOR_DIM = 8_192
@@ -217,6 +217,25 @@ JobVocabulary = Annotated[
 ]
 
 
+class JobTiling(BaseModel):
+    """How a job is split into tiles that run on several workers and merge into one result (docs/service.md,
+    "Tiled jobs"); the planner's settings are ``panogs_core.tiling.plan.TilingConfig``'s."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tiles: str = Field(
+        default="auto",
+        pattern=r"^(auto|off|[1-9][0-9]?x[1-9][0-9]?)$",
+        description="auto: tiled only when one process could not hold the scene; off: never; NxM: N tiles along "
+        "x by M along y",
+    )
+    halo_m: float | None = Field(default=None, gt=0, le=10, description="metres of halo around a tile's core")
+    memory_target_bytes: float | None = Field(default=None, gt=0, description="what one tile may use")
+    whole_limit_bytes: float | None = Field(
+        default=None, gt=0, description="auto leaves a scene whole up to this estimate; default: half the memory"
+    )
+
+
 class JobCreate(BaseModel):
     """Run the pipeline on a scene."""
 
@@ -231,6 +250,9 @@ class JobCreate(BaseModel):
         default=None,
         description="label set for this run: a built-in name, or inline classes; default: the bundle's own "
         "(docs/service.md, Which request fields reach the host: never a file)",
+    )
+    tiling: JobTiling | None = Field(
+        default=None, description="split the scene into tiles run on several workers; default: not tiled"
     )
 
 
@@ -262,6 +284,21 @@ class FitPublic(BaseModel):
     error: str | None = Field(default=None, description="why the fit failed or stopped")
 
 
+class TilePublic(BaseModel):
+    """One tile of a tiled job (or its merge, last)."""
+
+    index: int
+    kind: Literal["tile", "merge"]
+    name: str
+    state: TileState = Field(description="pending (the merge, until every tile is done), queued, running, ...")
+    stage: str | None
+    progress: float = Field(description="0..1 over the tile's stages")
+    weight: float = Field(description="its share of the job's progress: the plan's estimated bytes")
+    attempts: int
+    wall_s: float | None = Field(description="seconds, once finished")
+    peak_rss_mb: float | None = Field(description="peak memory, once finished")
+
+
 class JobPublic(BaseModel):
     """A job's state and progress."""
 
@@ -269,7 +306,7 @@ class JobPublic(BaseModel):
     scene_id: uuid.UUID
     state: JobState
     stage: str | None
-    progress: float = Field(description="0..1 over all stages")
+    progress: float = Field(description="0..1 over all stages; of a tiled job, its tiles' weighted by their cost")
     stage_timings: dict[str, float] = Field(description="seconds per finished stage")
     stage_cached: dict[str, bool] = Field(
         description="per finished stage: true when it was taken from a checkpoint of an earlier job on the scene "
@@ -283,6 +320,10 @@ class JobPublic(BaseModel):
     config: dict[str, Any]
     vocabulary: str | InlineVocabularyPublic | None = Field(
         description="the built-in label set asked for, the inline classes, or null: the bundle's own"
+    )
+    tiling: JobTiling | None = Field(default=None, description="the tiling asked for; null: not tiled")
+    tiles: list[TilePublic] = Field(
+        default_factory=list, description="a tiled job's tiles, then its merge; empty when the scene ran whole"
     )
     cancel_requested: bool
     attempts: int

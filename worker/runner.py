@@ -139,6 +139,8 @@ class JobEnv:
     make_config: Callable[[dict[str, Any]], Any]
     stages: tuple[str, ...] = ()
     shutdown: threading.Event = field(default_factory=threading.Event)  # set when the worker is stopping
+    # Publishes a tiled job's tile and merge tasks; None: a Celery app for ``settings`` (tests pass a recorder).
+    sender: Any = None
 
 
 def load_pipeline() -> tuple[PipelineFn, tuple[str, ...], Callable[[dict[str, Any]], Any]]:
@@ -174,7 +176,7 @@ def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:
 
 
 @dataclass
-class _Tracker:
+class Tracker:
     """Progress state of one run, shared by the callback and the heartbeat thread."""
 
     job_id: uuid.UUID
@@ -263,7 +265,9 @@ class _Tracker:
 
     @contextmanager
     def beating(self) -> Iterator[None]:
-        """Heartbeats from a thread while the body runs; stopped before the outcome is written."""
+        """Heartbeats from a thread while the body runs; stopped before the outcome is written. May be entered again
+        (a job that asked for tiles beats while it plans, then, left whole, while it runs)."""
+        self.stop.clear()
         beat = threading.Thread(target=self.heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
         beat.start()
         try:
@@ -301,7 +305,7 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
     timings, cached = dict(job.stage_timings or {}), list(job.cached_stages or [])
-    tracker = _Tracker(
+    tracker = Tracker(
         job_id=job_id,
         lease=lease,
         env=env,
@@ -342,7 +346,7 @@ def job_vocabulary(session: Session, job: Job) -> str | Vocabulary | None:
     return job.vocabulary
 
 
-def _run(job: Job, tracker: _Tracker, env: JobEnv) -> JobState | None:
+def _run(job: Job, tracker: Tracker, env: JobEnv) -> JobState | None:
     try:
         with session_scope(env.session_factory) as session:
             scene = crud.get_scene(session, job.scene_id)
@@ -389,27 +393,34 @@ def _workspace(env: JobEnv, job: Job, bundle_path: str) -> Iterator[tuple[Path, 
         out_dir.mkdir(parents=True, exist_ok=True)
         yield storage.path(bundle_path), out_dir, None
         return
-    bundles = BundleCache(
-        storage, storage.root / "work" / "bundles", env.settings.bundle_cache_bytes, lambda ids: _scenes_alive(env, ids)
-    )
     with ExitStack() as stack:
         scratch = stack.enter_context(storage.scratch(f"job-{job.id}"))
         out_dir = scratch / "out"
         out_dir.mkdir()
-        if env.settings.bundle_cache_bytes > 0:
-            stack.callback(_sweep_quietly, bundles)  # after the job: within the bound, no deleted scene's bundle
-            bundle_dir = stack.enter_context(bundles.use(job.scene_id, bundle_path))
-        else:
-            bundle_dir = scratch / "bundle"
-            storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        bundle_dir = bundle_in(stack, env, job, bundle_path, scratch)
         storage.fetch_tree(storage.job_prefix(job.id), out_dir)
         push = TreePush(storage, out_dir, storage.job_prefix(job.id))
         push.mark_present()
         yield bundle_dir, out_dir, push
 
 
+def bundle_in(stack: ExitStack, env: JobEnv, job: Job, bundle_path: str, scratch: Path) -> Path:
+    """The scene's bundle on this host for a task of ``job`` (object storage): from the worker's bundle cache, held
+    until ``stack`` closes (then the cache is swept), or fetched into ``scratch`` when the cache is off."""
+    storage = env.storage
+    if env.settings.bundle_cache_bytes <= 0:
+        bundle_dir = scratch / "bundle"
+        storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
+        return bundle_dir
+    bundles = BundleCache(
+        storage, storage.root / "work" / "bundles", env.settings.bundle_cache_bytes, lambda ids: _scenes_alive(env, ids)
+    )
+    stack.callback(_sweep_quietly, bundles)  # after the task: within the bound, no deleted scene's bundle
+    return stack.enter_context(bundles.use(job.scene_id, bundle_path))
+
+
 def _run_in(
-    job: Job, tracker: _Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
+    job: Job, tracker: Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
 ) -> JobState | None:
     shared = SceneCheckpoints(
         env.storage,
@@ -424,6 +435,8 @@ def _run_in(
         tracker.push.skip = shared.kept  # a checkpoint the scene's store keeps is not stored again with the job
     try:
         config = env.make_config(job.config or {})
+        if job.tiling is not None and _fanned_out(job, tracker, env, bundle_dir, out_dir, config):
+            return JobState.RUNNING  # its tiles' tasks run it now, and its merge ends it
         with tracker.beating():
             result = env.pipeline(
                 bundle_dir,
@@ -486,7 +499,16 @@ def _run_in(
     )
 
 
-def _fail(job_id: uuid.UUID, tracker: _Tracker, error_type: str, message: str, **values: Any) -> JobState | None:
+def _fanned_out(job: Job, tracker: Tracker, env: JobEnv, bundle_dir: Path, out_dir: Path, config: Any) -> bool:
+    """Plan a job that asks for tiles; True when it was tiled and its tiles are published (worker/tiles.py)."""
+    from worker import tiles
+
+    if tiles.tiles_asked(job) == tiles.TILES_OFF:
+        return False
+    return tiles.plan_and_fan_out(job, tracker, env, bundle_dir, out_dir, config)
+
+
+def _fail(job_id: uuid.UUID, tracker: Tracker, error_type: str, message: str, **values: Any) -> JobState | None:
     """Record the job failed with ``error_type: message`` and the stage times so far."""
     tracker.close_stage(time.monotonic())
     return _finish(
@@ -547,7 +569,7 @@ def fit_outcome(result: Any) -> tuple[FitState, str | None]:
     return state, (str(error) if error is not None else None)
 
 
-def _record_results(job_id: uuid.UUID, tracker: _Tracker, out_dir: Path) -> None:
+def _record_results(job_id: uuid.UUID, tracker: Tracker, out_dir: Path) -> None:
     """The pipeline wrote its results (before the fit): record their artifacts and ``results_at``; the
     instances, queries and viewer scene answer from here on. Called in the pipeline's thread.
 
@@ -580,7 +602,7 @@ def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
     return message
 
 
-def _release(job_id: uuid.UUID, tracker: _Tracker) -> None:
+def _release(job_id: uuid.UUID, tracker: Tracker) -> None:
     tracker.close_stage(time.monotonic())
     with session_scope(tracker.env.session_factory) as session:
         crud.release_job(session, job_id, tracker.lease, **tracker.stage_values())

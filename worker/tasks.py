@@ -1,4 +1,5 @@
-"""The Celery task: thin, it takes a job id. Registered on an app by :func:`register_tasks`, never at import.
+"""The Celery tasks: thin, they take a job id (or a tiled job's tile id). Registered on an app by
+:func:`register_tasks`, never at import.
 
 Importing torch in a prefork parent before it forks deadlocks the children, so nothing here or in the modules it
 imports at the top touches torch: the pipeline (and torch, and the CUDA check) are loaded by the first task, in
@@ -22,7 +23,7 @@ from service.broker import TaskName
 from service.db.session import get_session_factory
 from service.settings import Settings
 from service.storage.backends import open_storage
-from worker import runner
+from worker import runner, tiles
 from worker.device import cuda_available, device_config_factory
 
 logger = logging.getLogger(__name__)
@@ -77,8 +78,21 @@ def run_job(env: runner.JobEnv, job_id: str, *, lease: str, worker: str) -> str 
     return None if state is None else state.value
 
 
+def run_part(env: runner.JobEnv, tile_id: str, *, lease: str, worker: str) -> str | None:
+    """Run the tile or merge ``tile_id`` of a tiled job; its row records everything (worker/tiles.py)."""
+    try:
+        state = tiles.execute_part(uuid.UUID(tile_id), lease=lease, worker=worker, env=env)
+    except runner.TransientError:
+        raise
+    except Exception as exc:  # the task boundary: fail the job with the error, then let Celery log it
+        tiles.record_crash(uuid.UUID(tile_id), lease, exc, env)
+        raise
+    return None if state is None else state.value
+
+
 def register_tasks(app: Celery, settings: Settings) -> None:
-    """Register the job task on ``app``; its jobs use ``settings``, not whatever the environment holds."""
+    """Register the job, tile and merge tasks on ``app``; their jobs use ``settings``, not whatever the environment
+    holds."""
     shutdown = threading.Event()  # set on warm shutdown; a running job is handed back at its next progress step
     envs = LazyJobEnv(settings, shutdown)
 
@@ -99,3 +113,18 @@ def register_tasks(app: Celery, settings: Settings) -> None:
     def run_job_task(self: Task[Any, Any], job_id: str) -> str | None:
         worker = f"{self.request.hostname}/{os.getpid()}"
         return run_job(envs.get(), job_id, lease=str(self.request.id), worker=worker)
+
+    def run_part_task(self: Task[Any, Any], tile_id: str) -> str | None:
+        worker = f"{self.request.hostname}/{os.getpid()}"
+        return run_part(envs.get(), tile_id, lease=str(self.request.id), worker=worker)
+
+    for name in (TaskName.RUN_TILE, TaskName.MERGE_TILES):  # one body: the row's kind says which it runs
+        app.task(  # type: ignore[untyped-decorator]
+            name=name.value,
+            bind=True,
+            acks_late=True,
+            autoretry_for=(runner.TransientError,),
+            retry_backoff=5,
+            retry_backoff_max=120,
+            max_retries=10,
+        )(run_part_task)

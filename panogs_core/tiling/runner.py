@@ -76,18 +76,7 @@ def run_tiled(
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     scene = bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out))
-    geometry = scene.read_geometry() if cfg.primitives.use_geometry else None
-    if geometry is None and tiles not in (TILES_AUTO, TILES_OFF):
-        raise InputError("--tiles NxM needs geometry.ply (and primitives.use_geometry): the TSDF path's primitives "
-                         "exist only after stage 1")  # fmt: skip
-    points = None if geometry is None else geometry.points
-    del geometry
-    timings: list[StageStats] = []
-    with StageTimer("plan") as timer:
-        plan = plan_tiles(scene, tiling or TilingConfig(), tiles if points is not None else TILES_OFF, points=points,
-                          on_progress=_named(on_progress, "plan"))  # fmt: skip
-    timings.append(timer.stats)
-    log.info("tiling plan: %s, %d tile(s)", plan.reason, len(plan.tiles))
+    plan, points, plan_stats = plan_run(scene, cfg, tiles, tiling, on_progress)
     if not plan.tiled:
         return run_pipeline(scene, out, cfg, vocabulary=vocabulary, on_progress=on_progress, resume=resume,
                             on_results=on_results)  # fmt: skip
@@ -95,26 +84,73 @@ def run_tiled(
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     TILES_FOLDER.path(out).mkdir(parents=True, exist_ok=True)
     plan.save(plan_path(out))
-    tile_cfg = cfg.with_overrides({"appearance": {"enabled": False}})
+    tile_cfg = tile_config(cfg)
     tile_rows = []
+    timings = [plan_stats]
     for tile in plan.tiles:
-        row, stats = _run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume)
+        row, stats = run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume)
         tile_rows.append(row)
         timings.append(stats)
-        _release_memory()
-    with StageTimer("merge") as timer:
-        result, seam_joins = _merge(scene, plan, points, vocab, out, on_progress)
-    timings.append(timer.stats)
-    result.timings = timings
+        release_memory()
+    result, seam_joins = merge_run(scene, plan, points, vocab, out, timings, on_progress)
     result.total_s = time.perf_counter() - t_start
-    result.appearance = {"state": FIT_SKIPPED, "fitted": False, "note": _NO_FIT_NOTE}
-    _write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)
+    write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)
     if on_results is not None:
         on_results(result)
     return result
 
 
-def _release_memory() -> None:
+def plan_run(
+    scene: Bundle,
+    cfg: PipelineConfig,
+    tiles: str | tuple[int, int],
+    tiling: TilingConfig | None,
+    on_progress: StageProgressFn | None,
+) -> tuple[TilePlan, np.ndarray | None, StageStats]:
+    """The plan of a run (bounded memory, no feature map read), the scene's primitive points (None without
+    geometry) and the plan's timing.
+
+    Raises:
+        InputError: tiles were forced on a bundle without geometry.
+    """
+    geometry = scene.read_geometry() if cfg.primitives.use_geometry else None
+    if geometry is None and tiles not in (TILES_AUTO, TILES_OFF):
+        raise InputError("--tiles NxM needs geometry.ply (and primitives.use_geometry): the TSDF path's primitives "
+                         "exist only after stage 1")  # fmt: skip
+    points = None if geometry is None else geometry.points
+    del geometry
+    with StageTimer("plan") as timer:
+        plan = plan_tiles(scene, tiling or TilingConfig(), tiles if points is not None else TILES_OFF, points=points,
+                          on_progress=_named(on_progress, "plan"))  # fmt: skip
+    log.info("tiling plan: %s, %d tile(s)", plan.reason, len(plan.tiles))
+    return plan, points, timer.stats
+
+
+def tile_config(cfg: PipelineConfig) -> PipelineConfig:
+    """The config each tile runs with: the run's, without the appearance fit (docs/method.md §16.3)."""
+    return cfg.with_overrides({"appearance": {"enabled": False}})
+
+
+def merge_run(
+    scene: Bundle,
+    plan: TilePlan,
+    points: np.ndarray,
+    vocab: Vocabulary,
+    out: Path,
+    timings: list[StageStats],
+    on_progress: StageProgressFn | None,
+) -> tuple[PipelineResult, int]:
+    """Merge the finished tiles under ``out`` (``tiles/<tile name>/``) into the scene's files; the result, with
+    ``timings`` and the merge's own as its timings, and the number of seam joins. ``report.json`` is the
+    caller's (:func:`write_report`), once it knows the run's whole wall time."""
+    with StageTimer("merge") as timer:
+        result, seam_joins = _merge(scene, plan, points, vocab, out, on_progress)
+    result.timings = [*timings, timer.stats]
+    result.appearance = {"state": FIT_SKIPPED, "fitted": False, "note": _NO_FIT_NOTE}
+    return result, seam_joins
+
+
+def release_memory() -> None:
     """Hand what the last tile freed back to the system, so the next tile's peak is its own: the garbage
     collector for cycles, then glibc's ``malloc_trim`` for the freed heap it keeps (a no-op elsewhere)."""
     gc.collect()
@@ -140,7 +176,7 @@ def tile_folder(out: Path, tile: TileSpec) -> Path:
     return TILES_FOLDER.path(out) / tile.name
 
 
-def _run_tile(
+def run_tile(
     scene: Bundle,
     plan: TilePlan,
     tile: TileSpec,
@@ -255,7 +291,7 @@ def _scene_primitives(out: Path, plan: TilePlan, points: np.ndarray) -> tuple[An
     return prims, fused
 
 
-def _write_report(
+def write_report(
     out: Path,
     scene: Bundle,
     cfg: PipelineConfig,

@@ -12,13 +12,27 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any, TypeVar
 
-from sqlalchemy import ColumnElement, Connection, Result, Row, case, delete, func, literal, or_, select, update
+from sqlalchemy import ColumnElement, Connection, Result, Row, case, delete, exists, func, literal, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.db.base import Base, utcnow
-from service.db.models import Artifact, FitState, Job, JobState, Scene, Upload, UploadState
+from service.db.models import (
+    Artifact,
+    FitState,
+    Job,
+    JobState,
+    JobTile,
+    Scene,
+    TileKind,
+    TileState,
+    Upload,
+    UploadState,
+)
 
 M = TypeVar("M", bound=Base)
+
+# A job that fanned out into tiles: its tiles and merge have the leases and heartbeats; the job's own go quiet.
+_TILED = exists().where(JobTile.job_id == Job.id)
 
 
 def _one_row(result: Result[Any]) -> bool:
@@ -145,7 +159,7 @@ def undispatched_jobs(session: Session, older_than: datetime) -> list[Job]:
 
 def lost_jobs(session: Session, silent_since: datetime) -> list[Job]:
     """Running jobs whose worker has not sent a heartbeat since ``silent_since``."""
-    stmt = select(Job).where(Job.state == JobState.RUNNING, Job.heartbeat_at < silent_since)
+    stmt = select(Job).where(Job.state == JobState.RUNNING, Job.heartbeat_at < silent_since, ~_TILED)
     return list(session.scalars(stmt.limit(100)))
 
 
@@ -164,7 +178,7 @@ def requeue_worker_jobs(session: Session, worker_prefix: str) -> int:
     """Re-queue the running jobs of a worker known to be dead (``worker`` column starting with the prefix)."""
     result = session.execute(
         update(Job)
-        .where(Job.state == JobState.RUNNING, Job.worker.startswith(worker_prefix, autoescape=True))
+        .where(Job.state == JobState.RUNNING, Job.worker.startswith(worker_prefix, autoescape=True), ~_TILED)
         .values(state=JobState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
     )
     session.commit()
@@ -197,7 +211,7 @@ def claim_job(session: Session, job_id: uuid.UUID, lease: str, worker: str, stal
     """Take a job for this task: a queued job, a re-delivery of our own task, or a running job gone silent.
 
     Returns the job (now ``running`` under ``lease``), or None when it is not ours to run: finished, canceled,
-    or running under a live worker.
+    running under a live worker, or fanned out into tiles (its tiles' tasks run it).
     """
     now = utcnow()
     claimable = or_(
@@ -206,7 +220,7 @@ def claim_job(session: Session, job_id: uuid.UUID, lease: str, worker: str, stal
     )
     result = session.execute(
         update(Job)
-        .where(Job.id == job_id, claimable, Job.cancel_requested.is_(False))
+        .where(Job.id == job_id, claimable, Job.cancel_requested.is_(False), ~_TILED)
         .values(
             state=JobState.RUNNING,
             lease=lease,
@@ -372,3 +386,282 @@ def get_scene(session: Session, scene_id: uuid.UUID) -> Scene | None:
 def stale_cutoff(seconds: float) -> datetime:
     """``now - seconds``."""
     return utcnow() - timedelta(seconds=seconds)
+
+
+# Tiles of a tiled job ----------------------------------------------------------------------------------------
+#
+# The job's first task plans; a tiled plan becomes one row per tile and one for the merge (``pending``) in one
+# transaction with the job's move to stage ``tiles``. Each tile row is claimed, heart-beaten and finished under its
+# own lease, like a job; the tile that completes last promotes the merge to ``queued`` in the transaction that
+# records it done, and the merge ends the job. Job-level outcomes (failed, canceled) end every unfinished row too.
+
+_LIVE_TILE = [TileState.PENDING, TileState.QUEUED, TileState.RUNNING]
+
+
+def fan_out(session: Session, job_id: uuid.UUID, lease: str, rows: Sequence[JobTile], **values: Any) -> bool:
+    """Record a running job we hold as tiled: its tile and merge rows, the job at stage ``tiles``; False once the
+    lease is lost (nothing is written)."""
+    now = utcnow()
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.lease == lease, Job.state == JobState.RUNNING, ~_TILED)
+        .values(stage="tiles", progress=0.0, heartbeat_at=now, updated_at=now, **values)
+    )
+    if not _one_row(result):
+        session.rollback()
+        return False
+    session.add_all(rows)
+    session.commit()
+    return True
+
+
+def tile_rows(conn: Connection | Session, job_ids: Sequence[uuid.UUID]) -> dict[uuid.UUID, list[Row[Any]]]:
+    """The tile and merge rows of ``job_ids`` as plain rows, by index (the merge last), in one statement; a job that
+    ran whole has none."""
+    if not job_ids:
+        return {}
+    table = JobTile.__table__
+    stmt = select(table).where(table.c.job_id.in_(list(job_ids))).order_by(table.c.job_id, table.c.tile_index)
+    out: dict[uuid.UUID, list[Row[Any]]] = {}
+    for row in conn.execute(stmt):
+        out.setdefault(row.job_id, []).append(row)
+    return out
+
+
+def mark_tile_enqueued(session: Session, tile_id: uuid.UUID) -> bool:
+    """Record that a tile's (or merge's) message reached the broker."""
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile_id, JobTile.state == TileState.QUEUED, JobTile.enqueued_at.is_(None))
+        .values(enqueued_at=utcnow())
+    )
+    session.commit()
+    return _one_row(result)
+
+
+def undispatched_tiles(session: Session, older_than: datetime) -> list[tuple[uuid.UUID, TileKind, str]]:
+    """Queued tiles and merges whose message never reached the broker (or was lost with their worker): id, kind and
+    the job's queue."""
+    stmt = (
+        select(JobTile.id, JobTile.kind, Job.queue)
+        .join(Job, Job.id == JobTile.job_id)
+        .where(JobTile.state == TileState.QUEUED, JobTile.enqueued_at.is_(None), JobTile.created_at < older_than)
+    )
+    return [(row[0], row[1], row[2]) for row in session.execute(stmt.limit(100))]
+
+
+def job_queue(session: Session, job_id: uuid.UUID) -> str:
+    """The queue a job's tasks go to."""
+    return str(session.scalar(select(Job.queue).where(Job.id == job_id)))
+
+
+def lost_tiles(session: Session, silent_since: datetime) -> list[JobTile]:
+    """Running tiles and merges whose worker has not sent a heartbeat since ``silent_since``."""
+    stmt = select(JobTile).where(JobTile.state == TileState.RUNNING, JobTile.heartbeat_at < silent_since)
+    return list(session.scalars(stmt.limit(100)))
+
+
+def requeue_lost_tile(session: Session, tile: JobTile, silent_since: datetime) -> bool:
+    """Put a lost running tile back in the queue (its next task resumes from its checkpoints); False if it moved."""
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile.id, JobTile.state == TileState.RUNNING, JobTile.heartbeat_at < silent_since)
+        .values(state=TileState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
+    )
+    session.commit()
+    return _one_row(result)
+
+
+def requeue_worker_tiles(session: Session, worker_prefix: str) -> int:
+    """Re-queue the running tiles of a worker known to be dead."""
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.state == TileState.RUNNING, JobTile.worker.startswith(worker_prefix, autoescape=True))
+        .values(state=TileState.QUEUED, lease=None, enqueued_at=None, updated_at=utcnow())
+    )
+    session.commit()
+    return int(getattr(result, "rowcount", 0) or 0)
+
+
+def claim_tile(session: Session, tile_id: uuid.UUID, lease: str, worker: str, stale_before: datetime) -> JobTile | None:
+    """Take a tile (or merge) for this task, on a job's rules (:func:`claim_job`), while its job runs and is not
+    asked to stop; the tile now ``running`` under ``lease``, or None."""
+    now = utcnow()
+    claimable = or_(
+        JobTile.state == TileState.QUEUED,
+        (JobTile.state == TileState.RUNNING) & or_(JobTile.lease == lease, JobTile.heartbeat_at < stale_before),
+    )
+    job_runs = exists().where(Job.id == JobTile.job_id, Job.state == JobState.RUNNING, Job.cancel_requested.is_(False))
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile_id, claimable, job_runs)
+        .values(
+            state=TileState.RUNNING,
+            lease=lease,
+            worker=worker,
+            attempts=JobTile.attempts + 1,
+            heartbeat_at=now,
+            started_at=func.coalesce(JobTile.started_at, now),
+            updated_at=now,
+        )
+    )
+    session.commit()
+    if not _one_row(result):
+        return None
+    return session.get(JobTile, tile_id, populate_existing=True)
+
+
+def _job_progress(job_id: uuid.UUID) -> Any:
+    """The job's progress from its rows: the tiles' and the merge's, weighted by their ``weight``."""
+    weighted = select(func.sum(JobTile.weight * JobTile.progress) / func.sum(JobTile.weight))
+    return weighted.where(JobTile.job_id == job_id).scalar_subquery()
+
+
+def update_tile_running(session: Session, tile_id: uuid.UUID, job_id: uuid.UUID, lease: str, **values: Any) -> bool:
+    """Write progress fields (and the heartbeat) of a running tile we hold, and the job's progress with them; False
+    once the lease is lost or the tile left running."""
+    now = utcnow()
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile_id, JobTile.lease == lease, JobTile.state == TileState.RUNNING)
+        .values(heartbeat_at=now, updated_at=now, **values)
+    )
+    if not _one_row(result):
+        session.rollback()
+        return False
+    if "progress" in values:
+        session.execute(
+            update(Job).where(Job.id == job_id, Job.state == JobState.RUNNING).values(progress=_job_progress(job_id))
+        )
+    session.commit()
+    return True
+
+
+def release_tile(session: Session, tile_id: uuid.UUID, lease: str) -> bool:
+    """Hand a running tile we hold back to the queue (worker shutdown); this claim does not count as an attempt."""
+    result = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile_id, JobTile.lease == lease, JobTile.state == TileState.RUNNING)
+        .values(
+            state=TileState.QUEUED, lease=None, enqueued_at=None, attempts=JobTile.attempts - 1, updated_at=utcnow()
+        )
+    )
+    session.commit()
+    return _one_row(result)
+
+
+def finish_tile(
+    session: Session, tile_id: uuid.UUID, job_id: uuid.UUID, lease: str, **values: Any
+) -> tuple[bool, uuid.UUID | None]:
+    """Record a running tile we hold as succeeded; (False, None) once the lease is lost or the job stopped running.
+
+    The fan-in, in this one transaction: the job's row is written first, which locks it (PostgreSQL: a row lock;
+    SQLite: the database's write lock), so tiles finishing at once count one after the other; the tile that sees
+    none left moves the merge from ``pending`` to ``queued`` and gets its id back (to publish it).
+    """
+    now = utcnow()
+    locked = session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.RUNNING).values(updated_at=now))
+    done = session.execute(
+        update(JobTile)
+        .where(JobTile.id == tile_id, JobTile.lease == lease, JobTile.state == TileState.RUNNING)
+        .values(state=TileState.SUCCEEDED, progress=1.0, finished_at=now, heartbeat_at=now, updated_at=now, **values)
+    )
+    if not (_one_row(locked) and _one_row(done)):
+        session.rollback()
+        return False, None
+    left = session.scalar(
+        select(func.count())
+        .select_from(JobTile)
+        .where(JobTile.job_id == job_id, JobTile.kind == TileKind.TILE, JobTile.state != TileState.SUCCEEDED)
+    )
+    merge_id = None
+    if not left:
+        merge_id = session.scalar(select(JobTile.id).where(JobTile.job_id == job_id, JobTile.kind == TileKind.MERGE))
+        promoted = session.execute(
+            update(JobTile)
+            .where(JobTile.id == merge_id, JobTile.state == TileState.PENDING)
+            .values(state=TileState.QUEUED, enqueued_at=None, updated_at=now)
+        )
+        merge_id = merge_id if _one_row(promoted) else None
+    session.execute(update(Job).where(Job.id == job_id).values(progress=_job_progress(job_id)))
+    session.commit()
+    return True, merge_id
+
+
+def end_tiled_job(
+    session: Session,
+    job_id: uuid.UUID,
+    state: JobState,
+    *,
+    tile_id: uuid.UUID | None = None,
+    lease: str | None = None,
+    error_type: str | None = None,
+    message: str | None = None,
+) -> bool:
+    """End a tiled job otherwise than by its merge (a tile failed, was lost too often, or was canceled): the tile
+    (when ``tile_id``, under ``lease`` if given) and every unfinished row take ``state``, the job too (while it
+    runs), in one transaction. False when the job had already left running."""
+    now = utcnow()
+    tile_state = TileState.CANCELED if state == JobState.CANCELED else TileState.FAILED
+    result = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.state == JobState.RUNNING)
+        .values(
+            state=state,
+            error_type=error_type,
+            error_message=message,
+            fit_state=_fit_ended(FitState.CANCELED if state == JobState.CANCELED else FitState.FAILED),
+            finished_at=now,
+            heartbeat_at=now,
+            updated_at=now,
+        )
+    )
+    if not _one_row(result):
+        session.rollback()
+        return False
+    if tile_id is not None:
+        guard = [JobTile.id == tile_id, *([JobTile.lease == lease] if lease is not None else [])]
+        session.execute(
+            update(JobTile)
+            .where(*guard, JobTile.state.in_(_LIVE_TILE))
+            .values(state=tile_state, error_type=error_type, error_message=message, finished_at=now, updated_at=now)
+        )
+    session.execute(
+        update(JobTile)
+        .where(JobTile.job_id == job_id, JobTile.state.in_(_LIVE_TILE))
+        .values(state=TileState.CANCELED, lease=None, finished_at=now, updated_at=now)
+    )
+    session.commit()
+    return True
+
+
+def finish_merge(
+    session: Session,
+    merge_id: uuid.UUID,
+    job_id: uuid.UUID,
+    lease: str,
+    artifacts: Sequence[Artifact],
+    merge_values: dict[str, Any],
+    **job_values: Any,
+) -> bool:
+    """The merge we hold is done: it moves running -> succeeded under its lease and the job to succeeded with its
+    artifacts, in one transaction; only one merge can make that move, so the job is finished once."""
+    now = utcnow()
+    moved = session.execute(
+        update(JobTile)
+        .where(JobTile.id == merge_id, JobTile.lease == lease, JobTile.state == TileState.RUNNING)
+        .values(
+            state=TileState.SUCCEEDED, progress=1.0, finished_at=now, heartbeat_at=now, updated_at=now, **merge_values
+        )
+    )
+    ended = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.state == JobState.RUNNING)
+        .values(state=JobState.SUCCEEDED, finished_at=now, heartbeat_at=now, updated_at=now, **job_values)
+    )
+    if not (_one_row(moved) and _one_row(ended)):
+        session.rollback()
+        return False
+    _replace_artifacts(session, job_id, artifacts)
+    session.commit()
+    return True

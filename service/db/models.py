@@ -1,4 +1,4 @@
-"""The tables: API keys (tenants), uploads, scenes, jobs and their artifacts.
+"""The tables: API keys (tenants), uploads, scenes, jobs, their tiles and their artifacts.
 
 Every upload, scene and job belongs to the API key that created it; every query filters by it. Paths are
 stored relative to ``Settings.storage`` so that a shared volume may be mounted anywhere.
@@ -53,6 +53,25 @@ class JobState(enum.StrEnum):
 
 
 TERMINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELED})
+
+
+class TileKind(enum.StrEnum):
+    """What a row of ``job_tile`` runs: one tile of a tiled job's plan, or the merge of all of them."""
+
+    TILE = "tile"
+    MERGE = "merge"
+
+
+class TileState(enum.StrEnum):
+    """Lifecycle of a tile (and of a tiled job's merge): pending (the merge, until the last tile is done) -> queued
+    -> running -> succeeded | failed | canceled. Lease, heartbeat and attempts follow a job's rules."""
+
+    PENDING = "pending"
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELED = "canceled"
 
 
 class FitState(enum.StrEnum):
@@ -167,10 +186,46 @@ class Job(IdMixin, TimestampedMixin, Base):
     fit_error: Mapped[str | None] = mapped_column(Text)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # How the job asked to be tiled (``JobTiling``: tiles auto | off | NxM, planner settings); NULL: not tiled. Whether
+    # it was is told by its ``job_tile`` rows (docs/service.md, "Tiled jobs").
+    tiling: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
 
     artifacts: Mapped[list[Artifact]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Artifact.name"
     )
+
+
+class JobTile(IdMixin, TimestampedMixin, Base):
+    """One tile of a tiled job, or its merge (``kind``), run by its own task under the same lease, heartbeat and
+    attempt rules as a job; the job's progress is the tiles' weighted by ``weight`` (docs/service.md, "Tiled jobs")."""
+
+    __tablename__ = "job_tile"
+    __table_args__ = (
+        Unique("job_id", "tile_index"),
+        Index("ix_job_tile_state_heartbeat_at", "state", "heartbeat_at"),
+    )
+
+    job_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), index=True)
+    tile_index: Mapped[int] = mapped_column(Integer)  # the plan's tile index; the merge comes after the last tile
+    kind: Mapped[TileKind] = mapped_column(_str_enum(TileKind))
+    name: Mapped[str] = mapped_column(String(64))  # the tile's folder under the job's tiles/ (the plan's name)
+    state: Mapped[TileState] = mapped_column(_str_enum(TileState))
+    stage: Mapped[str | None] = mapped_column(String(64))
+    progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0..1 over the tile's stages
+    weight: Mapped[float] = mapped_column(Float)  # the plan's estimated bytes of the tile (of the merge: a share)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease: Mapped[str | None] = mapped_column(String(64))
+    worker: Mapped[str | None] = mapped_column(String(255))
+    enqueued_at: Mapped[datetime | None] = mapped_column(UTCDateTime)  # NULL: not yet handed to the broker
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    wall_s: Mapped[float | None] = mapped_column(Float)  # the finished run's wall time
+    peak_rss_mb: Mapped[float | None] = mapped_column(Float)  # the finished run's peak memory
+    # A finished tile's row of the tiled report.json (core and halo primitives, frames, instances)
+    report: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    error_type: Mapped[str | None] = mapped_column(String(100))
+    error_message: Mapped[str | None] = mapped_column(Text)
 
 
 class Artifact(IdMixin, TimestampedMixin, Base):

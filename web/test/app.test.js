@@ -15,6 +15,7 @@ import {
   pollDelay,
   resultsReady,
   sceneFitted,
+  tileReadouts,
   vocabularyBody,
   vocabularyText,
 } from "../src/app/rules.js";
@@ -54,6 +55,31 @@ describe("job rows and polling", () => {
     assert.equal(jobStateText({ state: "canceled", cancel_requested: true }), "canceled");
     assert.equal(jobProgressText({ state: "running", progress: 0.426 }), "43%");
     assert.equal(jobProgressText({ state: "succeeded", progress: 1 }), "");
+  });
+});
+
+describe("a tiled job's tiles", () => {
+  it("lists each tile and the merge with its progress while it runs, its state once not", () => {
+    const job = {
+      state: "running",
+      tiles: [
+        { index: 0, kind: "tile", state: "succeeded", stage: null, progress: 1, attempts: 1 },
+        { index: 1, kind: "tile", state: "running", stage: "fusion", progress: 0.256, attempts: 2 },
+        { index: 2, kind: "tile", state: "queued", stage: null, progress: 0, attempts: 2 },
+        { index: 3, kind: "merge", state: "pending", stage: null, progress: 0, attempts: 0 },
+      ],
+    };
+    assert.deepEqual(
+      tileReadouts(job).map((t) => [t.label, t.text]),
+      [
+        ["tile 1", "succeeded"],
+        ["tile 2", "26% fusion"],
+        ["tile 3", "queued (attempt 2)"],
+        ["merge", "pending"],
+      ],
+    );
+    assert.deepEqual(tileReadouts({ state: "running", tiles: [] }), []); // ran whole
+    assert.deepEqual(tileReadouts({ state: "running" }), []); // a server from before tiles
   });
 });
 

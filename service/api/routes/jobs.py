@@ -61,7 +61,9 @@ def list_jobs(
     if scene_id is not None:
         filters.append(Job.scene_id == scene_id)
     rows, count = crud.list_owned(session, Job, tenant.id, filters=filters, limit=limit, offset=offset)
-    return JobsPublic(data=[jobs.to_public(r) for r in rows], count=count, page=Page(limit=limit, offset=offset))
+    tiles = crud.tile_rows(session, [r.id for r in rows])
+    data = [jobs.to_public(r, tiles.get(r.id, [])) for r in rows]
+    return JobsPublic(data=data, count=count, page=Page(limit=limit, offset=offset))
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=_ERRORS)
@@ -86,7 +88,8 @@ def cancel_job(job: JobDep, session: SessionDep, request: Request) -> JobPublic:
     if job.state in (JobState.SUCCEEDED, JobState.FAILED):
         raise Conflict(f"job {job.id} already {job.state.value}")
     forget_job(request, job.api_key_id, job.id)
-    return jobs.to_public(crud.request_cancel(session, job))
+    canceled = crud.request_cancel(session, job)
+    return jobs.to_public(canceled, crud.tile_rows(session, [job.id]).get(job.id, []))
 
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses())

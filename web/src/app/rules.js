@@ -26,6 +26,20 @@ export function jobProgressText(job) {
   return isTerminal(job.state) ? "" : `${Math.round(job.progress * 100)}%`;
 }
 
+// A tiled job's tiles and merge as its row lists them (docs/service.md, "Tiled jobs"): a label, the state, and the
+// progress while the tile runs; none for a job that ran whole (or a server from before tiles).
+export function tileReadouts(job) {
+  return (job.tiles || []).map((tile) => ({
+    label: tile.kind === "merge" ? "merge" : `tile ${tile.index + 1}`,
+    state: tile.state,
+    progress: tile.progress,
+    text:
+      tile.state === "running"
+        ? `${Math.round(tile.progress * 100)}%${tile.stage ? ` ${tile.stage}` : ""}`
+        : tile.state + (tile.attempts > 1 ? ` (attempt ${tile.attempts})` : ""),
+  }));
+}
+
 // The stages a job took from an earlier job's checkpoints of its scene (same inputs and settings, so not computed
 // again: docs/service.md, "Stage checkpoints shared by a scene's jobs"), in the order the status lists them.
 export function cachedStages(job) {

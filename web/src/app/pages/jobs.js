@@ -1,6 +1,7 @@
-// The job table's rows: state, stage (and the stages reused from an earlier job's checkpoints), progress, the Gaussian fit (after the results), error, and the actions (open
-// the viewer once the results are ready, cancel, re-run with other settings, delete). A row's data-state,
-// data-results, data-fit and data-cached are what the browser tests wait on.
+// The job table's rows: state, stage (and the stages reused from an earlier job's checkpoints), progress (of a tiled
+// job, per tile too), the Gaussian fit (after the results), error, and the actions (open the viewer once the results
+// are ready, cancel, re-run with other settings, delete). A row's data-state, data-results, data-fit and
+// data-cached are what the browser tests wait on; each tile's line carries data-tile and data-tile-state.
 import { h } from "../../dom.js";
 import { api } from "../api-client.js";
 import { showError } from "../messages.js";
@@ -14,6 +15,7 @@ import {
   jobStateText,
   resultsReady,
   shortId,
+  tileReadouts,
   vocabularyBody,
   vocabularyText,
 } from "../rules.js";
@@ -24,6 +26,30 @@ function fitCell(job) {
   const cell = h("td", { class: "pgs-fit" });
   if (fitRunning(job)) cell.append(h("progress", { max: 1, value: job.fit.progress }), " ");
   cell.append(fitText(job));
+  return cell;
+}
+
+function progressCell(job) {
+  const cell = h("td", {});
+  if (!isTerminal(job.state)) cell.append(h("progress", { max: 1, value: job.progress }), " ");
+  cell.append(jobProgressText(job));
+  const tiles = tileReadouts(job);
+  if (tiles.length)
+    cell.append(
+      h(
+        "ul",
+        { class: "pgs-tiles" },
+        ...tiles.map((tile) =>
+          h(
+            "li",
+            { "data-tile": tile.label, "data-tile-state": tile.state },
+            `${tile.label}: `,
+            tile.state === "running" ? h("progress", { max: 1, value: tile.progress }) : "",
+            ` ${tile.text}`,
+          ),
+        ),
+      ),
+    );
   return cell;
 }
 
@@ -102,7 +128,6 @@ function jobCells(job, scenes, refresh, message) {
       await api("DELETE", `/v1/jobs/${job.id}`);
     }),
   );
-  const terminal = isTerminal(job.state);
   const error = job.error
     ? h("span", { class: "pgs-message pgs-bad", "data-role": "error" }, `${job.error.type}: ${job.error.message}`)
     : h("span", { "data-role": "error" });
@@ -111,7 +136,7 @@ function jobCells(job, scenes, refresh, message) {
     h("td", {}, sceneName),
     h("td", { class: `pgs-state-${job.state}` }, jobStateText(job)),
     h("td", {}, job.stage || "", cachedStagesText(job) ? h("div", { class: "pgs-cached" }, cachedStagesText(job)) : ""),
-    h("td", {}, terminal ? "" : h("progress", { max: 1, value: job.progress }), " ", jobProgressText(job)),
+    progressCell(job),
     fitCell(job),
     h("td", {}, error),
     actions,
