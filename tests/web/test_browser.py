@@ -358,6 +358,27 @@ def test_a_rerun_with_other_clustering_settings_shows_the_stages_it_reused(
     assert reused == {stage for stage, cached in shown.items() if cached}
 
 
+def test_a_tiled_job_shows_each_tile_and_the_merge_in_its_row(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
+) -> None:
+    scene_id = api.get(f"/v1/jobs/{job_id}").json()["scene_id"]
+    created = api.post("/v1/jobs", json={"scene_id": scene_id, "tiling": {"tiles": "2x1"}})
+    assert created.status_code == 202, created.text
+    tiled = created.json()["id"]
+    page.goto("about:blank")
+    page.goto(f"{served['url']}/app#/")
+    row = f'tr[data-job-id="{tiled}"]'
+    page.wait_for_selector(f"{row} li[data-tile]", timeout=JOB_TIMEOUT_MS)  # the plan is made: one line a tile
+    page.wait_for_selector(f"{row}[data-state=succeeded]", timeout=JOB_TIMEOUT_MS)
+    lines = page.locator(f"{row} li[data-tile]")
+    shown = {lines.nth(i).get_attribute("data-tile"): lines.nth(i).get_attribute("data-tile-state")
+             for i in range(lines.count())}  # fmt: skip
+    assert shown == {"tile 1": "succeeded", "tile 2": "succeeded", "merge": "succeeded"}
+    status = api.get(f"/v1/jobs/{tiled}").json()
+    assert [t["kind"] for t in status["tiles"]].count("tile") == 2
+    assert page.locator(f"{row} [data-action=open]").count() == 1  # the merged result opens in the viewer
+
+
 def test_deleting_the_job_removes_it_and_its_files(
     page: Any, job_id: str, served: dict[str, Any], api: httpx.Client
 ) -> None:
