@@ -363,6 +363,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 on_progress=progress,
                 resume=not args.no_resume,
                 on_results=print_results,
+                tile_workers=args.tile_workers,
             )
     except KeyboardInterrupt:
         progress.close()
@@ -546,6 +547,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="GB",
         help="with --tiles auto: the memory one run may use; a scene estimated over it is tiled, in tiles under "
         "it (default: tiles of 3 GB, for scenes over half this machine's memory; docs/method.md §16)",
+    )
+    p.add_argument(
+        "--tile-workers",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="a tiled run: tiles run at once, each in a process of its own (default 1, one after another); "
+        "each takes up to its tile's memory (report.json's estimated_mb)",
     )
     p.set_defaults(func=_cmd_run)
 

@@ -1,6 +1,7 @@
 """``run_tiled``: plan, run every tile with :func:`run_pipeline`, merge, write the scene's files (docs/method.md §16).
 
-One process runs the tiles one after another (the CLI and the tests; the service will run them as sub-jobs). A
+One process runs the tiles one after another, or ``tile_workers`` processes of this machine side by side
+(:mod:`panogs_core.tiling.parallel`); the service runs them as sub-jobs on its workers (docs/service.md). A
 scene that the plan leaves whole goes straight to :func:`run_pipeline`, so its files are an untiled run's,
 byte for byte. A tiled run's folder holds the scene's files (docs/architecture.md, "Outputs of a run"), each tile's
 own run folder under ``tiles/<tile name>/`` (its checkpoints: a re-run resumes tile by tile) and ``report.json``
@@ -58,6 +59,7 @@ def run_tiled(
     on_progress: StageProgressFn | None = None,
     resume: bool = True,
     on_results: ResultsFn | None = None,
+    tile_workers: int = 1,
 ) -> PipelineResult:
     """Run a scene as tiles and merge them; a scene the plan leaves whole runs as :func:`run_pipeline` does.
 
@@ -66,6 +68,7 @@ def run_tiled(
             Progress names the stages ``plan``, ``tile <k>/<K> <stage>`` and ``merge``.
         tiles: ``auto``, ``off`` or ``(nx, ny)`` (``panogs_core.tiling.plan.parse_tiles``).
         tiling: Planner settings (memory target, halo).
+        tile_workers: Tiles run at once, each in a process of its own (1: one after another, in this process).
 
     Raises:
         InputError: tiles were forced on a bundle without geometry.
@@ -85,13 +88,18 @@ def run_tiled(
     TILES_FOLDER.path(out).mkdir(parents=True, exist_ok=True)
     plan.save(plan_path(out))
     tile_cfg = tile_config(cfg)
-    tile_rows = []
-    timings = [plan_stats]
-    for tile in plan.tiles:
-        row, stats = run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume)
-        tile_rows.append(row)
-        timings.append(stats)
-        release_memory()
+    if tile_workers > 1 and len(plan.tiles) > 1:
+        from panogs_core.tiling.parallel import run_tiles_in_processes
+
+        done = run_tiles_in_processes(scene.root, out, plan, tile_cfg, vocab, workers=tile_workers, resume=resume,
+                                      on_progress=on_progress)  # fmt: skip
+    else:
+        done = []
+        for tile in plan.tiles:
+            done.append(run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume))
+            release_memory()
+    tile_rows = [row for row, _ in done]
+    timings = [plan_stats, *(stats for _, stats in done)]
     result, seam_joins = merge_run(scene, plan, points, vocab, out, timings, on_progress)
     result.total_s = time.perf_counter() - t_start
     write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)

@@ -220,10 +220,11 @@ def test_a_small_overlap_is_no_join() -> None:
 
 
 @pytest.mark.slow
-def test_tiled_cli_run_is_deterministic_and_reported(building: Path, tmp_path: Path) -> None:
+def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(building: Path, tmp_path: Path) -> None:
     runs = [tmp_path / "a", tmp_path / "b"]
-    for out in runs:
-        argv = ["run", str(building), "--out", str(out), "--tiles", "2x1", "-q", "--set", "appearance.enabled=false"]
+    for out, workers in zip(runs, ("1", "2"), strict=True):  # one after another, then side by side
+        argv = ["run", str(building), "--out", str(out), "--tiles", "2x1", "-q", "--set", "appearance.enabled=false",
+                "--tile-workers", workers]  # fmt: skip
         assert cli_main(argv) == 0
     for name in ("labels.npz", "instances.json", "instance_features.npy", "panoptic.ply"):
         assert (runs[0] / name).read_bytes() == (runs[1] / name).read_bytes(), name
