@@ -2,7 +2,7 @@
 
 Usage:
     python bench/tiling.py [--preset large] [--seeds 0 1 2] [--tiles 2x2] [--halo 1.0] [--set SECTION.KEY=VALUE ...]
-                           [--root /tmp/tiling-bench] [--regen]
+                           [--tile-workers N] [--root /tmp/tiling-bench] [--regen]
 
 Per seed: ``panogs synth`` (kept under ``--root`` unless ``--regen``), then ``panogs run --tiles off`` and ``panogs
 run --tiles NxM`` (appearance fit off in both: a tiled run fits none), each in its own process so that peak memory
@@ -39,14 +39,17 @@ def _cli(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "panogs_core.cli", *args], cwd=REPO, check=True, capture_output=True)
 
 
-def _run(bundle: Path, out: Path, tiles: str, halo: float | None = None, sets: tuple[str, ...] = ()) -> dict:
+def _run(
+    bundle: Path, out: Path, tiles: str, halo: float | None = None, sets: tuple[str, ...] = (), workers: int = 1
+) -> dict:
     if not (out / "report.json").is_file():
         settings = [a for kv in ("appearance.enabled=false", *sets) for a in ("--set", kv)]
         if halo is None:
-            _cli("run", str(bundle), "--out", str(out), "--tiles", tiles, "-q", *settings)
+            _cli("run", str(bundle), "--out", str(out), "--tiles", tiles, "--tile-workers", str(workers), "-q",
+                 *settings)  # fmt: skip
         else:  # the CLI keeps the planner's halo: run the tiles through run_tiled in a process of its own
-            subprocess.run([sys.executable, __file__, "--one-run", str(bundle), str(out), tiles, str(halo), *sets],
-                           cwd=REPO, check=True, capture_output=True)  # fmt: skip
+            subprocess.run([sys.executable, __file__, "--one-run", str(bundle), str(out), tiles, str(halo),
+                            str(workers), *sets], cwd=REPO, check=True, capture_output=True)  # fmt: skip
     report = json.loads((out / "report.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())["standard"]
     labels = np.load(out / "labels.npz")
@@ -72,9 +75,10 @@ def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarra
     return split, crossing
 
 
-def _suffix(halo: float | None, sets: list[str]) -> str:
-    """The run folder's suffix of a variant: its halo and overrides, in a file-name-safe form."""
-    parts = ([] if halo is None else [f"halo{halo:g}"]) + [kv.replace("=", "-") for kv in sets]
+def _suffix(halo: float | None, sets: list[str], workers: int = 1) -> str:
+    """The run folder's suffix of a variant: its halo, tile processes and overrides, in a file-name-safe form."""
+    parts = ([] if halo is None else [f"halo{halo:g}"]) + ([] if workers == 1 else [f"w{workers}"])
+    parts += [kv.replace("=", "-") for kv in sets]
     return "".join(f"-{p}" for p in parts).replace("/", "_")
 
 
@@ -112,7 +116,7 @@ def _weight_change(root: Path, plan, points: np.ndarray) -> float:
     return float(np.median(np.concatenate(changes)))
 
 
-def _one_run(bundle: str, out: str, tiles: str, halo: str, *sets: str) -> None:
+def _one_run(bundle: str, out: str, tiles: str, halo: str, workers: str, *sets: str) -> None:
     """One tiled run with a halo of ``halo`` metres (``--one-run``, in its own process)."""
     import yaml
 
@@ -125,7 +129,8 @@ def _one_run(bundle: str, out: str, tiles: str, halo: str, *sets: str) -> None:
         section, name = key.split(".", 1)
         overrides.setdefault(section, {})[name] = yaml.safe_load(value)
     config = PipelineConfig().with_overrides(overrides)
-    run_tiled(bundle, out, config, tiles=parse_tiles(tiles), tiling=TilingConfig(halo_m=float(halo)))
+    run_tiled(bundle, out, config, tiles=parse_tiles(tiles), tiling=TilingConfig(halo_m=float(halo)),
+              tile_workers=int(workers))  # fmt: skip
 
 
 def main() -> None:
@@ -145,6 +150,8 @@ def main() -> None:
         metavar="SECTION.KEY=VALUE",
         help="a pipeline override for both runs of every seed (repeatable)",
     )
+    parser.add_argument("--tile-workers", type=int, default=1, help="the tiled runs' tile processes (a process "
+                        "each: a tile's peak is its own, not on top of the tiles before it)")  # fmt: skip
     parser.add_argument("--root", type=Path, default=Path("/tmp/tiling-bench"))
     parser.add_argument("--regen", action="store_true")
     args = parser.parse_args()
@@ -155,10 +162,10 @@ def main() -> None:
             _cli("synth", str(bundle), "--preset", args.preset, "--seed", str(seed))
         folders = {
             "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, args.sets)}",
-            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, args.sets)}",
+            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, args.sets, args.tile_workers)}",
         }
         untiled = _run(bundle, folders["off"], "off", sets=tuple(args.sets))
-        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(args.sets))
+        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(args.sets), args.tile_workers)
         scene = open_bundle(bundle)
         geometry, gt = scene.read_geometry(), scene.read_ground_truth()
         assert geometry is not None

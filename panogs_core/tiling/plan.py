@@ -440,21 +440,45 @@ def _split_at(rect: Rect, counts: _CellCounts, axis: int, share: float) -> tuple
 
 
 def _kd_split(whole: Rect, counts: _CellCounts, too_big: Any) -> list[Rect]:
-    """Halve every region that is too big along its longer side (the other when that is one cell), balanced by
-    primitives, until none is; regions in a deterministic order (depth first, lower half first)."""
+    """Cut every region that is too big across its longer side into the fewest parts of equal primitive count that
+    each fit (up to ``_MAX_PARTS``; else in two, and the halves go on), until none is too big; regions in a
+    deterministic order (depth first, lower part first).
+
+    The fewest parts, not halves: a region a little over the budget halved twice makes four tiles at a quarter of
+    it, whose halos (a fixed band) then weigh more than their cores; fewer, larger cores leave fewer seams
+    (docs/method.md §16.1).
+    """
     out: list[Rect] = []
     stack = [whole]
     while stack:
         rect = stack.pop()
-        halves = None
+        parts = None
         if too_big(rect):
             longer = 0 if rect[1] - rect[0] >= rect[3] - rect[2] else 1
-            halves = _split_at(rect, counts, longer, 0.5) or _split_at(rect, counts, 1 - longer, 0.5)
-        if halves is None:
+            parts = _fewest_parts(rect, counts, longer, too_big) or _fewest_parts(rect, counts, 1 - longer, too_big)
+        if parts is None:
             out.append(rect)
         else:
-            stack.extend(reversed(halves))
+            stack.extend(reversed(parts))
     return out
+
+
+_MAX_PARTS = 8  # parts of one cut tried before a region is halved and its halves cut again
+
+
+def _fewest_parts(rect: Rect, counts: _CellCounts, axis: int, too_big: Any) -> list[Rect] | None:
+    """The fewest parts (2 to _MAX_PARTS) of equal primitive count across ``axis`` that all fit; the two halves
+    when none does; None when ``rect`` is one cell thick along ``axis``."""
+    halves = None
+    for k in range(2, _MAX_PARTS + 1):
+        parts = _equal_parts(rect, counts, axis, k)
+        if len(parts) < k:
+            break  # too thin for k parts
+        if k == 2:
+            halves = parts
+        if not any(too_big(p) for p in parts):
+            return parts
+    return halves
 
 
 def _grid_split(whole: Rect, counts: _CellCounts, shape: tuple[int, int]) -> list[Rect]:

@@ -251,6 +251,24 @@ def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(build
     assert metrics["standard"]["miou"] > 0.6
 
 
+def test_a_finished_tile_keeps_only_what_the_merge_reads_and_is_not_run_again(building: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    argv = ["run", str(building), "--out", str(out), "--tiles", "2x1", "-q", "--set", "appearance.enabled=false"]
+    assert cli_main(argv) == 0
+    plan = TilePlan.load(out / "tiles" / "plan.json")
+    folders = [out / "tiles" / t.name for t in plan.tiles]
+    for folder in folders:  # the (N, D) features of the fusion and the field are gone, the primitives stay
+        assert sorted(p.stem for p in (folder / "stages").glob("*.npz")) == [
+            "clustering", "labeling", "primitives", "superprimitives"]  # fmt: skip
+    labels = (out / "labels.npz").read_bytes()
+    stamps = [(f / "labels.npz").stat().st_mtime_ns for f in folders]
+    assert cli_main(argv) == 0  # the same run again: its tiles are finished
+    assert [(f / "labels.npz").stat().st_mtime_ns for f in folders] == stamps
+    assert (out / "labels.npz").read_bytes() == labels
+    assert cli_main([*argv, "--set", "clustering.thresholds=[0.9,0.6]"]) == 0  # other settings: the tiles run again
+    assert all((f / "labels.npz").stat().st_mtime_ns != t for f, t in zip(folders, stamps, strict=True))
+
+
 @pytest.mark.slow
 def test_untiled_path_is_unchanged(building: Path, tmp_path: Path) -> None:
     tiled = run_tiled(building, tmp_path / "auto", NO_FIT, tiles="auto")
