@@ -83,7 +83,7 @@ def _tile_task(
 ) -> tuple[dict[str, Any], StageStats]:
     """One tile in a worker process: the bundle, the plan and the primitives' points read here."""
     from panogs_core.io.bundle import open_bundle
-    from panogs_core.tiling.runner import plan_path, run_tile
+    from panogs_core.tiling.runner import plan_path, release_memory, run_tile
 
     scene = open_bundle(root)
     plan = TilePlan.load(plan_path(Path(out)))
@@ -91,6 +91,8 @@ def _tile_task(
     assert geometry is not None  # a tiled plan needs geometry (runner.plan_run)
     row, stats = run_tile(scene, plan, plan.tiles[index], geometry.points, cfg, vocab, Path(out),
                           lambda stage, done, total: messages.put((stage, done, total)), resume)  # fmt: skip
+    del scene, plan, geometry
+    release_memory()  # the process runs the next tile next: its peak is to be its own
     return row, stats
 
 
