@@ -2,7 +2,8 @@
 its rooms run alone (docs/method.md §16, docs/benchmarks.md "A building at the design's scale").
 
 Usage:
-    python bench/building.py [--rooms 4x4] [--seed 0] [--tile-workers 2] [--alone 4] [--root /work/bench-building]
+    python bench/building.py [--rooms 4x4] [--seed 0] [--tile-workers 2] [--alone 4] [--room-tile HALO[,K=V...]]
+                             [--root /work/bench-building]
 
 ``panogs synth --preset building --rooms NxM --room-preset large`` (kept under ``--root``), then ``panogs run
 --tiles auto --tile-workers N`` (appearance fit off: a tiled run fits none) in its own process, timed. Prints the
@@ -10,7 +11,9 @@ plan (tiles, their primitives and frames), every tile's and the merge's peak mem
 wall time and peak, and its standard-mode metrics. Then ``--alone`` rooms (spread over the grid: corners first)
 each run alone, untiled: the room's primitives (its floor's rectangle in XY, walls included) and the frames whose
 camera stands in it; its mIoU, PRQ(T) and PRQ(S) against the building run's labels of the same primitives, scored
-against the same ground truth.
+against the same ground truth. ``--room-tile`` runs each of those rooms also as one tile of its own (its
+rectangle, a halo, the frames the planner would give it) with pipeline overrides, to tell what a tile's context
+(halo, other rooms' frames, settings) does to a room.
 """
 
 from __future__ import annotations
@@ -99,6 +102,67 @@ def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str) -> No
     run_pipeline(view, out, PipelineConfig().with_overrides({"appearance": {"enabled": False}}))
 
 
+def _room_tile(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, halo: str, *sets: str) -> None:
+    """``--one-room-tile``: the room as one tile of its own: core its rectangle, a halo of ``halo`` m, the frames
+    the planner would give it (those that see ``min_frame_points`` of its core and halo), with overrides ``sets``
+    (``SECTION.KEY=VALUE``); untiled, in its own process."""
+    import yaml
+
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.pipeline.run import run_pipeline
+    from panogs_core.tiling.plan import TilePlan, TileSpec, TilingConfig, _cell_counts, key_frames
+    from panogs_core.tiling.view import tile_bundle
+
+    scene = open_bundle(bundle)
+    geometry = scene.read_geometry()
+    assert geometry is not None
+    points = geometry.points
+    cfg = TilingConfig()
+    lo = points[:, :2].min(axis=0).astype(np.float64)
+    grid = tuple(int(v) for v in np.floor((points[:, :2].max(axis=0) - lo) / cfg.cell_m) + 1)
+    box = tuple(float(v) for v in (x0, x1, y0, y1))
+    h = round(float(halo) / cfg.cell_m)
+    cell = lambda v, o: int(np.floor((v - o) / cfg.cell_m))  # noqa: E731
+    rect = (cell(box[0], lo[0]), cell(box[1], lo[0]) + 1, cell(box[2], lo[1]), cell(box[3], lo[1]) + 1)
+    frames = key_frames(scene)
+    counts = _cell_counts(scene, points, frames, lo, grid, cfg, None)
+    seeing = counts.frames_seeing(rect[0] - h, rect[1] + h, rect[2] - h, rect[3] + h, cfg.min_frame_points)
+    grown = (box[0] - float(halo), box[1] + float(halo), box[2] - float(halo), box[3] + float(halo))
+    spec = TileSpec(index=0, core_cells=rect, core_box=box, halo_box=grown, core_points=0, halo_points=0,
+                    frame_ids=tuple(frames[k].id for k in seeing), estimated_bytes=0.0)  # fmt: skip
+    plan = TilePlan(origin=(float(lo[0]), float(lo[1])), cell_m=cfg.cell_m, halo_cells=h, grid=grid, tiles=(spec,),
+                    tiled=True, reason="one room as a tile", whole_estimated_bytes=0.0)  # fmt: skip
+    view, core = tile_bundle(scene, plan, spec, points)
+    np.save(Path(out).with_suffix(".index.npy"), view.point_index)
+    np.save(Path(out).with_suffix(".core.npy"), core)
+    overrides: dict[str, Any] = {"appearance": {"enabled": False}}
+    for kv in sets:
+        key, value = kv.split("=", 1)
+        section, name = key.split(".", 1)
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    run_pipeline(view, out, PipelineConfig().with_overrides(overrides))
+
+
+def _room_tile_miou(bundle: Path, alone: Path, variant: Path) -> tuple[float, int]:
+    """mIoU of the room's primitives (those of the alone run) labelled by the room-tile run's core."""
+    from panogs_core.pipeline.run import resolve_scene_vocabulary
+    from panogs_core.tiling.view import TileBundle
+
+    scene = open_bundle(bundle)
+    vocab = resolve_scene_vocabulary(scene, None)
+    geometry = scene.read_geometry()
+    assert geometry is not None
+    room = np.load(alone.with_suffix(".index.npy"))
+    index, core = np.load(variant.with_suffix(".index.npy")), np.load(variant.with_suffix(".core.npy"))
+    semantic = np.full(geometry.points.shape[0], -1, np.int64)
+    semantic[index[core]] = np.load(variant / "labels.npz")["semantic"][core]
+    base = {name: getattr(scene, name) for name in scene.__dataclass_fields__}
+    box = json.loads((alone / "report.json").read_text())["box"]
+    gt = TileBundle(**base, point_index=room, halo_box=box).read_ground_truth()
+    scores = _scores(geometry.points[room], semantic[room], np.full(room.size, -1), gt, vocab)
+    return scores["miou"], json.loads((variant / "report.json").read_text())["num_frames"]
+
+
 def _scores(points: np.ndarray, semantic: np.ndarray, instance: np.ndarray, gt: Any, vocab: Any) -> dict[str, float]:
     from panogs_core.evaluation.metrics import evaluate_ground_truth
 
@@ -133,11 +197,22 @@ def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--one-room":
         _room_alone(*sys.argv[2:])
         return
+    if len(sys.argv) > 1 and sys.argv[1] == "--one-room-tile":
+        _room_tile(*sys.argv[2:])
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rooms", default="4x4")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile-workers", type=int, default=2)
     parser.add_argument("--alone", type=int, default=4, help="rooms run alone for the per-room comparison")
+    parser.add_argument(
+        "--room-tile",
+        action="append",
+        default=[],
+        metavar="HALO[,SECTION.KEY=VALUE...]",
+        help="also run each of those rooms as one tile of its own (core: its rectangle, a halo of HALO m, the "
+        "planner's frames), with these overrides; repeatable",
+    )
     parser.add_argument("--root", type=Path, default=Path("/tmp/building-bench"))
     args = parser.parse_args()
     nx, ny = (int(v) for v in args.rooms.split("x"))
@@ -169,6 +244,21 @@ def main() -> None:
         cells = [f"{row['alone'][k]:.3f} / {row['building'][k]:.3f} ({row['building'][k] - row['alone'][k]:+.3f})"
                  for k in ("miou", "prq_t", "prq_s")]  # fmt: skip
         print(f"| {r} ({r % nx}, {r // nx}) | {row['primitives']:,} | {row['frames']} | " + " | ".join(cells) + " |")
+    if args.room_tile:
+        print("\n| room | as one tile: halo m, overrides | frames | mIoU (alone: delta) |")
+        print("|---|---|---:|---|")
+    for text in args.room_tile:
+        halo, *sets = text.split(",")
+        for r in _spread(args.alone, nx * ny, nx):
+            alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}"
+            name = f"roomtile-{args.rooms}-seed{args.seed}-room{r}-halo{halo}" + "".join(f"-{kv}" for kv in sets)
+            variant = args.root / name.replace("=", "-").replace("/", "_")
+            if not (variant / "report.json").is_file():
+                subprocess.run([sys.executable, __file__, "--one-room-tile", str(bundle), str(variant),
+                                *map(str, boxes[r]), halo, *sets], cwd=REPO, check=True)  # fmt: skip
+            miou, frames = _room_tile_miou(bundle, alone, variant)
+            own = _compare_room(bundle, run, alone)["alone"]["miou"]
+            print(f"| {r} | {halo}, {' '.join(sets) or 'defaults'} | {frames} | {miou:.3f} ({miou - own:+.3f}) |")
 
 
 def _print_building(report: dict[str, Any], metrics: dict[str, Any]) -> None:

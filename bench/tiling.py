@@ -101,7 +101,7 @@ def _seam_distance(plan, points: np.ndarray, owner: np.ndarray) -> np.ndarray:  
 def _weight_change(root: Path, plan, points: np.ndarray) -> float:
     """Median relative change of the fusion's confidence weight (its scene-wide ranges taken per tile) over the
     core primitives seen in both runs: |w_tile / w_untiled - 1|."""
-    from panogs_core.tiling.runner import tile_folder
+    from panogs_core.tiling.tile import tile_folder
 
     with np.load(root["off"] / "stages" / "fusion.npz") as npz:
         whole = npz["weights"]

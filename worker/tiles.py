@@ -95,7 +95,8 @@ def plan_and_fan_out(job: Job, tracker: Tracker, env: JobEnv, bundle_dir: Path, 
         InputError: tiles were forced on a bundle without geometry.
     """
     from panogs_core.io.bundle import open_bundle
-    from panogs_core.tiling.runner import plan_path, plan_run
+    from panogs_core.tiling.runner import plan_run
+    from panogs_core.tiling.tile import plan_path
 
     scene = open_bundle(bundle_dir)
     with tracker.beating():
@@ -320,7 +321,7 @@ def _run_in(
 def _scene_and_plan(bundle_dir: Path, out_dir: Path) -> tuple[Any, Any, Any]:
     from panogs_core.io.bundle import open_bundle
     from panogs_core.tiling.plan import TilePlan
-    from panogs_core.tiling.runner import plan_path
+    from panogs_core.tiling.tile import plan_path
 
     scene = open_bundle(bundle_dir)
     plan = TilePlan.load(plan_path(out_dir))
@@ -340,7 +341,8 @@ def _tile(
     out_dir: Path,
 ) -> TileState | None:
     from panogs_core.pipeline.run import resolve_scene_vocabulary
-    from panogs_core.tiling.runner import release_memory, run_tile, tile_config
+    from panogs_core.tiling.runner import tile_config
+    from panogs_core.tiling.tile import release_memory, run_tile
 
     scene, plan, points = _scene_and_plan(bundle_dir, out_dir)
     tile = plan.tiles[row.tile_index]

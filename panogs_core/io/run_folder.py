@@ -173,8 +173,9 @@ TILES_FOLDER = RunFile(
     "tiles/",
     FOLDER,
     "a tiled run's tiles (`panogs run --tiles`): `plan.json` (every tile's rectangles and frames) and one run "
-    "folder per tile, `tile-<k>-<digest>/` (its labels, checkpoints and `report.json`), which the merge reads and a "
-    "re-run resumes tile by tile",
+    "folder per tile, `tile-<k>-<digest>/` (its labels, `report.json`, the checkpoints the merge reads and "
+    "`tile.json` once it is finished: the fusion's and the field's bulky ones are deleted then), which the merge "
+    "reads and a re-run resumes tile by tile, keeping the finished ones",
     "panogs_core.tiling.runner",
     ("panogs_core.tiling.runner",),
     optional=True,

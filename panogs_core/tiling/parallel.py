@@ -3,7 +3,7 @@
 Each tile is independent until the merge (its own bundle view, its own run folder), so a machine with the cores and
 the memory for several tiles at once runs them side by side; the service does the same with a worker per tile.
 Processes are spawned, not forked: a torch op in the parent before a fork deadlocks the child. A process opens the
-bundle and the saved plan itself (no large array crosses a pipe), runs :func:`runner.run_tile` and sends back its
+bundle and the saved plan itself (no large array crosses a pipe), runs :func:`tile.run_tile` and sends back its
 report row and timing; its stages' progress comes back through a queue that one thread of the parent drains into
 the run's progress sink, so the display shows every running tile.
 """
@@ -83,7 +83,7 @@ def _tile_task(
 ) -> tuple[dict[str, Any], StageStats]:
     """One tile in a worker process: the bundle, the plan and the primitives' points read here."""
     from panogs_core.io.bundle import open_bundle
-    from panogs_core.tiling.runner import plan_path, release_memory, run_tile
+    from panogs_core.tiling.tile import plan_path, release_memory, run_tile
 
     scene = open_bundle(root)
     plan = TilePlan.load(plan_path(Path(out)))

@@ -146,7 +146,9 @@ class Storage:
 
 class TreePush:
     """Stores what changed in a local folder since the last :meth:`push` (new files, or a size or time that moved)
-    as objects under a prefix: a job's scratch output folder, pushed after each stage and at the end.
+    as objects under a prefix: a job's scratch output folder, pushed after each stage and at the end. A file that
+    was stored (or fetched) and is gone from the folder is deleted under the prefix too: a finished tile drops its
+    bulky checkpoints, which must not stay behind in the bucket.
 
     Temporary files of the pipeline (``*.tmp``, ``*.tmp.npz``) are never pushed: a checkpoint is stored once it
     has its name, so a half-written one never reaches the storage; nor the files in :attr:`skip` (kept under
@@ -172,14 +174,20 @@ class TreePush:
                 yield path, path.relative_to(self.folder).as_posix()
 
     def push(self) -> int:
-        """Store the files that changed; returns their bytes."""
+        """Store the files that changed and delete the objects of those removed; returns the bytes stored."""
         total = 0
+        present = set()
         for path, rel in self._files():
+            present.add(rel)
             st = path.stat()
             mark = (st.st_size, st.st_mtime_ns)
             if self._seen.get(rel) != mark:
                 total += self.storage.objects.put_file(self.prefix + rel, path).size
                 self._seen[rel] = mark
+        for rel in sorted(set(self._seen) - present):
+            if not (self.folder / rel).exists():  # removed, not merely skipped
+                self.storage.objects.delete(self.prefix + rel)
+            del self._seen[rel]
         return total
 
 

@@ -181,6 +181,24 @@ def test_aborted_multipart_leaves_no_parts(store: ObjectStorage) -> None:
         store.list_parts("x/u/data", upload)
 
 
+def test_a_folder_push_stores_changes_and_deletes_what_was_removed(store: ObjectStorage, tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from service.storage import TreePush
+
+    folder = tmp_path / "tile"
+    (folder / "stages").mkdir(parents=True)
+    (folder / "labels.npz").write_bytes(b"labels")
+    (folder / "stages" / "fusion.npz").write_bytes(b"x" * 1000)
+    push = TreePush(SimpleNamespace(objects=store), folder, "jobs/j/tiles/t/")  # type: ignore[arg-type]
+    assert push.push() == 1006
+    (folder / "stages" / "fusion.npz").unlink()  # a finished tile drops its bulky checkpoints
+    (folder / "labels.npz").write_bytes(b"labels, again")
+    assert push.push() == 13
+    assert sorted(o.key for o in store.list_objects("jobs/j/")) == ["jobs/j/tiles/t/labels.npz"]
+    assert store.get_bytes("jobs/j/tiles/t/labels.npz") == b"labels, again"
+
+
 def test_prefix_delete(store: ObjectStorage) -> None:
     for key in ("x/s/1/a", "x/s/1/b/c", "x/s/2", "x/s1/kept"):
         store.put_bytes(key, b"v")
