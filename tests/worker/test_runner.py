@@ -397,7 +397,8 @@ class TestResultsBeforeTheFit:
     def test_a_time_limit_in_the_fit_fails_the_job_and_keeps_the_results(
         self, make_env: Env, make_job: MakeJob, settings: Settings
     ) -> None:
-        job_id = make_job(config={"stage_s": 0.01, "fit_s": 1.0})
+        # The stages take 0.1 s, the fit far more than the limit: a loaded host still gets its results before it.
+        job_id = make_job(config={"stage_s": 0.01, "fit_s": 30.0})
         results_at: list[float] = []
 
         def pipeline(bundle: Path, out_dir: Path, config: Any, **kw: Any) -> Any:
@@ -409,7 +410,7 @@ class TestResultsBeforeTheFit:
 
             return scripted.run_pipeline(bundle, out_dir, config, **{**kw, "on_results": record})
 
-        limited = settings.model_copy(update={"job_time_limit_s": 0.5})
+        limited = settings.model_copy(update={"job_time_limit_s": 3.0})
         assert _run(make_env(pipeline, settings_=limited), job_id) == JobState.FAILED
         job = read_job(settings, job_id)
         assert results_at, "the results came before the limit"
