@@ -75,72 +75,81 @@ def _spread(count: int, rooms: int, nx: int) -> list[int]:
     return sorted(order[:count])
 
 
+def _room_view(scene: Any, points: np.ndarray, box: tuple[float, ...], cell_m: float, halo_m: float,
+               frame_ids: Any) -> tuple[Any, np.ndarray]:  # fmt: skip
+    """The bundle of one tile whose core is the room's rectangle ``box``, grown by ``halo_m``, with ``frame_ids``
+    (a callable of the tile's cell rectangle and halo cells, so it can ask the planner's counts), and its core."""
+    from panogs_core.tiling.plan import TilePlan, TileSpec
+    from panogs_core.tiling.view import tile_bundle
+
+    lo = points[:, :2].min(axis=0).astype(np.float64)
+    grid = tuple(int(v) for v in np.floor((points[:, :2].max(axis=0) - lo) / cell_m) + 1)
+    h = round(halo_m / cell_m)
+    cell = lambda v, o: int(np.floor((v - o) / cell_m))  # noqa: E731
+    rect = (cell(box[0], lo[0]), cell(box[1], lo[0]) + 1, cell(box[2], lo[1]), cell(box[3], lo[1]) + 1)
+    grown = (box[0] - halo_m, box[1] + halo_m, box[2] - halo_m, box[3] + halo_m)
+    spec = TileSpec(index=0, core_cells=rect, core_box=box, halo_box=grown, core_points=0, halo_points=0,
+                    frame_ids=tuple(frame_ids(lo, grid, rect, h)), estimated_bytes=0.0)  # fmt: skip
+    plan = TilePlan(origin=(float(lo[0]), float(lo[1])), cell_m=cell_m, halo_cells=h, grid=grid, tiles=(spec,),
+                    tiled=True, reason="one room", whole_estimated_bytes=0.0)  # fmt: skip
+    return tile_bundle(scene, plan, spec, points)
+
+
+def _overrides(sets: tuple[str, ...]) -> Any:
+    import yaml
+
+    from panogs_core.pipeline.config import PipelineConfig
+
+    overrides: dict[str, Any] = {"appearance": {"enabled": False}}
+    for kv in sets:
+        key, value = kv.split("=", 1)
+        section, name = key.split(".", 1)
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    return PipelineConfig().with_overrides(overrides)
+
+
 def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str) -> None:
     """``--one-room``: the room's primitives and the frames standing in it, run untiled (its own process)."""
-    from panogs_core.pipeline.config import PipelineConfig
     from panogs_core.pipeline.run import run_pipeline
-    from panogs_core.tiling.plan import TilePlan, TileSpec, key_frames
-    from panogs_core.tiling.view import tile_bundle
+    from panogs_core.tiling.plan import key_frames
 
     scene = open_bundle(bundle)
     geometry = scene.read_geometry()
     assert geometry is not None
-    points = geometry.points
-    lo = points[:, :2].min(axis=0)
-    grid = tuple(int(v) for v in np.ceil((points[:, :2].max(axis=0) - lo) / CELL_M) + 1)
     box = tuple(float(v) for v in (x0, x1, y0, y1))
-    cells = (int((box[0] - lo[0]) // CELL_M), int((box[1] - lo[0]) // CELL_M) + 1,
-             int((box[2] - lo[1]) // CELL_M), int((box[3] - lo[1]) // CELL_M) + 1)  # fmt: skip
-    inside = [f.id for f in key_frames(scene)
-              if box[0] <= f.T_world_cam[0, 3] < box[1] and box[2] <= f.T_world_cam[1, 3] < box[3]]  # fmt: skip
-    spec = TileSpec(index=0, core_cells=cells, core_box=box, halo_box=box, core_points=0, halo_points=0,
-                    frame_ids=tuple(inside), estimated_bytes=0.0)  # fmt: skip
-    plan = TilePlan(origin=(float(lo[0]), float(lo[1])), cell_m=CELL_M, halo_cells=0, grid=grid, tiles=(spec,),
-                    tiled=True, reason="one room", whole_estimated_bytes=0.0)  # fmt: skip
-    view, _ = tile_bundle(scene, plan, spec, points)
+
+    def standing_inside(*_: Any) -> list[str]:
+        return [f.id for f in key_frames(scene)
+                if box[0] <= f.T_world_cam[0, 3] < box[1] and box[2] <= f.T_world_cam[1, 3] < box[3]]  # fmt: skip
+
+    view, _ = _room_view(scene, geometry.points, box, CELL_M, 0.0, standing_inside)
     np.save(Path(out).with_suffix(".index.npy"), view.point_index)
-    run_pipeline(view, out, PipelineConfig().with_overrides({"appearance": {"enabled": False}}))
+    run_pipeline(view, out, _overrides(()))
 
 
 def _room_tile(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, halo: str, *sets: str) -> None:
     """``--one-room-tile``: the room as one tile of its own: core its rectangle, a halo of ``halo`` m, the frames
     the planner would give it (those that see ``min_frame_points`` of its core and halo), with overrides ``sets``
     (``SECTION.KEY=VALUE``); untiled, in its own process."""
-    import yaml
-
-    from panogs_core.pipeline.config import PipelineConfig
     from panogs_core.pipeline.run import run_pipeline
-    from panogs_core.tiling.plan import TilePlan, TileSpec, TilingConfig, _cell_counts, key_frames
-    from panogs_core.tiling.view import tile_bundle
+    from panogs_core.tiling.plan import TilingConfig, _cell_counts, key_frames
 
     scene = open_bundle(bundle)
     geometry = scene.read_geometry()
     assert geometry is not None
-    points = geometry.points
     cfg = TilingConfig()
-    lo = points[:, :2].min(axis=0).astype(np.float64)
-    grid = tuple(int(v) for v in np.floor((points[:, :2].max(axis=0) - lo) / cfg.cell_m) + 1)
-    box = tuple(float(v) for v in (x0, x1, y0, y1))
-    h = round(float(halo) / cfg.cell_m)
-    cell = lambda v, o: int(np.floor((v - o) / cfg.cell_m))  # noqa: E731
-    rect = (cell(box[0], lo[0]), cell(box[1], lo[0]) + 1, cell(box[2], lo[1]), cell(box[3], lo[1]) + 1)
     frames = key_frames(scene)
-    counts = _cell_counts(scene, points, frames, lo, grid, cfg, None)
-    seeing = counts.frames_seeing(rect[0] - h, rect[1] + h, rect[2] - h, rect[3] + h, cfg.min_frame_points)
-    grown = (box[0] - float(halo), box[1] + float(halo), box[2] - float(halo), box[3] + float(halo))
-    spec = TileSpec(index=0, core_cells=rect, core_box=box, halo_box=grown, core_points=0, halo_points=0,
-                    frame_ids=tuple(frames[k].id for k in seeing), estimated_bytes=0.0)  # fmt: skip
-    plan = TilePlan(origin=(float(lo[0]), float(lo[1])), cell_m=cfg.cell_m, halo_cells=h, grid=grid, tiles=(spec,),
-                    tiled=True, reason="one room as a tile", whole_estimated_bytes=0.0)  # fmt: skip
-    view, core = tile_bundle(scene, plan, spec, points)
+
+    def planner_frames(lo: np.ndarray, grid: tuple[int, int], rect: tuple[int, ...], h: int) -> list[str]:
+        counts = _cell_counts(scene, geometry.points, frames, lo, grid, cfg, None)
+        seeing = counts.frames_seeing(rect[0] - h, rect[1] + h, rect[2] - h, rect[3] + h, cfg.min_frame_points)
+        return [frames[k].id for k in seeing]
+
+    box = tuple(float(v) for v in (x0, x1, y0, y1))
+    view, core = _room_view(scene, geometry.points, box, cfg.cell_m, float(halo), planner_frames)
     np.save(Path(out).with_suffix(".index.npy"), view.point_index)
     np.save(Path(out).with_suffix(".core.npy"), core)
-    overrides: dict[str, Any] = {"appearance": {"enabled": False}}
-    for kv in sets:
-        key, value = kv.split("=", 1)
-        section, name = key.split(".", 1)
-        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
-    run_pipeline(view, out, PipelineConfig().with_overrides(overrides))
+    run_pipeline(view, out, _overrides(sets))
 
 
 def _room_tile_miou(bundle: Path, alone: Path, variant: Path) -> tuple[float, int]:
@@ -233,6 +242,7 @@ def main() -> None:
     assert len(boxes) == nx * ny, f"{len(boxes)} floors found, expected {nx * ny} rooms"
     print("\n| room | primitives | frames | mIoU alone / in the building (delta) | PRQ(T) | PRQ(S) |")
     print("|---|---:|---:|---|---|---|")
+    alone_miou = {}
     for r in _spread(args.alone, nx * ny, nx):
         alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}"
         if not (alone / "report.json").is_file():
@@ -241,6 +251,7 @@ def main() -> None:
             doc = json.loads((alone / "report.json").read_text())
             (alone / "report.json").write_text(json.dumps({**doc, "box": list(boxes[r])}))
         row = _compare_room(bundle, run, alone)
+        alone_miou[r] = row["alone"]["miou"]
         cells = [f"{row['alone'][k]:.3f} / {row['building'][k]:.3f} ({row['building'][k] - row['alone'][k]:+.3f})"
                  for k in ("miou", "prq_t", "prq_s")]  # fmt: skip
         print(f"| {r} ({r % nx}, {r // nx}) | {row['primitives']:,} | {row['frames']} | " + " | ".join(cells) + " |")
@@ -257,7 +268,7 @@ def main() -> None:
                 subprocess.run([sys.executable, __file__, "--one-room-tile", str(bundle), str(variant),
                                 *map(str, boxes[r]), halo, *sets], cwd=REPO, check=True)  # fmt: skip
             miou, frames = _room_tile_miou(bundle, alone, variant)
-            own = _compare_room(bundle, run, alone)["alone"]["miou"]
+            own = alone_miou[r]
             print(f"| {r} | {halo}, {' '.join(sets) or 'defaults'} | {frames} | {miou:.3f} ({miou - own:+.3f}) |")
 
 

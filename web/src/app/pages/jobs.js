@@ -75,11 +75,11 @@ export function updateJobRow(row, job, scenes, refresh) {
     if (i !== MESSAGE_CELL) return old.replaceWith(cell);
     old.querySelector("[data-role=error]").replaceWith(cell.querySelector("[data-role=error]"));
   });
-  setRowState(row, job);
+  setRowState(row, job, shown);
 }
 
-function setRowState(row, job) {
-  row.pgsShown = JSON.stringify(job);
+function setRowState(row, job, shown = JSON.stringify(job)) {
+  row.pgsShown = shown;
   Object.assign(row.dataset, {
     state: job.state,
     results: resultsReady(job) ? "ready" : "pending",
