@@ -293,7 +293,7 @@ def _positive_int(text: str) -> int:
 
 
 def _tiles_choice(text: str) -> str | tuple[int, int]:
-    from panogs_core.tiling.plan import parse_tiles
+    from panogs_core.tiling.choice import parse_tiles  # not plan.py: it loads numpy (argparse parses the default)
 
     try:
         return parse_tiles(text)

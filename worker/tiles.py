@@ -61,7 +61,7 @@ TILES_KEY = "tiles/"  # the tiles' folders and the plan, under the job's folder 
 
 def tiles_asked(job: Job) -> str | tuple[int, int]:
     """What the job asked of the planner: ``off`` (no ``tiling``, the default), ``auto`` or ``(nx, ny)``."""
-    from panogs_core.tiling.plan import parse_tiles
+    from panogs_core.tiling.choice import parse_tiles
 
     tiling = job.tiling or {}
     return parse_tiles(str(tiling.get("tiles", TILES_OFF)))

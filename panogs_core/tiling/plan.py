@@ -25,7 +25,6 @@ import hashlib
 import json
 import math
 import os
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,11 +36,9 @@ from panogs_core.errors import ConfigError, InputError
 from panogs_core.io.bundle import Bundle
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.visibility import VisibilityConfig, frame_visibility
+from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
 from panogs_core.types import Frame
 
-TILES_AUTO = "auto"
-TILES_OFF = "off"
-_GRID = re.compile(r"^([1-9][0-9]?)x([1-9][0-9]?)$")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -225,20 +222,6 @@ class TilePlan:
             tiled=bool(doc["tiled"]), reason=str(doc["reason"]),
             whole_estimated_bytes=float(doc["whole_estimated_bytes"]),
         )  # fmt: skip
-
-
-def parse_tiles(text: str) -> str | tuple[int, int]:
-    """``auto``, ``off`` or ``NxM`` (tiles along x, along y); ValueError otherwise.
-
-    >>> parse_tiles("2x3"), parse_tiles("auto")
-    ((2, 3), 'auto')
-    """
-    if text in (TILES_AUTO, TILES_OFF):
-        return text
-    match = _GRID.match(text)
-    if match is None:
-        raise ValueError(f"--tiles: expected auto, off or NxM (e.g. 2x2), got {text!r}")
-    return int(match.group(1)), int(match.group(2))
 
 
 def key_frames(bundle: Bundle) -> tuple[Frame, ...]:

@@ -36,7 +36,8 @@ from panogs_core.pipeline.run import (
     vocabulary_label,
 )
 from panogs_core.tiling.merge import TileLabels, merge_tiles
-from panogs_core.tiling.plan import TILES_AUTO, TILES_OFF, TilePlan, TilingConfig, plan_tiles
+from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
+from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
 from panogs_core.tiling.tile import plan_path, release_memory, run_tile, tile_folder
 from panogs_core.types import Vocabulary
 
@@ -64,7 +65,7 @@ def run_tiled(
     Args:
         bundle, out_dir, config, vocabulary, on_progress, resume, on_results: as :func:`run_pipeline`.
             Progress names the stages ``plan``, ``tile <k>/<K> <stage>`` and ``merge``.
-        tiles: ``auto``, ``off`` or ``(nx, ny)`` (``panogs_core.tiling.plan.parse_tiles``).
+        tiles: ``auto``, ``off`` or ``(nx, ny)`` (``panogs_core.tiling.choice.parse_tiles``).
         tiling: Planner settings (memory target, halo).
         tile_workers: Tiles run at once, each in a process of its own (1: one after another, in this process).
 

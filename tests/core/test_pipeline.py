@@ -424,3 +424,32 @@ def test_the_cli_prints_the_results_before_the_fit(
     assert "fitting the Gaussian scene" in before_fit[0]
     assert "gaussians: PSNR" not in before_fit[0]
     assert "gaussians: PSNR" in after
+
+
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
+def test_a_checkpoint_that_cannot_be_written_fails_the_run_and_names_no_file(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Checkpoints are written by a thread beside the next stages: its error must still end the run, and the
+    manifest must name no file but the one made with its key (a resumed run reads what the key names)."""
+    from panogs_core.stages.clustering import Clusters
+
+    out, _, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+    before = json.loads((tmp_path / "stages" / "manifest.json").read_text())
+    old_clusters = (tmp_path / "stages" / "clustering.npz").read_bytes()
+    cfg = SHORT_FIT.with_overrides({"clustering": {"thresholds": [0.9, 0.7, 0.5]}})  # clustering computed again
+
+    def full_disk(self: object, path: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Clusters, "save", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        run_pipeline(tiny_bundle, tmp_path, cfg)
+    manifest = json.loads((tmp_path / "stages" / "manifest.json").read_text())
+    assert manifest.get("clustering") in (None, before["clustering"])
+    assert (tmp_path / "stages" / "clustering.npz").read_bytes() == old_clusters, "the old key's file is intact"
+    assert {s: manifest[s] for s in ("fusion", "superprimitives")} == {
+        s: before[s] for s in ("fusion", "superprimitives")
+    }, "the stages before keep theirs"
+    assert "labeling" not in manifest or manifest["labeling"] == before["labeling"], "no stage after it was recorded"

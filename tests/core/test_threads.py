@@ -104,10 +104,12 @@ def test_panogs_run_limits_every_pool_before_the_pipeline_loads() -> None:
 
 def test_panogs_parser_loads_no_thread_pool() -> None:
     """``panogs worker`` and ``panogs run`` set the limits after parsing their arguments: the parser (every
-    command's module, the service's and the viewer's included) must not have loaded numpy or torch by then."""
+    command's module, the service's and the viewer's included) must not have loaded numpy or torch by then, nor
+    the parsing of ``run``'s arguments (argparse converts the string default of ``--tiles`` too: it once loaded the
+    tiling planner, so ``panogs run`` kept the libraries' own pools and imported torch inside the fusion)."""
     code = (
         "import sys\nfrom panogs_core.cli import build_parser\nfrom panogs_core.threads import loaded_too_early\n"
-        "build_parser()\nprint(loaded_too_early())"
+        "build_parser().parse_args(['run', 'bundle', '--out', 'out'])\nprint(loaded_too_early())"
     )
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
