@@ -40,7 +40,6 @@ from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
 from panogs_core.types import Frame
 
 
-
 @dataclass(frozen=True, kw_only=True)
 class TilingConfig:
     """Settings of the planner.

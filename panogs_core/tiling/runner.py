@@ -35,8 +35,8 @@ from panogs_core.pipeline.run import (
     run_pipeline,
     vocabulary_label,
 )
-from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
+from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
 from panogs_core.tiling.tile import plan_path, release_memory, run_tile, tile_folder
 from panogs_core.types import Vocabulary

@@ -18,8 +18,8 @@ from panogs_core.pipeline.run import run_pipeline
 from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 from panogs_core.synthetic import make_building, make_scene
-from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.choice import parse_tiles
+from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
 from panogs_core.tiling.runner import run_tiled
 from panogs_core.tiling.view import tile_bundle
