@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import ConfigError, ShapeError
+from panogs_core.io.npz import save_npz
 
 # 1 / (2 sqrt(pi)), the DC band's basis value: here rather than in spherical_harmonics, which imports torch.
 SH_C0 = 0.28209479177387814
@@ -184,16 +185,15 @@ class GaussianScene:
     def save(self, path: str | Path) -> None:
         """One ``.npz`` at exactly ``path`` (no pickles)."""
         scalars = {k: v for k, v in self.summary().items() if k not in ("sh_degree",)}
-        with open(path, "wb") as fh:
-            np.savez(
-                fh,
-                means=self.means,
-                sh=self.sh,
-                opacity_logits=self.opacity_logits,
-                log_scales=self.log_scales,
-                quats=self.quats,
-                summary=np.array(json.dumps(scalars)),
-            )
+        save_npz(
+            path,
+            means=self.means,
+            sh=self.sh,
+            opacity_logits=self.opacity_logits,
+            log_scales=self.log_scales,
+            quats=self.quats,
+            summary=np.array(json.dumps(scalars)),
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> GaussianScene:

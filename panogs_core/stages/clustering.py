@@ -28,6 +28,7 @@ import numpy as np
 from scipy import sparse
 
 from panogs_core.errors import ConfigError
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.affinity import SegmentAffinity, segment_adjacency
 
@@ -94,8 +95,7 @@ class Clusters:
 
     def save(self, path: str | Path) -> None:
         """Write one ``.npz`` at exactly ``path``."""
-        with open(path, "wb") as fh:
-            np.savez(fh, labels=self.labels)
+        save_npz(path, labels=self.labels)
 
     @classmethod
     def load(cls, path: str | Path) -> Clusters:

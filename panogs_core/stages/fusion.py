@@ -45,6 +45,7 @@ from scipy import sparse
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.visibility import Visibility
 from panogs_core.types import Frame
@@ -119,8 +120,7 @@ class FusedFeatures:
         }
         if self.colors is not None:
             arrays["colors"] = self.colors
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
+        save_npz(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> FusedFeatures:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 
 if TYPE_CHECKING:
@@ -71,8 +72,7 @@ class MaskObservations:
 
     def save(self, path: str | Path) -> None:
         """Write one ``.npz`` at exactly ``path``."""
-        with open(path, "wb") as fh:
-            np.savez(fh, offsets=self.offsets, point_index=self.point_index, label=self.label)
+        save_npz(path, offsets=self.offsets, point_index=self.point_index, label=self.label)
 
     @classmethod
     def load(cls, path: str | Path) -> MaskObservations:

@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from panogs_core.errors import InputError, ShapeError
+from panogs_core.io.npz import save_npz
 
 
 @dataclass(frozen=True)
@@ -29,8 +30,7 @@ class KnnGraph:
 
     def save(self, path: str | Path) -> None:
         """Write one ``.npz`` at exactly ``path``."""
-        with Path(path).open("wb") as fh:  # a handle: np.savez would append ".npz" to a bare path
-            np.savez(fh, neighbors=self.neighbors, distances=self.distances)
+        save_npz(path, neighbors=self.neighbors, distances=self.distances)
 
     @classmethod
     def load(cls, path: str | Path) -> KnnGraph:

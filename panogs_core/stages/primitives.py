@@ -34,6 +34,7 @@ import numpy as np
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Frame
 
@@ -156,8 +157,7 @@ class Primitives:
         }
         if self.colors is not None:
             arrays["colors"] = self.colors
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
+        save_npz(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> Primitives:

@@ -25,6 +25,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.masks import MaskObservations
 from panogs_core.stages.neighbors import KnnGraph
@@ -92,8 +93,7 @@ class SuperPrimitives:
 
     def save(self, path: str | Path) -> None:
         """Write ``labels`` to one ``.npz`` at exactly ``path``."""
-        with Path(path).open("wb") as fh:  # a handle: np.savez would append ".npz" to a bare path
-            np.savez(fh, labels=self.labels)
+        save_npz(path, labels=self.labels)
 
     @classmethod
     def load(cls, path: str | Path) -> SuperPrimitives:

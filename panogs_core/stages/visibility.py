@@ -31,6 +31,7 @@ import numpy as np
 
 from panogs_core.errors import ConfigError, ShapeError
 from panogs_core.io.bundle import Bundle
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Frame
 
@@ -111,8 +112,7 @@ class Visibility:
         }
         if self.depth_residual is not None:
             arrays["depth_residual"] = self.depth_residual
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
+        save_npz(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> Visibility:

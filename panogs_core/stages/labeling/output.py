@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from panogs_core.errors import InputError
+from panogs_core.io.npz import save_npz
 from panogs_core.types import Vocabulary
 
 
@@ -66,22 +67,21 @@ class PanopticLabels:
         inst = self.instances
         dim = inst[0].feature.shape[0] if inst else 0
         text = json.dumps([[i.class_name, i.kind] for i in inst])
-        with open(path, "wb") as fh:
-            np.savez(
-                fh,
-                semantic=self.semantic,
-                instance=self.instance,
-                inst_id=np.array([i.id for i in inst], np.int64),
-                inst_class=np.array([i.class_index for i in inst], np.int64),
-                inst_score=np.array([i.score for i in inst], np.float64),
-                inst_num_points=np.array([i.num_points for i in inst], np.int64),
-                inst_centroid=_stack([i.centroid for i in inst], 3),
-                inst_bbox_min=_stack([i.bbox_min for i in inst], 3),
-                inst_bbox_max=_stack([i.bbox_max for i in inst], 3),
-                inst_feature=_stack([i.feature for i in inst], dim),
-                inst_text=np.array(text),
-                unseen=np.array(json.dumps(self.unseen)),
-            )
+        save_npz(
+            path,
+            semantic=self.semantic,
+            instance=self.instance,
+            inst_id=np.array([i.id for i in inst], np.int64),
+            inst_class=np.array([i.class_index for i in inst], np.int64),
+            inst_score=np.array([i.score for i in inst], np.float64),
+            inst_num_points=np.array([i.num_points for i in inst], np.int64),
+            inst_centroid=_stack([i.centroid for i in inst], 3),
+            inst_bbox_min=_stack([i.bbox_min for i in inst], 3),
+            inst_bbox_max=_stack([i.bbox_max for i in inst], 3),
+            inst_feature=_stack([i.feature for i in inst], dim),
+            inst_text=np.array(text),
+            unseen=np.array(json.dumps(self.unseen)),
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> PanopticLabels:

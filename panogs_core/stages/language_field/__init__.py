@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from panogs_core.errors import InputError, ShapeError
+from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn
 from panogs_core.stages.language_field.config import LanguageFieldConfig
 from panogs_core.threads import torch_threads
@@ -45,8 +46,7 @@ class LanguageField:
         """Write one ``.npz`` at exactly ``path``: features, bounds, each state array as ``state.<name>``."""
         arrays: dict[str, Any] = {f"{_STATE_PREFIX}{k}": v for k, v in self.state.items()}
         arrays.update(features=self.features, bounds=self.bounds)
-        with Path(path).open("wb") as fh:  # a handle: np.savez would append ".npz" to a bare path
-            np.savez(fh, **cast(dict[str, Any], arrays))
+        save_npz(path, **cast(dict[str, Any], arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> LanguageField:
