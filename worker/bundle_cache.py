@@ -10,6 +10,8 @@ fetch its whole bundle again: at ScanNet size that fetch was most of a re-run's 
   exclusive one), so that a sweep in another worker process never removes a bundle a job is reading.
 - **Bounded, and gone with the scene.** After each job the entries beyond ``max_bytes`` (least recently used
   first) and those whose scene no longer exists are removed, unless in use; ``max_bytes`` 0 keeps nothing.
+- **The scene's checkpoints beside its bundle.** ``<scene id>.stages/`` holds this worker's copies of the scene's
+  stage checkpoints (``worker/shared_checkpoints.py``); it counts in the entry's size and goes with the bundle.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from service.storage import Storage, dir_size
 logger = logging.getLogger(__name__)
 
 COMPLETE = ".complete"  # inside an entry: its size in bytes; written last
+STAGES_SUFFIX = ".stages"  # <scene id>.stages/: the worker's copies of the scene's checkpoints
 
 
 class BundleCache:
@@ -44,6 +47,10 @@ class BundleCache:
 
     def _entry(self, scene_id: uuid.UUID) -> Path:
         return self.folder / str(scene_id)
+
+    def stages_folder(self, scene_id: uuid.UUID) -> Path:
+        """Where this worker keeps its copies of the scene's stage checkpoints (used while the bundle is)."""
+        return self.folder / f"{scene_id}{STAGES_SUFFIX}"
 
     @contextmanager
     def _locked(self, scene_id: uuid.UUID, mode: int) -> Iterator[IO[bytes]]:
@@ -89,11 +96,16 @@ class BundleCache:
                 continue
             if not path.is_dir():
                 continue
+            if path.name.endswith(STAGES_SUFFIX):
+                self._remove_orphan_stages(path)
+                continue
             try:
                 scene_id = uuid.UUID(path.name)
                 size = int((path / COMPLETE).read_text())
             except (ValueError, OSError):
                 continue  # being fetched (no mark yet), or not ours
+            stages = self.stages_folder(scene_id)
+            size += dir_size(stages) if stages.is_dir() else 0
             entries.append((path.stat().st_mtime, scene_id, size))
         existing = self.live([scene_id for _, scene_id, _ in entries])
         kept = 0
@@ -108,11 +120,25 @@ class BundleCache:
         try:
             with self._locked(scene_id, fcntl.LOCK_EX | fcntl.LOCK_NB):
                 shutil.rmtree(self._entry(scene_id), ignore_errors=True)
+                shutil.rmtree(self.stages_folder(scene_id), ignore_errors=True)
         except BlockingIOError:
             return False
         # The lock file stays (empty): removing it could let two processes lock two files of one name.
         logger.info("bundle of scene %s removed from this worker's cache", scene_id)
         return True
+
+    def _remove_orphan_stages(self, stages: Path) -> None:
+        """Checkpoint copies whose bundle is no longer here (removed by hand, or a fetch that failed) go."""
+        try:
+            scene_id = uuid.UUID(stages.name[: -len(STAGES_SUFFIX)])
+        except ValueError:
+            return
+        try:
+            with self._locked(scene_id, fcntl.LOCK_EX | fcntl.LOCK_NB):
+                if not (self._entry(scene_id) / COMPLETE).is_file():
+                    shutil.rmtree(stages, ignore_errors=True)
+        except BlockingIOError:
+            return  # in use
 
     def _remove_unless_fetching(self, tmp: Path) -> None:
         try:

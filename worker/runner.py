@@ -408,20 +408,31 @@ def bundle_in(stack: ExitStack, env: JobEnv, job: Job, bundle_path: str, scratch
     """The scene's bundle on this host for a task of ``job`` (object storage): from the worker's bundle cache, held
     until ``stack`` closes (then the cache is swept), or fetched into ``scratch`` when the cache is off."""
     storage = env.storage
-    if env.settings.bundle_cache_bytes <= 0:
+    bundles = _bundle_cache(env)
+    if bundles is None:
         bundle_dir = scratch / "bundle"
         storage.fetch_tree(bundle_path.rstrip("/") + "/", bundle_dir)
         return bundle_dir
-    bundles = BundleCache(
-        storage, storage.root / "work" / "bundles", env.settings.bundle_cache_bytes, lambda ids: _scenes_alive(env, ids)
-    )
     stack.callback(_sweep_quietly, bundles)  # after the task: within the bound, no deleted scene's bundle
     return stack.enter_context(bundles.use(job.scene_id, bundle_path))
+
+
+def _bundle_cache(env: JobEnv) -> BundleCache | None:
+    """This worker's cache of bundles (and of their scenes' checkpoints), or None when it keeps none."""
+    if env.storage.is_local or env.settings.bundle_cache_bytes <= 0:
+        return None
+    return BundleCache(
+        env.storage,
+        env.storage.root / "work" / "bundles",
+        env.settings.bundle_cache_bytes,
+        lambda ids: _scenes_alive(env, ids),
+    )
 
 
 def _run_in(
     job: Job, tracker: Tracker, env: JobEnv, vocabulary: str | Vocabulary | None, bundle_dir: Path, out_dir: Path
 ) -> JobState | None:
+    bundles = _bundle_cache(env)
     shared = SceneCheckpoints(
         env.storage,
         job.scene_id,
@@ -429,6 +440,7 @@ def _run_in(
         lease_s=env.settings.heartbeat_timeout_s,
         on_wait=lambda stage: tracker.on_progress(stage, 0, 1),
         on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
+        local_copies=None if bundles is None else bundles.stages_folder(job.scene_id),
     )
     tracker.shared = shared
     if tracker.push is not None:

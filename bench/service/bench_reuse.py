@@ -8,7 +8,9 @@ Each round and backend gets a scene of its own (so nothing is shared across them
 the ``--preset`` room generated into ``--work`` when it is missing. On that scene the worker's
 ``runner.execute_job`` (what a Celery task runs: claim, fetch, the real pipeline, store, record) runs three jobs in
 turn: the defaults (the first run: every stage computed, the appearance fit included), then only the clustering
-thresholds changed, then only a labelling setting changed. The database is the embedded SQLite of each backend's
+thresholds changed, then only a labelling setting changed, then other clustering thresholds once the worker's
+copies of the scene's checkpoints are removed (``clustering-cold``: a re-run on another worker that has the
+bundle; with local files it is one more re-run). The database is the embedded SQLite of each backend's
 data folder; the bundle is placed once per backend (hard links for local, uploaded for S3) and each scene points at
 it. Prints per job its seconds, the stages taken from the scene's checkpoints, the seconds spent fetching those
 checkpoints (``SceneCheckpoints.fetch``) and, on S3, fetching the bundle into the task's scratch folder.
@@ -41,6 +43,7 @@ from service.settings import Settings
 from service.storage import Storage
 from service.storage.backends import open_storage
 from worker import runner, shared_checkpoints
+from worker.bundle_cache import STAGES_SUFFIX
 from worker.device import device_config_factory
 
 BUNDLE_PREFIX = "bench-bundle"
@@ -48,7 +51,11 @@ JOBS = {
     "first": {},
     "clustering": {"clustering": {"thresholds": [0.9, 0.75, 0.6]}},
     "labeling": {"labeling": {"min_instance_points": 80}},
+    # As "clustering" (other thresholds), on a worker that holds the bundle but none of the scene's checkpoint
+    # copies: what a re-run on another worker reads from the store (S3 only: nothing is copied with local files).
+    "clustering-cold": {"clustering": {"thresholds": [0.85, 0.7, 0.55]}},
 }
+COLD = "clustering-cold"
 FETCHED_S: list[float] = []  # seconds of each checkpoint fetch of the job that runs
 
 
@@ -163,6 +170,11 @@ def run_job(env: runner.JobEnv, tenant: uuid.UUID, scene: uuid.UUID, config: dic
     }
 
 
+def forget_checkpoint_copies(env: runner.JobEnv, scene: uuid.UUID) -> None:
+    """Remove this worker's copies of the scene's checkpoints (``worker/bundle_cache.py``), keeping its bundle."""
+    shutil.rmtree(env.storage.root / "work" / "bundles" / f"{scene}{STAGES_SUFFIX}", ignore_errors=True)
+
+
 def load_average() -> str:
     """The 1, 5 and 15 minute load averages (as ``uptime`` prints them)."""
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
@@ -211,6 +223,8 @@ def main() -> None:
                 env, tenant = envs[backend]
                 scene = new_scene(env.settings, tenant, bundle)
                 for name, config in JOBS.items():
+                    if name == COLD:
+                        forget_checkpoint_copies(env, scene)
                     load_before = load_average()
                     row = {
                         "round": round_ + 1,
