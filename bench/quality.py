@@ -40,6 +40,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   same primitives visited, half the steps)
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
+- vis-cap-0.15 / vis-cap-0.25: the depth test's tolerance (7 % of the depth) capped at 0.15 / 0.25 m
+  (``visibility.depth_max_tol``: far from the camera, 7 % passes the far side of a wall)
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
   reference-grouping: the grouping ablations (they recompute the graph cut or the clustering)
 """
@@ -100,6 +102,8 @@ VARIANTS: dict[str, dict] = {
     "mean-affinity": {"affinity": {"aggregate": "mean"}},
     "depth-filter": {"affinity": {"mask_depth_mad": 3.0}},
     "reference-grouping": {"superprimitives": {"split_purity": 0.0}, "affinity": {"aggregate": "mean"}},
+    "vis-cap-0.15": {"visibility": {"depth_max_tol": 0.15}},
+    "vis-cap-0.25": {"visibility": {"depth_max_tol": 0.25}},
 }
 NO_FIT = {"appearance": {"enabled": False}}
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")

@@ -8,7 +8,8 @@ view m when its projection lands inside the depth image and its camera depth agr
 * pixel ``(u, v) = rint(K X_c / z)``, round half to even like ``torch.round``; in bounds when
   ``0 <= u <= W - 1`` and ``0 <= v <= H - 1`` (docs/method.md pitfall 8);
 * depth test ``|z - D| <= depth_rtol * D + depth_atol`` with ``D`` the sensor depth at that pixel (the
-  reference's ``np.isclose(z, D, rtol=0.07)``); ``D == 0`` (no depth) is never seen;
+  reference's ``np.isclose(z, D, rtol=0.07)``), at most ``depth_max_tol`` when set; ``D == 0`` (no depth) is
+  never seen;
 * a frame whose pose is not finite (ScanNet has ``-inf`` poses, docs/method.md pitfall 23) sees nothing.
 
 The result is computed once and shared by fusion (stage 3) and the mask look-ups (``masks``).
@@ -51,6 +52,9 @@ class VisibilityConfig:
     # m, absolute floor added to the tolerance. The reference's np.isclose uses 1e-8 m, i.e. nothing; 0 keeps
     # its behaviour. Real depth noise is relative (grows with depth), which rtol already covers: 7 cm at 1 m.
     depth_atol: float = 0.0
+    # m, the most the tolerance may reach, or None (the reference: no cap). 7 % of the depth is 0.4 m at 5.7 m,
+    # more than any sensor's noise there and more than a wall's thickness: the far side of a wall passes.
+    depth_max_tol: float | None = None
     z_near: float = 1e-6  # m, points at camera z <= z_near are out (behind the camera; reference clamps 1e-8)
 
     def __post_init__(self) -> None:
@@ -58,6 +62,8 @@ class VisibilityConfig:
             raise ConfigError(f"visibility.depth_rtol: expected 0 < depth_rtol < 1, got {self.depth_rtol!r}")
         if not (math.isfinite(self.depth_atol) and self.depth_atol >= 0):
             raise ConfigError(f"visibility.depth_atol: expected a finite value >= 0, got {self.depth_atol!r}")
+        if self.depth_max_tol is not None and not (math.isfinite(self.depth_max_tol) and self.depth_max_tol > 0):
+            raise ConfigError(f"visibility.depth_max_tol: expected null or a value > 0, got {self.depth_max_tol!r}")
         if not (math.isfinite(self.z_near) and self.z_near > 0):
             raise ConfigError(f"visibility.z_near: expected a finite value > 0, got {self.z_near!r}")
 
@@ -210,7 +216,10 @@ def frame_visibility(
     col, row = u[inside].astype(np.int32), v[inside].astype(np.int32)
     d = depth[row, col]  # sensor depth at the pixel
     # docs/method.md pitfall 8; D = 0 is never seen
-    seen = (d > 0) & (np.abs(z - d) <= cfg.depth_rtol * d + cfg.depth_atol)
+    tolerance = cfg.depth_rtol * d + cfg.depth_atol
+    if cfg.depth_max_tol is not None:
+        tolerance = np.minimum(tolerance, np.float32(cfg.depth_max_tol))
+    seen = (d > 0) & (np.abs(z - d) <= tolerance)
     residual = ((z[seen] - d[seen]) / d[seen]).astype(np.float16)  # |residual| <= rtol: float16 keeps 3 digits
     return idx[seen].astype(np.int32), row[seen], col[seen], residual
 

@@ -127,6 +127,15 @@ class TestComputeVisibility:
         seen = compute_visibility(_plane_scene(), points, VisibilityConfig(depth_atol=0.2)).frame(0)[0]
         assert seen.tolist() == [0]
 
+    def test_depth_max_tol_caps_the_tolerance(self) -> None:
+        # The plane stands at 2 m: 7 % is 0.14 m. A point 0.1 m behind it passes, unless the cap is under 0.1 m.
+        points = np.array([[0.0, 0.0, 2.1]], np.float32)
+        assert compute_visibility(_plane_scene(), points, VisibilityConfig()).frame(0)[0].tolist() == [0]
+        capped = VisibilityConfig(depth_max_tol=0.05)
+        assert compute_visibility(_plane_scene(), points, capped).frame(0)[0].size == 0
+        near = np.array([[0.0, 0.0, 2.04]], np.float32)  # within the cap: still seen
+        assert compute_visibility(_plane_scene(), near, capped).frame(0)[0].tolist() == [0]
+
     def test_non_finite_pose_sees_nothing(self) -> None:
         bad = np.eye(4)
         bad[0, 3] = -np.inf
@@ -244,7 +253,7 @@ class TestVisibilityConfig:
     @pytest.mark.parametrize(
         ("name", "value"),
         [("depth_rtol", 0.0), ("depth_rtol", 1.5), ("depth_rtol", float("nan")), ("depth_atol", -0.1),
-         ("z_near", 0.0)],
+         ("depth_max_tol", 0.0), ("depth_max_tol", float("inf")), ("z_near", 0.0)],
     )  # fmt: skip
     def test_exception(self, name: str, value: float) -> None:
         with pytest.raises(ConfigError, match=f"visibility.{name}"):
