@@ -126,6 +126,8 @@ class _CheckpointsThroughStops:
     def __init__(self, shared: SceneCheckpoints) -> None:
         self.fetch = stopping_on_storage_errors(shared.fetch)
         self.store = stopping_on_storage_errors(shared.store)
+        self.known_input_hash = stopping_on_storage_errors(shared.known_input_hash)
+        self.keep_input_hash = stopping_on_storage_errors(shared.keep_input_hash)
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from panogs_core.io.bundle import Bundle, open_bundle
 from panogs_core.io.run_folder import BUNDLE_FOLDER, GAUSSIANS_PLY, REPORT_JSON, STAGES_FOLDER
 from panogs_core.pipeline import stage_table as st
 from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.input_hash import hash_bundle
 from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
 from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
@@ -92,23 +93,6 @@ class PipelineResult:
 
 def _hash_json(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def hash_bundle(scene: Bundle) -> str:
-    """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks)."""
-    digest = hashlib.sha256()
-    paths = [scene.root / "scene.json"]
-    for frame in scene.frames:
-        paths += [scene.root / p for p in (frame.depth, frame.color, frame.features, frame.masks) if p]
-    for extra in ("geometry.ply", "vocabulary.json", "vocabulary.npy", "gt/labels.npz"):
-        if (scene.root / extra).is_file():
-            paths.append(scene.root / extra)
-    for path in paths:
-        digest.update(str(path.relative_to(scene.root)).encode())
-        with open(path, "rb") as fh:
-            while chunk := fh.read(1 << 20):
-                digest.update(chunk)
-    return digest.hexdigest()
 
 
 class _Checkpoints:
@@ -178,6 +162,15 @@ class SharedCheckpoints(Protocol):
 
     def store(self, stage: str, key: str, path: Path) -> None:
         """Keep the checkpoint at ``path``, just computed, for later runs."""
+        ...
+
+    def known_input_hash(self) -> str | None:
+        """The bundle's hash (:func:`hash_bundle`) as an earlier run of this same bundle kept it, or None: a
+        scene's bundle never changes, and hashing it is most of a re-run's time at ScanNet size."""
+        ...
+
+    def keep_input_hash(self, sha256: str) -> None:
+        """Keep the bundle's hash, computed by this run, for the later runs of the same bundle."""
         ...
 
 
@@ -321,10 +314,16 @@ class _LazyKeys(Mapping[str, str]):
     record its checkpoint.
     """
 
-    def __init__(self, scene: Bundle, cfg: PipelineConfig, vocab: Vocabulary) -> None:
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash-bundle")
-        self._hash = self._pool.submit(hash_bundle, scene)
-        self._pool.shutdown(wait=False)  # the one task runs on; nothing more is submitted
+    def __init__(self, scene: Bundle, cfg: PipelineConfig, vocab: Vocabulary, known_hash: str | None = None) -> None:
+        self.computed = known_hash is None  # False: the hash came from an earlier run of the same bundle
+        self._hash: Future[str]
+        if known_hash is None:
+            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash-bundle")
+            self._hash = pool.submit(hash_bundle, scene)
+            pool.shutdown(wait=False)  # the one task runs on; nothing more is submitted
+        else:
+            self._hash = Future()
+            self._hash.set_result(known_hash)
         self._cfg, self._vocab = cfg, vocab
         self._keys: dict[str, str] | None = None
 
@@ -448,13 +447,17 @@ def _run_stages(
         lambda _: bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out)),
     )
     vocab = resolve_scene_vocabulary(scene, vocabulary)
-    keys = _LazyKeys(scene, cfg, vocab)
+    shared = runner.shared
+    keys = _LazyKeys(scene, cfg, vocab, None if shared is None else shared.known_input_hash())
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
     result, colors, semantic, instance = _label_scene(runner, keys, scene, prims, cfg, vocab, out)
 
     def report() -> None:
         runner.record_checkpoints(keys, wait=True)
+        if shared is not None and keys.computed:
+            shared.keep_input_hash(keys.input_hash)
+            keys.computed = False  # kept once
         result.total_s = time.perf_counter() - t_start
         _write_report(out, scene, cfg, vocabulary, keys.input_hash, runner.timings, result.total_s, result)
 

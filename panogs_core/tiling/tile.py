@@ -19,8 +19,9 @@ import numpy as np
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.run_folder import LABELS_NPZ, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
 from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.input_hash import hash_bundle
 from panogs_core.pipeline.profiling import StageStats
-from panogs_core.pipeline.run import StageProgressFn, hash_bundle, run_pipeline
+from panogs_core.pipeline.run import StageProgressFn, run_pipeline
 from panogs_core.tiling.plan import TilePlan, TileSpec
 from panogs_core.tiling.view import tile_bundle
 from panogs_core.types import Vocabulary

@@ -453,3 +453,51 @@ def test_a_checkpoint_that_cannot_be_written_fails_the_run_and_names_no_file(
         s: before[s] for s in ("fusion", "superprimitives")
     }, "the stages before keep theirs"
     assert "labeling" not in manifest or manifest["labeling"] == before["labeling"], "no stage after it was recorded"
+
+
+class MemoryCheckpoints:
+    """A shared checkpoint store in memory (the service keeps one per scene in its storage)."""
+
+    def __init__(self) -> None:
+        self.files: dict[tuple[str, str], bytes] = {}
+        self.input_hash: str | None = None
+
+    def fetch(self, stage: str, key: str, dest: Path) -> bool:
+        if (stage, key) not in self.files:
+            return False
+        dest.write_bytes(self.files[stage, key])
+        return True
+
+    def store(self, stage: str, key: str, path: Path) -> None:
+        self.files[stage, key] = path.read_bytes()
+
+    def known_input_hash(self) -> str | None:
+        return self.input_hash
+
+    def keep_input_hash(self, sha256: str) -> None:
+        self.input_hash = sha256
+
+
+@pytest.mark.slow  # two pipeline runs
+def test_a_later_run_of_the_same_bundle_takes_its_hash_from_the_shared_store(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Hashing the bundle is most of a re-run's time at ScanNet size: the first run keeps the hash with the shared
+    checkpoints, a later run of the same bundle finds its stage keys from it without reading the bundle's files."""
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.pipeline import run as pipeline_run
+    from panogs_core.pipeline.input_hash import hash_bundle
+
+    shared = MemoryCheckpoints()
+    first = run_pipeline(tiny_bundle, tmp_path / "first", SHORT_FIT, shared=shared)
+    report = json.loads((tmp_path / "first" / "report.json").read_text())
+    assert shared.input_hash == report["input_sha256"] == hash_bundle(open_bundle(tiny_bundle))
+
+    def no_hashing(_: object) -> str:
+        raise AssertionError("the bundle was hashed again")
+
+    monkeypatch.setattr(pipeline_run, "hash_bundle", no_hashing)
+    again = run_pipeline(tiny_bundle, tmp_path / "again", SHORT_FIT, shared=shared)
+    assert all(t.cached for t in again.timings if t.name not in ("validate", "export"))
+    assert again.instances == first.instances
+    assert json.loads((tmp_path / "again" / "report.json").read_text())["input_sha256"] == shared.input_hash

@@ -121,3 +121,22 @@ def test_a_dead_holders_lease_is_taken_over(settings: Settings, tmp_path: Path) 
     other = _shared(settings, scene_id, "other", lease_s=0.3)
     assert other.fetch("fusion", "k1", tmp_path / "b.npz") is False  # the stale lease is its now: it computes
     assert not (tmp_path / "b.npz").exists()  # nothing half-written was read
+
+
+def test_the_bundle_hash_is_kept_once_and_read_only_when_made_by_the_same_rule(settings: Settings) -> None:
+    import json
+
+    from panogs_core.pipeline.input_hash import HASH_RULE
+
+    scene_id = uuid.uuid4()
+    first, later = _shared(settings, scene_id, "first"), _shared(settings, scene_id, "later")
+    assert later.known_input_hash() is None  # nothing kept yet: the job hashes the bundle
+    first.keep_input_hash("a" * 64)
+    later.keep_input_hash("b" * 64)  # the first writer's stays (every job of the scene computes the same)
+    assert later.known_input_hash() == "a" * 64
+    objects = Storage(settings.storage).objects
+    key = f"scenes/{scene_id}/stages/input.json"
+    for kept in ({"rule": "sha1:other", "sha256": "a" * 64}, {"rule": HASH_RULE, "sha256": "../x"}, "junk"):
+        objects.delete(key)
+        objects.put_bytes(key, json.dumps(kept).encode())
+        assert later.known_input_hash() is None, kept  # another rule's hash, or not a hash: computed again

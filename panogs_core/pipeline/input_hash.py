@@ -1,0 +1,34 @@
+"""The bundle's hash, which every stage key starts from, and the name of the rule that makes it.
+
+Light on purpose (no numpy): the worker reads a scene's kept hash (``worker/shared_checkpoints.py``) in processes
+that must not load the numeric libraries before they size their thread pools (``panogs_core/threads.py``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from panogs_core.io.bundle import Bundle
+
+# What :func:`hash_bundle` covers, named, so that a hash kept beside a scene
+# (``pipeline.run.SharedCheckpoints.known_input_hash``) is used only by code that would compute the same value.
+HASH_RULE = "sha256:scene.json+frames+geometry+vocabulary+gt:v1"
+
+
+def hash_bundle(scene: Bundle) -> str:
+    """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks); ``HASH_RULE``."""
+    digest = hashlib.sha256()
+    paths = [scene.root / "scene.json"]
+    for frame in scene.frames:
+        paths += [scene.root / p for p in (frame.depth, frame.color, frame.features, frame.masks) if p]
+    for extra in ("geometry.ply", "vocabulary.json", "vocabulary.npy", "gt/labels.npz"):
+        if (scene.root / extra).is_file():
+            paths.append(scene.root / extra)
+    for path in paths:
+        digest.update(str(path.relative_to(scene.root)).encode())
+        with open(path, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                digest.update(chunk)
+    return digest.hexdigest()
