@@ -30,7 +30,8 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.io.bundle import open_bundle  # noqa: E402
-from panogs_core.tiling.plan import TilingConfig, parse_tiles, plan_tiles  # noqa: E402
+from panogs_core.tiling.choice import parse_tiles  # noqa: E402
+from panogs_core.tiling.plan import TilingConfig, plan_tiles  # noqa: E402
 
 MIN_SHARE = 0.1  # an instance crosses a border when two cores each hold at least this share of its points
 
