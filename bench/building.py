@@ -3,7 +3,7 @@ its rooms run alone (docs/method.md §16, docs/benchmarks.md "A building at the 
 
 Usage:
     python bench/building.py [--rooms 4x4] [--seed 0] [--tile-workers 2] [--alone 4] [--room-tile HALO[,K=V...]]
-                             [--root /work/bench-building]
+                             [--set SECTION.KEY=VALUE ...] [--root /work/bench-building]
 
 ``panogs synth --preset building --rooms NxM --room-preset large`` (kept under ``--root``), then ``panogs run
 --tiles auto --tile-workers N`` (appearance fit off: a tiled run fits none) in its own process, timed. Prints the
@@ -108,8 +108,9 @@ def _overrides(sets: tuple[str, ...]) -> Any:
     return PipelineConfig().with_overrides(overrides)
 
 
-def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str) -> None:
-    """``--one-room``: the room's primitives and the frames standing in it, run untiled (its own process)."""
+def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, *sets: str) -> None:
+    """``--one-room``: the room's primitives and the frames standing in it, run untiled (its own process), with
+    the overrides ``sets``."""
     from panogs_core.pipeline.run import run_pipeline
     from panogs_core.tiling.plan import key_frames
 
@@ -124,7 +125,7 @@ def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str) -> No
 
     view, _ = _room_view(scene, geometry.points, box, CELL_M, 0.0, standing_inside)
     np.save(Path(out).with_suffix(".index.npy"), view.point_index)
-    run_pipeline(view, out, _overrides(()))
+    run_pipeline(view, out, _overrides(sets))
 
 
 def _room_tile(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, halo: str, *sets: str) -> None:
@@ -222,18 +223,27 @@ def main() -> None:
         help="also run each of those rooms as one tile of its own (core: its rectangle, a halo of HALO m, the "
         "planner's frames), with these overrides; repeatable",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="a pipeline override for the building run and the rooms alone (its folders get a suffix); repeatable",
+    )
     parser.add_argument("--root", type=Path, default=Path("/tmp/building-bench"))
     args = parser.parse_args()
+    variant_suffix = "".join(f"-{kv}" for kv in args.set).replace("=", "-").replace("/", "_")
+    set_args = [a for kv in args.set for a in ("--set", kv)]
     nx, ny = (int(v) for v in args.rooms.split("x"))
     bundle = args.root / f"building-{args.rooms}-seed{args.seed}"
     if not (bundle / "scene.json").is_file():
         synth_s = _cli("synth", str(bundle), "--preset", "building", "--rooms", args.rooms, "--room-preset", "large",
                        "--seed", str(args.seed))  # fmt: skip
         print(f"synth: {synth_s:.0f} s")
-    run = args.root / f"run-{args.rooms}-seed{args.seed}-w{args.tile_workers}"
+    run = args.root / f"run-{args.rooms}-seed{args.seed}-w{args.tile_workers}{variant_suffix}"
     if not (run / "report.json").is_file():
         wall = _cli("run", str(bundle), "--out", str(run), "--tiles", "auto", "--tile-workers", str(args.tile_workers),
-                    "-q", "--set", "appearance.enabled=false")  # fmt: skip
+                    "-q", "--set", "appearance.enabled=false", *set_args)  # fmt: skip
         children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         print(f"building run: {wall:.0f} s wall, largest process {children:.0f} MB")
     report = json.loads((run / "report.json").read_text())
@@ -244,10 +254,10 @@ def main() -> None:
     print("|---|---:|---:|---|---|---|")
     alone_miou = {}
     for r in _spread(args.alone, nx * ny, nx):
-        alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}"
+        alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}{variant_suffix}"
         if not (alone / "report.json").is_file():
-            subprocess.run([sys.executable, __file__, "--one-room", str(bundle), str(alone), *map(str, boxes[r])],
-                           cwd=REPO, check=True)  # fmt: skip
+            subprocess.run([sys.executable, __file__, "--one-room", str(bundle), str(alone), *map(str, boxes[r]),
+                            *args.set], cwd=REPO, check=True)  # fmt: skip
             doc = json.loads((alone / "report.json").read_text())
             (alone / "report.json").write_text(json.dumps({**doc, "box": list(boxes[r])}))
         row = _compare_room(bundle, run, alone)
@@ -261,7 +271,7 @@ def main() -> None:
     for text in args.room_tile:
         halo, *sets = text.split(",")
         for r in _spread(args.alone, nx * ny, nx):
-            alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}"
+            alone = args.root / f"alone-{args.rooms}-seed{args.seed}-room{r}{variant_suffix}"
             name = f"roomtile-{args.rooms}-seed{args.seed}-room{r}-halo{halo}" + "".join(f"-{kv}" for kv in sets)
             variant = args.root / name.replace("=", "-").replace("/", "_")
             if not (variant / "report.json").is_file():
