@@ -40,6 +40,11 @@ ROOM_MARGIN_M = 0.3  # the floor's rectangle grown by this, so that the room's w
 CELL_M = 0.02  # grid of the one-tile plan that cuts a room out
 
 
+def _beside(run: Path, suffix: str) -> Path:
+    """A file next to a run folder (``with_suffix`` would cut a folder name with a dot, such as ``...-0.15``)."""
+    return run.with_name(run.name + suffix)
+
+
 def _cli(*args: str) -> float:
     start = time.perf_counter()
     subprocess.run([sys.executable, "-m", "panogs_core.cli", *args], cwd=REPO, check=True)
@@ -124,7 +129,7 @@ def _room_alone(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, *sets
                 if box[0] <= f.T_world_cam[0, 3] < box[1] and box[2] <= f.T_world_cam[1, 3] < box[3]]  # fmt: skip
 
     view, _ = _room_view(scene, geometry.points, box, CELL_M, 0.0, standing_inside)
-    np.save(Path(out).with_suffix(".index.npy"), view.point_index)
+    np.save(_beside(Path(out), ".index.npy"), view.point_index)
     run_pipeline(view, out, _overrides(sets))
 
 
@@ -148,8 +153,8 @@ def _room_tile(bundle: str, out: str, x0: str, x1: str, y0: str, y1: str, halo: 
 
     box = tuple(float(v) for v in (x0, x1, y0, y1))
     view, core = _room_view(scene, geometry.points, box, cfg.cell_m, float(halo), planner_frames)
-    np.save(Path(out).with_suffix(".index.npy"), view.point_index)
-    np.save(Path(out).with_suffix(".core.npy"), core)
+    np.save(_beside(Path(out), ".index.npy"), view.point_index)
+    np.save(_beside(Path(out), ".core.npy"), core)
     run_pipeline(view, out, _overrides(sets))
 
 
@@ -162,8 +167,8 @@ def _room_tile_miou(bundle: Path, alone: Path, variant: Path) -> tuple[float, in
     vocab = resolve_scene_vocabulary(scene, None)
     geometry = scene.read_geometry()
     assert geometry is not None
-    room = np.load(alone.with_suffix(".index.npy"))
-    index, core = np.load(variant.with_suffix(".index.npy")), np.load(variant.with_suffix(".core.npy"))
+    room = np.load(_beside(alone, ".index.npy"))
+    index, core = np.load(_beside(variant, ".index.npy")), np.load(_beside(variant, ".core.npy"))
     semantic = np.full(geometry.points.shape[0], -1, np.int64)
     semantic[index[core]] = np.load(variant / "labels.npz")["semantic"][core]
     base = {name: getattr(scene, name) for name in scene.__dataclass_fields__}
@@ -186,7 +191,7 @@ def _compare_room(bundle: Path, building_run: Path, alone: Path) -> dict[str, An
 
     scene = open_bundle(bundle)
     vocab = resolve_scene_vocabulary(scene, None)
-    index = np.load(alone.with_suffix(".index.npy"))
+    index = np.load(_beside(alone, ".index.npy"))
     geometry = scene.read_geometry()
     assert geometry is not None
     base = {name: getattr(scene, name) for name in scene.__dataclass_fields__}

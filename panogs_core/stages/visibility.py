@@ -52,9 +52,9 @@ class VisibilityConfig:
     # m, absolute floor added to the tolerance. The reference's np.isclose uses 1e-8 m, i.e. nothing; 0 keeps
     # its behaviour. Real depth noise is relative (grows with depth), which rtol already covers: 7 cm at 1 m.
     depth_atol: float = 0.0
-    # m, the most the tolerance may reach, or None (the reference: no cap). 7 % of the depth is 0.4 m at 5.7 m,
-    # more than any sensor's noise there and more than a wall's thickness: the far side of a wall passes.
-    depth_max_tol: float | None = None
+    # DEPARTURE (docs/method.md §3.1): m, the most the tolerance may reach (None: no cap, the reference). 7 % of
+    # the depth is 0.4 m at 5.7 m, more than a wall: frames of the next room saw through it.
+    depth_max_tol: float | None = 0.15
     z_near: float = 1e-6  # m, points at camera z <= z_near are out (behind the camera; reference clamps 1e-8)
 
     def __post_init__(self) -> None:

@@ -124,8 +124,10 @@ class TestComputeVisibility:
     def test_depth_atol(self) -> None:
         points = np.array([[0.0, 0.0, 2.3]], np.float32)  # 15% behind the wall
         assert compute_visibility(_plane_scene(), points, VisibilityConfig()).frame(0)[0].size == 0
-        seen = compute_visibility(_plane_scene(), points, VisibilityConfig(depth_atol=0.2)).frame(0)[0]
-        assert seen.tolist() == [0]
+        seen = compute_visibility(_plane_scene(), points, VisibilityConfig(depth_atol=0.2, depth_max_tol=None))
+        assert seen.frame(0)[0].tolist() == [0]
+        capped = compute_visibility(_plane_scene(), points, VisibilityConfig(depth_atol=0.2))  # 0.15 m at most
+        assert capped.frame(0)[0].size == 0
 
     def test_depth_max_tol_caps_the_tolerance(self) -> None:
         # The plane stands at 2 m: 7 % is 0.14 m. A point 0.1 m behind it passes, unless the cap is under 0.1 m.
@@ -208,7 +210,7 @@ class TestComputeVisibility:
         T_cam_world = np.linalg.inv(pose)
         cam_pts = points.astype(np.float64) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         far_wall = np.full((CAM.height, CAM.width), 100.0, np.float32)  # tolerance 99.9 m: all in front pass
-        cfg = VisibilityConfig(depth_rtol=0.999)
+        cfg = VisibilityConfig(depth_rtol=0.999, depth_max_tol=None)
         idx, row, col, _ = frame_visibility(points, T_cam_world, CAM, far_wall, cfg)
         u = np.rint(CAM.fx * cam_pts[:, 0] / cam_pts[:, 2] + CAM.cx)
         v = np.rint(CAM.fy * cam_pts[:, 1] / cam_pts[:, 2] + CAM.cy)
@@ -263,6 +265,7 @@ class TestVisibilityConfig:
         cfg = VisibilityConfig()
         assert cfg.depth_rtol == 0.07
         assert cfg.depth_atol == 0.0
+        assert cfg.depth_max_tol == 0.15  # ours (docs/method.md §3.1): the reference has no cap
 
 
 class TestDepthResidual:
