@@ -40,8 +40,9 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   same primitives visited, half the steps)
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
-- vis-cap-0.15 / vis-cap-0.25: the depth test's tolerance (7 % of the depth) capped at 0.15 / 0.25 m
-  (``visibility.depth_max_tol``: far from the camera, 7 % passes the far side of a wall)
+- vis-cap-0.15 / vis-cap-0.25 / vis-no-cap: the depth test's tolerance (7 % of the depth) capped at 0.15 m (the
+  default) / 0.25 m, or not capped (the reference; ``visibility.depth_max_tol``: far from the camera, 7 % passes
+  the far side of a wall)
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
   reference-grouping: the grouping ablations (they recompute the graph cut or the clustering)
 """
@@ -104,6 +105,7 @@ VARIANTS: dict[str, dict] = {
     "reference-grouping": {"superprimitives": {"split_purity": 0.0}, "affinity": {"aggregate": "mean"}},
     "vis-cap-0.15": {"visibility": {"depth_max_tol": 0.15}},
     "vis-cap-0.25": {"visibility": {"depth_max_tol": 0.25}},
+    "vis-no-cap": {"visibility": {"depth_max_tol": None}},
 }
 NO_FIT = {"appearance": {"enabled": False}}
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
