@@ -261,27 +261,32 @@ class _Runner:
         in place, so it is the output as computed) and record or store it under its key."""
         tmp = path.with_suffix(".tmp.npz")
         result.save(tmp)
+        shared = self.shared
+        key = None if shared is None else keys[name]  # the shared store files it under its key: wait for it
         with self._book:
             self.checkpoints.forget(name)  # a stale key must never name the new file
             tmp.replace(path)
-            if self.shared is None:
+            if shared is None or key is None:
                 self._unrecorded.append(name)
                 return
-            key = self._recorded(name, keys[name])  # the shared store files it under its key: wait for it here
-        self.shared.store(name, key, path)
+            self._recorded(name, key)
+        shared.store(name, key, path)
 
     def _reusable(self, name: str, keys: _LazyKeys, path: Path) -> bool:
         """Whether ``path`` holds the stage's checkpoint for its current key: in the run folder, else fetched from
         the shared store (which needs the key, so a run with a shared store waits for the bundle's hash here)."""
+        with self._book:  # the keys are read outside it: they may wait for the bundle's hash
+            recorded = self.checkpoints.manifest[name] if self.checkpoints.may_have(name) else None
+        if recorded is not None and recorded == keys[name]:  # no wait without a checkpoint to compare
+            return True
+        if self.shared is None:
+            return False
+        key = keys[name]
         with self._book:
-            if self.checkpoints.may_have(name) and self.checkpoints.manifest[name] == keys[name]:  # no wait without
-                return True
-            if self.shared is None:
-                return False
             self.checkpoints.forget(name)  # the fetch may replace the file: no stale key may name it
-        if self.shared.fetch(name, keys[name], path):
+        if self.shared.fetch(name, key, path):
             with self._book:
-                self.checkpoints.record(name, keys[name])
+                self.checkpoints.record(name, key)
             return True
         return False
 
@@ -315,7 +320,6 @@ class _LazyKeys(Mapping[str, str]):
     """
 
     def __init__(self, scene: Bundle, cfg: PipelineConfig, vocab: Vocabulary, known_hash: str | None = None) -> None:
-        self.computed = known_hash is None  # False: the hash came from an earlier run of the same bundle
         self._hash: Future[str]
         if known_hash is None:
             pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash-bundle")
@@ -448,16 +452,19 @@ def _run_stages(
     )
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     shared = runner.shared
-    keys = _LazyKeys(scene, cfg, vocab, None if shared is None else shared.known_input_hash())
+    known_hash = None if shared is None else shared.known_input_hash()
+    keys = _LazyKeys(scene, cfg, vocab, known_hash)
+    hash_to_keep = shared is not None and known_hash is None  # this run hashes the bundle: the store keeps it once
 
     prims = runner.stage(st.PRIMITIVES, keys, lambda p: st.primitives(scene, cfg, p))
     result, colors, semantic, instance = _label_scene(runner, keys, scene, prims, cfg, vocab, out)
 
     def report() -> None:
+        nonlocal hash_to_keep
         runner.record_checkpoints(keys, wait=True)
-        if shared is not None and keys.computed:
+        if shared is not None and hash_to_keep:
             shared.keep_input_hash(keys.input_hash)
-            keys.computed = False  # kept once
+            hash_to_keep = False
         result.total_s = time.perf_counter() - t_start
         _write_report(out, scene, cfg, vocabulary, keys.input_hash, runner.timings, result.total_s, result)
 
