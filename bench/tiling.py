@@ -2,16 +2,19 @@
 
 Usage:
     python bench/tiling.py [--preset large] [--seeds 0 1 2] [--tiles 2x2] [--halo 1.0] [--set SECTION.KEY=VALUE ...]
-                           [--tile-workers N] [--root /tmp/tiling-bench] [--regen]
+                           [--tile-workers N] [--field-seeds 0 1 2 3] [--root /tmp/tiling-bench] [--regen]
 
 Per seed: ``panogs synth`` (kept under ``--root`` unless ``--regen``), then ``panogs run --tiles off`` and ``panogs
 run --tiles NxM`` (appearance fit off in both: a tiled run fits none), each in its own process so that peak memory
 is its own. ``--halo`` (metres) and ``--set`` (pipeline overrides, both runs) name variants: their run folders get a
 suffix, so one root holds them side by side. Prints a markdown table: standard-mode mIoU, PRQ(T), PRQ(S) of both and
 their deltas, instance counts, the share of ground-truth thing instances that cross a tile border and come out split
-there (the majority predicted instance differs between two tiles' cores; the untiled run's share on the same
-instances beside it), the peak of the untiled run and of every tile (the highest of its stages' sampled peaks) and
-their ratio, and a least-squares fit of peak memory against primitives x frames over the runs and tiles.
+there (the majority predicted instance differs between two tiles' cores; the untiled run's count on the same
+instances beside it, and the instances split in the tiled run alone: the ones the tiling split), the peak of the
+untiled run and of every tile (the highest of its stages' sampled peaks) and their ratio, and a least-squares fit
+of peak memory against primitives x frames over the runs and tiles.
+``--field-seeds`` runs every pair once per seed of the language field (both runs) and adds a table of the deltas'
+mean and standard deviation over them per scene seed: the field's seed alone moves one run's PRQ(T) by up to 0.1.
 """
 
 from __future__ import annotations
@@ -57,10 +60,11 @@ def _run(
     return {"report": report, "metrics": metrics, "instance": labels["instance"], "semantic": labels["semantic"]}
 
 
-def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarray, pred: np.ndarray) -> tuple:
-    """Of the GT thing instances whose points two tile cores each hold a share of, how many the prediction splits
-    there (the majority predicted instance of the two parts differs); returns (split, crossing)."""
-    crossing = split = 0
+def _split_instances(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarray, pred: np.ndarray) -> tuple:
+    """Of the GT thing instances whose points two tile cores each hold a share of, the ids of those the prediction
+    splits there (the majority predicted instance of the two parts differs), and how many cross; returns
+    (split ids, crossing)."""
+    crossing, split = 0, set()
     for g in np.unique(gt_instance[gt_thing]):
         member = gt_instance == g
         cores, counts = np.unique(owner[member], return_counts=True)
@@ -72,7 +76,8 @@ def _split_share(owner: np.ndarray, gt_instance: np.ndarray, gt_thing: np.ndarra
         for core in big:
             ids, n = np.unique(pred[member & (owner == core)], return_counts=True)
             majors.add(int(ids[np.argmax(n)]))
-        split += len(majors) > 1
+        if len(majors) > 1:
+            split.add(int(g))
     return split, crossing
 
 
@@ -138,6 +143,27 @@ def _one_run(bundle: str, out: str, tiles: str, halo: str, workers: str, *sets: 
               tile_workers=int(workers))  # fmt: skip
 
 
+def _print_field_seed_means(rows: list[dict]) -> None:
+    """Per scene seed, the untiled and tiled scores and their deltas as mean ± standard deviation over the field
+    seeds: one run's PRQ(T) moves by up to 0.1 with the field's seed alone (docs/benchmarks.md, "Tiling")."""
+    print(
+        "\n| seed | field seeds | mIoU off / tiled (delta) | PRQ(T) (delta) | PRQ(S) (delta) "
+        "| split by the tiling alone |"
+    )
+    print("|---|---|---|---|---|---|")
+    for seed in dict.fromkeys(r["seed"] for r in rows):
+        mine = [r for r in rows if r["seed"] == seed]
+        cells = []
+        for key in ("miou", "prq_thing", "prq_stuff"):
+            u = np.array([r["u"][key] for r in mine])
+            t = np.array([r["t"][key] for r in mine])
+            d = t - u
+            cells.append(f"{u.mean():.3f} / {t.mean():.3f} ({d.mean():+.3f} ± {d.std():.3f})")
+        alone = sum(len(r["split"][0] - r["split"][1]) for r in mine)
+        crossing = sum(r["split"][2] for r in mine)
+        print(f"| {seed} | {len(mine)} | {' | '.join(cells)} | {alone} of {crossing} |")
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--one-run":
         _one_run(*sys.argv[2:])
@@ -157,20 +183,23 @@ def main() -> None:
     )
     parser.add_argument("--tile-workers", type=int, default=1, help="the tiled runs' tile processes (a process "
                         "each: a tile's peak is its own, not on top of the tiles before it)")  # fmt: skip
+    parser.add_argument("--field-seeds", type=int, nargs="+", default=[0], help="run every pair once per field "
+                        "seed (language_field.seed, both runs) and print the deltas' mean over them")  # fmt: skip
     parser.add_argument("--root", type=Path, default=Path("/tmp/tiling-bench"))
     parser.add_argument("--regen", action="store_true")
     args = parser.parse_args()
     rows, fit = [], []
-    for seed in args.seeds:
+    for seed, field_seed in ((s, f) for s in args.seeds for f in args.field_seeds):
         bundle = args.root / f"{args.preset}-{seed}"
         if args.regen or not (bundle / "scene.json").is_file():
             _cli("synth", str(bundle), "--preset", args.preset, "--seed", str(seed))
+        sets = args.sets + ([f"language_field.seed={field_seed}"] if field_seed else [])
         folders = {
-            "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, args.sets)}",
-            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, args.sets, args.tile_workers)}",
+            "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, sets)}",
+            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, sets, args.tile_workers)}",
         }
-        untiled = _run(bundle, folders["off"], "off", sets=tuple(args.sets))
-        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(args.sets), args.tile_workers)
+        untiled = _run(bundle, folders["off"], "off", sets=tuple(sets))
+        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(sets), args.tile_workers)
         scene = open_bundle(bundle)
         geometry, gt = scene.read_geometry(), scene.read_ground_truth()
         assert geometry is not None
@@ -180,8 +209,8 @@ def main() -> None:
         plan = plan_tiles(scene, tiling, parse_tiles(args.tiles), points=geometry.points)
         owner = plan.core_of(geometry.points)
         gt_thing = (gt.semantic >= 0) & scene.vocabulary.is_thing[np.maximum(gt.semantic, 0)]
-        split_t, crossing = _split_share(owner, gt.instance, gt_thing, tiled["instance"])
-        split_u, _ = _split_share(owner, gt.instance, gt_thing, untiled["instance"])
+        split_t, crossing = _split_instances(owner, gt.instance, gt_thing, tiled["instance"])
+        split_u, _ = _split_instances(owner, gt.instance, gt_thing, untiled["instance"])
         distance = _seam_distance(plan, geometry.points, owner)
         annotated = gt.semantic >= 0
         bands = []
@@ -198,17 +227,18 @@ def main() -> None:
         fit.append((n * v, u_peak))
         fit += [((t["core_primitives"] + t["halo_primitives"]) * t["frames"], t["peak_rss_mb"]) for t in tiles]
         rows.append({
-            "seed": seed, "u": untiled["metrics"], "t": tiled["metrics"],
+            "seed": seed, "field_seed": field_seed, "u": untiled["metrics"], "t": tiled["metrics"],
             "inst": (untiled["report"]["num_instances"], tiled["report"]["num_instances"]),
             "split": (split_t, split_u, crossing), "peak": (u_peak, t_peaks),
             "wall": (untiled["report"]["total_wall_s"], tiled["report"]["total_wall_s"]),
             "joins": tiled["report"]["tiling"]["seam_joins"], "bands": bands, "weights": weight_change,
         })  # fmt: skip
     print(
-        f"| {args.preset} seed | mIoU off / {args.tiles} (delta) | PRQ(T) (delta) | PRQ(S) (delta) | instances "
-        "| crossing GT instances split, tiled / untiled | seam joins | peak MB off / tiles (max ratio) | wall s |"
+        f"| {args.preset} seed | field seed | mIoU off / {args.tiles} (delta) | PRQ(T) (delta) | PRQ(S) (delta) "
+        "| instances | crossing GT instances split, tiled / untiled / by the tiling alone | seam joins "
+        "| peak MB off / tiles (max ratio) | wall s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         cells = []
         for key in ("miou", "prq_thing", "prq_stuff"):
@@ -218,17 +248,22 @@ def main() -> None:
         u_peak, t_peaks = r["peak"]
         peaks = ", ".join(f"{p:.0f}" for p in t_peaks)
         print(
-            f"| {r['seed']} | {' | '.join(cells)} | {r['inst'][0]} / {r['inst'][1]} | {split_t} / {split_u} of "
-            f"{crossing} | {r['joins']} | {u_peak:.0f} / {peaks} ({max(t_peaks) / u_peak:.2f}) | "
-            f"{r['wall'][0]:.0f} / {r['wall'][1]:.0f} |"
+            f"| {r['seed']} | {r['field_seed']} | {' | '.join(cells)} | {r['inst'][0]} / {r['inst'][1]} | "
+            f"{len(split_t)} / {len(split_u)} / {len(split_t - split_u)} of {crossing} | {r['joins']} | "
+            f"{u_peak:.0f} / {peaks} ({max(t_peaks) / u_peak:.2f}) | {r['wall'][0]:.0f} / {r['wall'][1]:.0f} |"
         )
+    if len(args.field_seeds) > 1:
+        _print_field_seed_means(rows)
     heads = " | ".join(f"{a:g}-{b:g} m" for a, b in SEAM_BANDS)
-    print(f"\n| seed | wrong class, tiled / untiled, by distance to a seam: {heads} | fusion weight change (median) |")
-    print("|---|" + "---|" * len(SEAM_BANDS) + "---|")
+    print(
+        f"\n| seed | field seed | wrong class, tiled / untiled, by distance to a seam: {heads} "
+        "| fusion weight change (median) |"
+    )
+    print("|---|---|" + "---|" * len(SEAM_BANDS) + "---|")
     for r in rows:
         cells = " | ".join(f"{t:.3f} / {u:.3f}" for t, u in r["bands"])
         weights = "-" if r["weights"] is None else f"{r['weights']:.3f}"
-        print(f"| {r['seed']} | {cells} | {weights} |")
+        print(f"| {r['seed']} | {r['field_seed']} | {cells} | {weights} |")
     x, y = np.array([f[0] for f in fit], float), np.array([f[1] for f in fit], float)
     slope, intercept = np.polyfit(x, y, 1)
     print(
