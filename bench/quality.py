@@ -43,6 +43,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
 - vis-cap-0.15 / vis-cap-0.25 / vis-no-cap: the depth test's tolerance (7 % of the depth) capped at 0.15 m (the
   default) / 0.25 m, or not capped (the reference; ``visibility.depth_max_tol``: far from the camera, 7 % passes
   the far side of a wall)
+- split-0.9 / split-0.95: the mask split cuts a super-primitive whose largest 2D mask holds under 90 % / 95 % of its
+  members seen inside masks (``superprimitives.split_purity``; the default 75 %)
 - lang-affinity / no-lang-cut / fused-features / no-mask-split / mean-affinity / depth-filter /
   reference-grouping: the grouping ablations (they recompute the graph cut or the clustering)
 """
@@ -106,6 +108,8 @@ VARIANTS: dict[str, dict] = {
     "vis-cap-0.15": {"visibility": {"depth_max_tol": 0.15}},
     "vis-cap-0.25": {"visibility": {"depth_max_tol": 0.25}},
     "vis-no-cap": {"visibility": {"depth_max_tol": None}},
+    "split-0.9": {"superprimitives": {"split_purity": 0.9}},
+    "split-0.95": {"superprimitives": {"split_purity": 0.95}},
 }
 NO_FIT = {"appearance": {"enabled": False}}
 BASELINES = ("fused-argmax", "fused-argmax-fill", "argmax-components")
