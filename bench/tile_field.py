@@ -23,7 +23,6 @@ import json
 import os
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -32,23 +31,27 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from panogs_core.io.bundle import open_bundle  # noqa: E402
+from panogs_core.stages.fusion import FusedFeatures  # noqa: E402
 from panogs_core.stages.language_field import fit_language_field  # noqa: E402
 from panogs_core.stages.language_field.config import LanguageFieldConfig  # noqa: E402
 from panogs_core.tiling.choice import parse_tiles  # noqa: E402
 from panogs_core.tiling.plan import TilingConfig, plan_tiles  # noqa: E402
 
 
-def _decoded_classes(points: np.ndarray, fused: SimpleNamespace, text: np.ndarray, cfg: LanguageFieldConfig) -> tuple:
+def _decoded_classes(points: np.ndarray, fused: FusedFeatures, text: np.ndarray, cfg: LanguageFieldConfig) -> tuple:
     """Fit a field on the points; the nearest class of each decoded feature and the decoded features."""
     decoded = fit_language_field(points, fused, cfg).features  # (n, D) unit rows
     return np.argmax(decoded @ text.T, axis=1), decoded
 
 
-def _scores(pred: np.ndarray, decoded: np.ndarray, truth: np.ndarray, targets: np.ndarray, seen: np.ndarray) -> str:
+def _scores(
+    pred: np.ndarray, decoded: np.ndarray, truth: np.ndarray, unit_targets: np.ndarray, seen: np.ndarray
+) -> str:
+    """Right-class shares on seen and unseen annotated primitives, and the mean cosine to the (unit) fused rows of
+    the seen ones."""
     annotated = truth >= 0
     right = pred == truth
-    unit = targets[seen] / np.linalg.norm(targets[seen], axis=1, keepdims=True)
-    cosine = float((decoded[seen] * unit).sum(axis=1).mean())
+    cosine = float((decoded[seen] * unit_targets).sum(axis=1).mean())
     return f"{right[annotated & seen].mean():.4f} | {right[annotated & ~seen].mean():.4f} | {cosine:.3f}"
 
 
@@ -69,9 +72,9 @@ def main() -> None:
     assert vocabulary is not None
     assert vocabulary.embeddings is not None
     text = vocabulary.embeddings / np.linalg.norm(vocabulary.embeddings, axis=1, keepdims=True)
-    with np.load(args.run / "stages" / "fusion.npz") as npz:
-        targets, weights = npz["features"], npz["weights"]
-    seen = weights > 0
+    fused = FusedFeatures.load(args.run / "stages" / "fusion.npz")
+    seen = fused.weights > 0
+    unit_targets = fused.features[seen] / np.linalg.norm(fused.features[seen], axis=1, keepdims=True)
     points = geometry.points
     plan = plan_tiles(scene, TilingConfig(), parse_tiles(args.tiles), points=points)
     wide = plan if args.field_halo is None else plan_tiles(
@@ -83,17 +86,17 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for seed in args.field_seeds:
         cfg = dataclasses.replace(LanguageFieldConfig(), seed=seed, **overrides)
-        everything = SimpleNamespace(features=targets, weights=weights)
-        room_pred, room_decoded = _decoded_classes(points, everything, text, cfg)
+        room_pred, room_decoded = _decoded_classes(points, fused, text, cfg)
         tiled_pred, tiled_decoded = np.empty_like(room_pred), np.empty_like(room_decoded)
         for tile in wide.tiles:
             index, core = wide.members(tile, points)
             assert (owner[index[core]] == tile.index).all()  # the same cores whatever the field's halo
-            part = SimpleNamespace(features=targets[index], weights=weights[index])
+            part = dataclasses.replace(fused, features=fused.features[index], weights=fused.weights[index],
+                                       seen_count=fused.seen_count[index], colors=None)  # fmt: skip
             pred, decoded = _decoded_classes(points[index], part, text, cfg)
             tiled_pred[index[core]], tiled_decoded[index[core]] = pred[core], decoded[core]
         for name, pred, decoded in (("room", room_pred, room_decoded), ("tiles", tiled_pred, tiled_decoded)):
-            print(f"| {seed} | {name} | {_scores(pred, decoded, truth.semantic, targets, seen)} |", flush=True)
+            print(f"| {seed} | {name} | {_scores(pred, decoded, truth.semantic, unit_targets, seen)} |", flush=True)
 
 
 if __name__ == "__main__":

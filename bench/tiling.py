@@ -189,17 +189,11 @@ def main() -> None:
     parser.add_argument("--regen", action="store_true")
     args = parser.parse_args()
     rows, fit = [], []
-    for seed, field_seed in ((s, f) for s in args.seeds for f in args.field_seeds):
+    for seed in args.seeds:
         bundle = args.root / f"{args.preset}-{seed}"
         if args.regen or not (bundle / "scene.json").is_file():
             _cli("synth", str(bundle), "--preset", args.preset, "--seed", str(seed))
-        sets = args.sets + ([f"language_field.seed={field_seed}"] if field_seed else [])
-        folders = {
-            "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, sets)}",
-            "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, sets, args.tile_workers)}",
-        }
-        untiled = _run(bundle, folders["off"], "off", sets=tuple(sets))
-        tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(sets), args.tile_workers)
+        # What the scores read of the scene (its plan takes a pass over the depth images): once per scene seed.
         scene = open_bundle(bundle)
         geometry, gt = scene.read_geometry(), scene.read_ground_truth()
         assert geometry is not None
@@ -209,30 +203,38 @@ def main() -> None:
         plan = plan_tiles(scene, tiling, parse_tiles(args.tiles), points=geometry.points)
         owner = plan.core_of(geometry.points)
         gt_thing = (gt.semantic >= 0) & scene.vocabulary.is_thing[np.maximum(gt.semantic, 0)]
-        split_t, crossing = _split_instances(owner, gt.instance, gt_thing, tiled["instance"])
-        split_u, _ = _split_instances(owner, gt.instance, gt_thing, untiled["instance"])
         distance = _seam_distance(plan, geometry.points, owner)
         annotated = gt.semantic >= 0
-        bands = []
-        for a, b in SEAM_BANDS:
-            band = (distance >= a) & (distance < b) & annotated
-            wrong_t = tiled["semantic"][band] != gt.semantic[band]
-            wrong_u = untiled["semantic"][band] != gt.semantic[band]
-            bands.append((float(wrong_t.mean()), float(wrong_u.mean())))
-        weight_change = _weight_change(folders, plan, geometry.points)
-        u_peak = max(s["peak_rss_mb"] for s in untiled["report"]["stages"])
-        tiles = tiled["report"]["tiling"]["tiles"]
-        t_peaks = [t["peak_rss_mb"] for t in tiles]
-        n, v = untiled["report"]["num_primitives"], untiled["report"]["num_frames"]
-        fit.append((n * v, u_peak))
-        fit += [((t["core_primitives"] + t["halo_primitives"]) * t["frames"], t["peak_rss_mb"]) for t in tiles]
-        rows.append({
-            "seed": seed, "field_seed": field_seed, "u": untiled["metrics"], "t": tiled["metrics"],
-            "inst": (untiled["report"]["num_instances"], tiled["report"]["num_instances"]),
-            "split": (split_t, split_u, crossing), "peak": (u_peak, t_peaks),
-            "wall": (untiled["report"]["total_wall_s"], tiled["report"]["total_wall_s"]),
-            "joins": tiled["report"]["tiling"]["seam_joins"], "bands": bands, "weights": weight_change,
-        })  # fmt: skip
+        for field_seed in args.field_seeds:
+            sets = args.sets + ([f"language_field.seed={field_seed}"] if field_seed else [])
+            folders = {
+                "off": args.root / f"{args.preset}-{seed}-off{_suffix(None, sets)}",
+                "tiled": args.root / f"{args.preset}-{seed}-{args.tiles}{_suffix(args.halo, sets, args.tile_workers)}",
+            }
+            untiled = _run(bundle, folders["off"], "off", sets=tuple(sets))
+            tiled = _run(bundle, folders["tiled"], args.tiles, args.halo, tuple(sets), args.tile_workers)
+            split_t, crossing = _split_instances(owner, gt.instance, gt_thing, tiled["instance"])
+            split_u, _ = _split_instances(owner, gt.instance, gt_thing, untiled["instance"])
+            bands = []
+            for a, b in SEAM_BANDS:
+                band = (distance >= a) & (distance < b) & annotated
+                wrong_t = tiled["semantic"][band] != gt.semantic[band]
+                wrong_u = untiled["semantic"][band] != gt.semantic[band]
+                bands.append((float(wrong_t.mean()), float(wrong_u.mean())))
+            weight_change = _weight_change(folders, plan, geometry.points)
+            u_peak = max(s["peak_rss_mb"] for s in untiled["report"]["stages"])
+            tiles = tiled["report"]["tiling"]["tiles"]
+            t_peaks = [t["peak_rss_mb"] for t in tiles]
+            n, v = untiled["report"]["num_primitives"], untiled["report"]["num_frames"]
+            fit.append((n * v, u_peak))
+            fit += [((t["core_primitives"] + t["halo_primitives"]) * t["frames"], t["peak_rss_mb"]) for t in tiles]
+            rows.append({
+                "seed": seed, "field_seed": field_seed, "u": untiled["metrics"], "t": tiled["metrics"],
+                "inst": (untiled["report"]["num_instances"], tiled["report"]["num_instances"]),
+                "split": (split_t, split_u, crossing), "peak": (u_peak, t_peaks),
+                "wall": (untiled["report"]["total_wall_s"], tiled["report"]["total_wall_s"]),
+                "joins": tiled["report"]["tiling"]["seam_joins"], "bands": bands, "weights": weight_change,
+            })  # fmt: skip
     print(
         f"| {args.preset} seed | field seed | mIoU off / {args.tiles} (delta) | PRQ(T) (delta) | PRQ(S) (delta) "
         "| instances | crossing GT instances split, tiled / untiled / by the tiling alone | seam joins "
