@@ -68,8 +68,9 @@ readme-check: install ## run the demo afresh and fail when README.md shows other
 	$(PY) tools/run_folder_docs.py --check
 	$(PY) tools/readme_demo.py --check
 
-docs-tables: $(VENV)/.installed ## write README.md's and docs/architecture.md's run-folder tables from panogs_core/io/run_folder.py
+docs-tables: $(VENV)/.installed ## write the generated docs: run-folder tables, docs/settings.md, the module lists
 	$(PY) tools/run_folder_docs.py --write
+	$(PY) tools/reference_docs.py --write
 
 test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q
