@@ -22,6 +22,7 @@ import io
 import json
 import re
 import sys
+import textwrap
 import tokenize
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -59,6 +60,11 @@ def _cell(text: str) -> str:
     parts = text.split("`")
     parts[::2] = [part.replace("<", "\\<") for part in parts[::2]]  # even parts are outside code spans
     return "`".join(parts).strip()
+
+
+def _paragraph(text: str) -> list[str]:
+    """Prose as the docs write it: lines of at most 120 characters."""
+    return textwrap.wrap(_cell(" ".join(text.split())), 120, break_long_words=False, break_on_hyphens=False)
 
 
 # -- settings -------------------------------------------------------------------------------------------------------
@@ -160,7 +166,7 @@ def settings_reference(module_name: str = SETTINGS_MODULE) -> list[str]:
     out: list[str] = []
     for cls, node, source in settings_classes(module_name):
         sources = field_sources(node, source)
-        out += ["", f"### `{cls.__name__}`", "", _cell(ast.get_docstring(node) or "")]
+        out += ["", f"### `{cls.__name__}`", "", *_paragraph(ast.get_docstring(node) or "")]
         group = None
         for name, info in cls.model_fields.items():
             written = sources[name]
@@ -169,7 +175,7 @@ def settings_reference(module_name: str = SETTINGS_MODULE) -> list[str]:
                 heading, _, rest = re.split(r"(?<=[^.:])([.:] )", group + ". ", maxsplit=1)
                 out += ["", f"#### {_cell(heading)}", ""]
                 rest = rest.strip().rstrip(".")
-                out += [_cell(rest[:1].upper() + rest[1:]) + ".", ""] if rest else []
+                out += [*_paragraph(rest[:1].upper() + rest[1:] + "."), ""] if rest else []
                 out.append("| variable | type | default | bounds | description |")
                 out.append("|---|---|---|---|---|")
             description = info.description or written.comment or "-"
