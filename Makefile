@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: help system-deps install constraints demo readme readme-check test test-fast lint fmt bench bench-quality \
-	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check migrations-check docs-tables
+	bench-speed bench-gaussians clean web web-check view bench-viewer deploy-check migrations-check docs-tables docs-cli
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -71,6 +71,9 @@ readme-check: install ## run the demo afresh and fail when README.md shows other
 docs-tables: $(VENV)/.installed ## write the generated docs: run-folder tables, docs/settings.md, the module lists
 	$(PY) tools/run_folder_docs.py --write
 	$(PY) tools/reference_docs.py --write
+
+docs-cli: $(VENV)/.installed ## write docs/cli.md, the reference of every command, from the parsers
+	$(PY) tools/cli_docs.py --write
 
 test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
 	$(VENV)/bin/pytest -q

@@ -149,7 +149,7 @@ METRICS_JSON = RunFile(
     "mIoU, mAcc, PRQ(T), PRQ(S) in `standard` and `paper` modes; only when the bundle has `gt/labels.npz` in the "
     "run's vocabulary",
     _EXPORT,
-    ("panogs_core.cli",),
+    ("panogs_core.cli.commands.eval",),
     optional=True,
     downloadable=True,
 )

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from panogs_core import cli
+from panogs_core.cli import command_groups
+from panogs_core.cli.main import main as cli_main
 
 MODULES = {
     "fake_tools_cli": "def add(sub):\n    sub.add_parser('hello').set_defaults(func=lambda args: 0)\n",
@@ -62,8 +63,8 @@ def groups(dist: PathDistribution, **values: str) -> list[EntryPoint]:
     """Entry points of ``dist`` (so that each knows its distribution), declared as ``name=value``."""
     lines = "".join(f"{name} = {value}\n" for name, value in values.items())
     info = Path(str(dist.locate_file("fakepanogs-1.0.dist-info")))
-    (info / "entry_points.txt").write_text(f"[{cli.COMMAND_GROUP}]\n{lines}")
-    return list(dist.entry_points.select(group=cli.COMMAND_GROUP))
+    (info / "entry_points.txt").write_text(f"[{command_groups.COMMAND_GROUP}]\n{lines}")
+    return list(dist.entry_points.select(group=command_groups.COMMAND_GROUP))
 
 
 def subparsers() -> argparse._SubParsersAction[argparse.ArgumentParser]:
@@ -72,13 +73,15 @@ def subparsers() -> argparse._SubParsersAction[argparse.ArgumentParser]:
 
 def test_a_group_whose_extra_is_installed_adds_its_commands(fake: PathDistribution) -> None:
     sub = subparsers()
-    assert cli.add_command_groups(sub, groups(fake, tools="fake_tools_cli:add")) == []
+    assert command_groups.add_command_groups(sub, groups(fake, tools="fake_tools_cli:add")) == []
     assert "hello" in sub.choices
 
 
 def test_a_group_whose_extra_is_missing_is_left_out_unimported_and_named(fake: PathDistribution) -> None:
     sub = subparsers()
-    skipped = cli.add_command_groups(sub, groups(fake, server="fake_server_cli:add", tools="fake_tools_cli:add"))
+    skipped = command_groups.add_command_groups(
+        sub, groups(fake, server="fake_server_cli:add", tools="fake_tools_cli:add")
+    )
     assert "hello" in sub.choices, "the other group is still added"
     assert [(s.name, s.install, s.missing) for s in skipped] == [
         ("server", "pip install 'fakepanogs[server]'", ("no-such-distribution-for-panogs",))
@@ -87,13 +90,13 @@ def test_a_group_whose_extra_is_missing_is_left_out_unimported_and_named(fake: P
 
 
 def test_an_extra_that_includes_another_needs_what_that_one_needs(fake: PathDistribution) -> None:
-    (skipped,) = cli.add_command_groups(subparsers(), groups(fake, everything="fake_tools_cli:add"))
+    (skipped,) = command_groups.add_command_groups(subparsers(), groups(fake, everything="fake_tools_cli:add"))
     assert skipped.missing == ("no-such-distribution-for-panogs",)
     assert skipped.install == "pip install 'fakepanogs[everything]'"
 
 
 def test_a_third_party_module_missing_at_load_leaves_the_group_out(fake: PathDistribution) -> None:
-    (skipped,) = cli.add_command_groups(subparsers(), groups(fake, tools="fake_third_party_cli:add"))
+    (skipped,) = command_groups.add_command_groups(subparsers(), groups(fake, tools="fake_third_party_cli:add"))
     assert skipped.missing == ("no_such_third_party_module_for_panogs",)
 
 
@@ -107,21 +110,21 @@ def test_a_third_party_module_missing_at_load_leaves_the_group_out(fake: PathDis
 )
 def test_our_own_import_errors_are_raised(fake: PathDistribution, module: str, error: type[Exception]) -> None:
     with pytest.raises(error):
-        cli.add_command_groups(subparsers(), groups(fake, tools=f"{module}:add"))
+        command_groups.add_command_groups(subparsers(), groups(fake, tools=f"{module}:add"))
 
 
 def test_help_and_an_unknown_command_say_what_to_install(
     fake: PathDistribution, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     declared = groups(fake, server="fake_server_cli:add", tools="fake_tools_cli:add")
-    monkeypatch.setattr(cli, "entry_points", lambda group: [ep for ep in declared if ep.group == group])
+    monkeypatch.setattr(command_groups, "entry_points", lambda group: [ep for ep in declared if ep.group == group])
     with pytest.raises(SystemExit):
-        cli.main(["--help"])
+        cli_main(["--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert "hello" in help_text
     assert "Not installed: the server commands (pip install 'fakepanogs[server]'; this install lacks" in help_text
     with pytest.raises(SystemExit) as exit_:
-        cli.main(["serve"])
+        cli_main(["serve"])
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert "invalid choice: 'serve'" in err
@@ -129,15 +132,15 @@ def test_help_and_an_unknown_command_say_what_to_install(
 
 
 def test_an_entry_point_not_named_for_an_extra_says_only_what_is_missing(fake: PathDistribution) -> None:
-    (skipped,) = cli.add_command_groups(subparsers(), groups(fake, plugin="fake_third_party_cli:add"))
+    (skipped,) = command_groups.add_command_groups(subparsers(), groups(fake, plugin="fake_third_party_cli:add"))
     assert skipped.install is None
     assert skipped.describe() == "the plugin commands (this install lacks no_such_third_party_module_for_panogs)"
 
 
 def test_the_installed_panogs_declares_its_groups() -> None:
     """The groups pyproject.toml declares, as the installed metadata has them (the lead reinstalls at merge)."""
-    declared = {ep.name: ep.value for ep in cli.entry_points(group=cli.COMMAND_GROUP)}
+    declared = {ep.name: ep.value for ep in command_groups.entry_points(group=command_groups.COMMAND_GROUP)}
     pyproject = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
-    section = pyproject.split(f'[project.entry-points."{cli.COMMAND_GROUP}"]\n', 1)[1].split("\n\n", 1)[0]
+    section = pyproject.split(f'[project.entry-points."{command_groups.COMMAND_GROUP}"]\n', 1)[1].split("\n\n", 1)[0]
     expected = dict(line.replace('"', "").split(" = ") for line in textwrap.dedent(section).splitlines())
     assert declared == expected

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from panogs_core.cli import StageLines, stage_reporter
+from panogs_core.cli.display import StageLines, stage_reporter
 from panogs_core.pipeline.run import STAGES
 
 REPO = Path(__file__).resolve().parents[2]

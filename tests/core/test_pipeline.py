@@ -398,7 +398,7 @@ def test_a_fit_cancelled_after_the_results_leaves_them_and_says_so(
 def test_the_cli_prints_the_results_before_the_fit(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import panogs_core.cli as cli
+    import panogs_core.cli.commands.run as run_command
 
     out = tmp_path / "cli-run"
     _copy_checkpoints(tiny_run[0], out)
@@ -415,7 +415,7 @@ def test_the_cli_prints_the_results_before_the_fit(
             return None
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cli, "stage_reporter", lambda quiet, stream: Recorder())
+        mp.setattr(run_command, "stage_reporter", lambda quiet, stream: Recorder())
         assert cli_main(["run", str(tiny_bundle), "--out", str(out), "--set", "appearance.iterations=2"]) == 0
     after = capsys.readouterr().out
     assert len(before_fit) == 1

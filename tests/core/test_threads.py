@@ -95,7 +95,7 @@ def _fresh_process_state(code: str) -> dict[str, object]:
 def test_panogs_run_limits_every_pool_before_the_pipeline_loads() -> None:
     """What ``panogs run --threads 1`` does first, in a process of its own: torch, OpenMP and numpy's OpenBLAS
     all run one thread, and idle threads wait passively."""
-    code = "from panogs_core.cli import _limit_threads\n_limit_threads(1)\nimport numpy\n"
+    code = "from panogs_core.cli.arguments import limit_threads\nlimit_threads(1)\nimport numpy\n"
     state = _fresh_process_state(code)
     assert state["torch"] == state["opencv"] == 1
     assert state["pools"] == {"openmp": 1, "openblas": 1}

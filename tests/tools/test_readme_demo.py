@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from tool_modules import load_tool
 
-from panogs_core.cli import FITTING_LINE, StageLines, format_instances, format_metrics
+from panogs_core.cli.display import FITTING_LINE, StageLines, format_instances, format_metrics
 from panogs_core.pipeline.run import STAGES
 
 REPO = Path(__file__).resolve().parents[2]

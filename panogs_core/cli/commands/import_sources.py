@@ -1,0 +1,144 @@
+"""The capture layouts ``panogs import`` converts: one :class:`ImportSource` per layout in :data:`IMPORT_SOURCES`.
+
+Each entry becomes the subcommand ``panogs import <name> SRC DST``, with the options every source shares
+(``--stride``, ``--vocabulary``, ``--feature-space``, added by the command), the source's own options (its
+``add_options``) and its example under ``--help``. A new layout is one importer module under
+``panogs_core/io/importers/`` and one entry here: two functions and the entry.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from panogs_core.io.importers.common import ImportReport
+    from panogs_core.types import Vocabulary
+
+
+@dataclass(frozen=True)
+class ImportSource:
+    """One layout of ``panogs import``.
+
+    Attributes:
+        name: The subcommand, ``panogs import <name> SRC DST``; lower case, one word.
+        help: One line for ``panogs import --help`` and the top of ``panogs import <name> --help``.
+        example: A whole command line, ``panogs import <name> ...``, shown under the subcommand's help.
+        add_options: Adds the source's own options to its parser (``SRC``, ``DST`` and the shared options are
+            there already); their values reach ``run`` as attributes of ``args``.
+        run: Converts ``args.src`` into a bundle at ``args.dst`` and returns the importer's report. Called with the
+            parsed arguments and the vocabulary of ``--vocabulary`` (read and checked; None without it). It
+            imports its importer inside, so that ``panogs --help`` loads no numeric library.
+    """
+
+    name: str
+    help: str
+    example: str
+    add_options: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace, Vocabulary | None], ImportReport]
+
+
+def add_geometry_options(p: argparse.ArgumentParser) -> None:
+    """``--geometry`` and ``--gt``, for the layouts whose scans come with a mesh and annotations."""
+    p.add_argument("--geometry", metavar="MESH.ply", help="mesh or point cloud whose vertices become the primitives")
+    p.add_argument(
+        "--gt",
+        metavar="FILE",
+        help="ground truth for evaluation: .npz (semantic, instance[, points]) or ScanNet's "
+        "<scene>_vh_clean_2.labels.ply (+ aggregation.json and segs.json beside it; vocabulary scannet20)",
+    )
+
+
+def _run_scannet(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
+    from panogs_core.io.importers.scannet import import_scannet
+
+    return import_scannet(
+        args.src,
+        args.dst,
+        stride=args.stride,
+        vocabulary=vocabulary,
+        geometry=args.geometry,
+        ground_truth=args.gt,
+        feature_space=args.feature_space,
+    )
+
+
+def _add_replica_options(p: argparse.ArgumentParser) -> None:
+    add_geometry_options(p)
+    p.add_argument(
+        "--depth-scale",
+        type=float,
+        default=6553.5,
+        metavar="VALUE",
+        help="depth PNG value per metre (default: NICE-SLAM's 6553.5)",
+    )
+
+
+def _run_replica(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
+    from panogs_core.io.importers.replica import import_replica
+
+    return import_replica(
+        args.src,
+        args.dst,
+        stride=args.stride,
+        vocabulary=vocabulary,
+        geometry=args.geometry,
+        ground_truth=args.gt,
+        feature_space=args.feature_space,
+        depth_scale=args.depth_scale,
+    )
+
+
+def _add_sevenscenes_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--features", metavar="DIR", help="folder of <i>.npy feature maps")
+    p.add_argument("--masks", metavar="DIR", help="folder of <i>.png instance masks")
+    p.add_argument(
+        "--placeholder-maps",
+        action="store_true",
+        help="without --features: a constant feature map and a one-segment mask on the first frame, enough to "
+        "open the bundle for the photometric benchmark (no meaningful labels)",
+    )
+
+
+def _run_sevenscenes(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
+    from panogs_core.io.importers.sevenscenes import import_sevenscenes
+
+    return import_sevenscenes(
+        args.src,
+        args.dst,
+        stride=args.stride,
+        vocabulary=vocabulary,
+        feature_space=args.feature_space,
+        features=args.features,
+        masks=args.masks,
+        placeholder_maps=args.placeholder_maps,
+    )
+
+
+IMPORT_SOURCES: tuple[ImportSource, ...] = (
+    ImportSource(
+        name="scannet",
+        help="a ScanNet export (SensReader: color/, depth/, pose/, intrinsic/; optional features/, masks/)",
+        example="panogs import scannet scans/scene0000_00 bundles/scene0000_00 --vocabulary scannet20 "
+        "--geometry scans/scene0000_00/scene0000_00_vh_clean_2.ply "
+        "--gt scans/scene0000_00/scene0000_00_vh_clean_2.labels.ply",
+        add_options=add_geometry_options,
+        run=_run_scannet,
+    ),
+    ImportSource(
+        name="replica",
+        help="a Replica scene in the NICE-SLAM layout (results/frame*.jpg, results/depth*.png, traj.txt)",
+        example="panogs import replica Replica/room0 bundles/room0 --vocabulary matterport21 --geometry room0_mesh.ply",
+        add_options=_add_replica_options,
+        run=_run_replica,
+    ),
+    ImportSource(
+        name="sevenscenes",
+        help="a 7-Scenes / 3DMatch / SUN3D sequence (frame-<i>.color.jpg, .depth.png, .pose.txt)",
+        example="panogs import sevenscenes 7scenes/chess/seq-01 bundles/chess --stride 10 --placeholder-maps",
+        add_options=_add_sevenscenes_options,
+        run=_run_sevenscenes,
+    ),
+)
