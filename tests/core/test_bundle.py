@@ -1006,18 +1006,18 @@ class TestValidationBudgets:
     def test_too_many_classes_refused_by_count(self, bundle_dir: Path) -> None:
         classes = [{"name": f"class {i}", "kind": "thing"} for i in range(20_000)]
         (bundle_dir / "vocabulary.json").write_text(json.dumps({"classes": classes}))
-        assert "vocabulary.json: 20,000 classes, over the limit of 8,192" in _problems(bundle_dir)
+        assert "vocabulary.json: 20,000 classes, over the limit of 4,096" in _problems(bundle_dir)
 
     def test_repeated_name_found_among_many(self, bundle_dir: Path) -> None:
-        classes = [{"name": f"class {i}", "kind": "thing"} for i in range(8_000)] + [{"name": "class 0", "kind": "x"}]
+        classes = [{"name": f"class {i}", "kind": "thing"} for i in range(4_000)] + [{"name": "class 0", "kind": "x"}]
         (bundle_dir / "vocabulary.json").write_text(json.dumps({"classes": classes}))
         problems = _problems(bundle_dir)
-        assert "vocabulary.json: classes[8000].name 'class 0' repeated, expected unique names" in problems
+        assert "vocabulary.json: classes[4000].name 'class 0' repeated, expected unique names" in problems
 
     def test_feature_dim_has_a_maximum(self, bundle_dir: Path) -> None:
         _edit(_set(["features", "dim"], 1_000_000))(bundle_dir)
         problems = _problems(bundle_dir)
-        assert "scene.json: features.dim 1,000,000, over the limit of 4,096" in problems
+        assert "scene.json: features.dim 1,000,000, over the limit of 2,048" in problems
         # The embeddings' width is not read without a valid dim (a 256 MiB vocabulary.npy cost the API 1 GB).
         assert not any(p.startswith("vocabulary.npy") for p in problems)
 

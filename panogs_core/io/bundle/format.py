@@ -32,12 +32,12 @@ DEFAULT_MAX_IMAGE_PIXELS = 100_000_000  # 10000 x 10000; the 8K UHD frame (7680 
 # gt/labels.npz is read whole during validation: 1 GiB holds 38 million labelled points with positions (28 bytes
 # each), 10x a large ScanNet or Replica mesh.
 DEFAULT_MAX_GROUND_TRUTH_BYTES = 1024**3
-# features.dim: CLIP and LSeg are 512-d, CLIP ViT-L/14 and OpenSeg 768, SigLIP so400m 1152. The vocabulary's
-# embeddings (classes x dim float32) and every feature map's last axis are bounded by it.
-DEFAULT_MAX_FEATURE_DIM = 4096
-# vocabulary.json: ScanNet200 has 200 classes, LVIS 1,203, ADE20K-full 3,688. With the dim bound this keeps the
-# embeddings under 128 MiB of float32.
-DEFAULT_MAX_CLASSES = 8192
+# features.dim: CLIP and LSeg are 512-d, CLIP ViT-L/14 and OpenSeg 768, SigLIP so400m 1152, CLIP bigG 1280. The
+# vocabulary's embeddings (classes x dim) and every feature map's last axis are bounded by it.
+DEFAULT_MAX_FEATURE_DIM = 2048
+# vocabulary.json: ScanNet200 has 200 classes, LVIS 1,203, ADE20K-full 3,688. With the dim bound, vocabulary.npy
+# holds at most 64 MiB (float64) and its float32 copy 32 MiB.
+DEFAULT_MAX_CLASSES = 4096
 # The chunks of one PNG that validation walks: libpng writes 8 KiB IDAT chunks and a row-per-chunk writer about one
 # chunk per 200 bytes; a million empty chunks (12 MB, 23 KB zipped) is neither, and cost 21 s of CPU per frame.
 PNG_CHUNKS_PER_KIB = 8

@@ -37,10 +37,10 @@ from panogs_core.io.bundle.format import (
     BundleLimits,
     max_png_chunks,
 )
-from panogs_core.io.bundle.reader import Bundle, geometry_from_vertices
+from panogs_core.io.bundle.reader import Bundle
 from panogs_core.io.image_header import ImageHeader, read_image_header
 from panogs_core.io.npy_header import NpyHeader, read_npy_header
-from panogs_core.io.ply import read_ply_vertices
+from panogs_core.io.ply import scan_ply_positions
 from panogs_core.types import Camera, ClassKind, Frame, Vocabulary
 
 logger = logging.getLogger(__name__)
@@ -476,7 +476,12 @@ def _npy_header(path: Path, rel: str, problems: list[str]) -> NpyHeader | None:
 
 
 def _check_geometry(root: Path, problems: list[str]) -> int | None:
-    """Vertex count of ``geometry.ply``, None when absent or invalid."""
+    """Vertex count of ``geometry.ply``, None when absent or invalid.
+
+    The mesh is scanned in chunks (count and finite positions), never held whole: an upload's 96 MB ASCII mesh
+    took the API from 162 to 1,327 MB when it was read at once. The PLY budget bounds vertices, ASCII values and
+    rows with list properties before any is parsed.
+    """
     path = root / "geometry.ply"
     if path.is_symlink():
         problems.append("geometry.ply: is a symbolic link, not allowed")
@@ -484,16 +489,16 @@ def _check_geometry(root: Path, problems: list[str]) -> int | None:
     if not path.exists():
         return None
     try:
-        geometry = geometry_from_vertices(read_ply_vertices(path))
+        count, finite = scan_ply_positions(path)
     except InputError as exc:
         problems.append(f"geometry.ply: {_strip_prefix(str(exc), 'geometry.ply: ')}")
         return None
-    if len(geometry.points) == 0:
+    if count == 0:
         problems.append("geometry.ply: 0 vertices, expected at least one")
         return None
-    if not np.all(np.isfinite(geometry.points)):
+    if not finite:
         problems.append("geometry.ply: vertex positions contain NaN or infinite values")
-    return len(geometry.points)
+    return count
 
 
 def _check_vocabulary(
@@ -559,12 +564,21 @@ def _load_embeddings(
     if shape != expected:
         problems.append(f"{rel}: shape {shape}, expected {expected} (classes, features.dim)")
         return None
-    emb = np.load(root / rel, allow_pickle=False).astype(np.float32)
+    emb = _float32_rows(root / rel)
     norms = np.linalg.norm(emb, axis=1, keepdims=True)
     if not np.all(np.isfinite(emb)) or np.any(norms == 0):
         problems.append(f"{rel}: contains NaN, infinite or all-zero rows, expected finite non-zero embeddings")
         return None
     return emb / norms
+
+
+def _float32_rows(path: Path, rows_at_once: int = 256) -> np.ndarray:  # (L, D) float32
+    """A 2-D float ``.npy`` as float32, cast a few rows at a time from a memory map (never a float64 copy whole)."""
+    stored = np.load(path, mmap_mode="r", allow_pickle=False)
+    out = np.empty(stored.shape, np.float32)
+    for start in range(0, len(stored), rows_at_once):
+        out[start : start + rows_at_once] = stored[start : start + rows_at_once]
+    return out
 
 
 def _check_ground_truth(
