@@ -166,6 +166,16 @@ class QuotaExceeded(ServiceError):
         self.status_code = status_code
 
 
+class TooManyRequests(ServiceError):
+    """A per-tenant limit on work in flight (renders); ``Retry-After`` says when to try again."""
+
+    status_code = 429
+    type = "too_many_requests"
+
+    def __init__(self, message: str, *, retry_after_s: int) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
 class ServiceUnavailable(ServiceError):
     """A dependency (database, broker, encoder) cannot be reached right now."""
 
