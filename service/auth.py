@@ -58,12 +58,22 @@ def list_api_keys(session: Session) -> list[ApiKey]:
     return list(session.scalars(select(ApiKey).order_by(ApiKey.created_at)))
 
 
+def key_prefix(ident: str) -> str:
+    """The listed prefix of ``ident``: itself, or the hex part of ``pgs_<prefix>`` and of a whole key."""
+    match = re.match(r"^pgs_([0-9a-f]{12})(?:_|$)", ident.strip())
+    return match.group(1) if match else ident.strip()
+
+
 def revoke_api_key(session: Session, ident: str) -> ApiKey | None:
-    """Revoke the key whose id or prefix is ``ident``; None when there is none."""
+    """Revoke the key whose id or prefix is ``ident``; None when there is none.
+
+    The prefix may be given as listed (``0123abcd4567``), as it starts the key (``pgs_0123abcd4567``), or as the
+    whole key: a person copies whichever they have at hand.
+    """
     try:
         row = session.get(ApiKey, uuid.UUID(ident))
     except ValueError:
-        row = session.scalar(select(ApiKey).where(ApiKey.prefix == ident))
+        row = session.scalar(select(ApiKey).where(ApiKey.prefix == key_prefix(ident)))
     if row is None:
         return None
     if row.revoked_at is None:

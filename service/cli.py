@@ -64,12 +64,20 @@ def add_service_commands(subparsers: Any) -> None:
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
     """The settings, with ``--data-dir`` (when given) in force here and in the children this process starts."""
+    from pydantic import ValidationError
+
     from service.settings import get_settings
 
     if getattr(args, "data_dir", None):
         os.environ["PANOGS_DATA_DIR"] = args.data_dir  # children (worker, uvicorn) read the same
         get_settings.cache_clear()
-    return get_settings()
+    try:
+        return get_settings()
+    except ValidationError as exc:
+        # One line per wrong setting, naming it: in a container this is all the operator's log shows of why the
+        # API never became healthy (a traceback buried it before).
+        lines = [f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors()]
+        raise SystemExit("panogs: the settings are not valid:\n  " + "\n  ".join(lines)) from None
 
 
 def _prepare_database(settings: Any) -> None:

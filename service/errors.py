@@ -166,6 +166,16 @@ class QuotaExceeded(ServiceError):
         self.status_code = status_code
 
 
+class TooManyRequests(ServiceError):
+    """A per-tenant limit on work in flight (renders); ``Retry-After`` says when to try again."""
+
+    status_code = 429
+    type = "too_many_requests"
+
+    def __init__(self, message: str, *, retry_after_s: int) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
 class ServiceUnavailable(ServiceError):
     """A dependency (database, broker, encoder) cannot be reached right now."""
 
@@ -276,6 +286,24 @@ def _format_location(loc: tuple[Any, ...]) -> str:
     return ".".join(parts) or "body"
 
 
+def allowed_methods(request: Request) -> list[str] | None:
+    """Every method the API documents at this request's path, or None for a path outside the OpenAPI schema.
+
+    Starlette answers a 405 from the first route whose path matches, naming only that route's methods: ``PUT
+    /v1/jobs`` said ``Allow: POST`` though ``GET /v1/jobs`` exists too. The schema lists every operation of a
+    path together, so it is the one place that knows them all.
+    """
+    path = request.url.path
+    for template, operations in request.app.openapi().get("paths", {}).items():
+        pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(template))
+        if re.fullmatch(pattern, path):
+            return sorted(method.upper() for method in operations if method.upper() in _HTTP_METHODS)
+    return None
+
+
+_HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the one JSON error format for every error the app can answer."""
 
@@ -290,7 +318,13 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         body = {"type": _STATUS_TYPES.get(exc.status_code, "error"), "message": str(exc.detail)}
-        return error_response(request, body, exc.status_code, getattr(exc, "headers", None))
+        headers = getattr(exc, "headers", None)
+        methods = allowed_methods(request) if exc.status_code == 405 else None
+        if methods:  # with the matched route's own, which may be outside the schema (tus's OPTIONS)
+            own = (headers or {}).get("Allow", "")
+            every = sorted({*methods, *(m.strip() for m in own.split(",") if m.strip())})
+            headers = {**(headers or {}), "Allow": ", ".join(every)}
+        return error_response(request, body, exc.status_code, headers)
 
     @app.exception_handler(DBAPIError)
     @app.exception_handler(PoolTimeoutError)

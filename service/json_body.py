@@ -2,12 +2,17 @@
 
 FastAPI parses a JSON body with ``json.loads`` and validates it with pydantic, neither of which has limits: a
 ``config`` nested 300 levels deep in a 2 KB body passed both and broke pydantic's serializer (a 500), and
-1,000 levels break the parser itself. This middleware reads every body FastAPI would parse as JSON (the same
-rule: no ``Content-Type``, ``application/json`` or ``application/*+json``), checks it with
-:func:`panogs_core.io.bounded_json.loads`, and answers a broken limit with 422 ``invalid_input`` naming the field,
-the limit and its setting. Bodies within the limits go on unchanged; a syntax error is left to FastAPI, whose
-own 422 says where. It sits inside :class:`service.body_limit.BodyLimit`, so it never buffers more than that
-cap. The tus endpoint (``/v1/uploads``) carries bytes, not JSON, and is not read here.
+1,000 levels break the parser itself. This middleware checks every request body with
+:func:`panogs_core.io.bounded_json.loads` and answers a broken limit with 422 ``invalid_input`` naming the field,
+the limit and its setting. Bodies within the limits go on unchanged; a syntax error (a body that is not JSON at
+all) is left to the route, and FastAPI's own 422 says where.
+
+Every body is checked, whatever its ``Content-Type`` says: deciding "is this JSON?" a second time, beside the
+framework, is what let bodies through before (two ``Content-Type`` headers, of which this module read the last and
+FastAPI the first; a trailing byte that ``bytes.strip`` keeps and ``str.strip`` removes). Every route but the
+upload endpoint takes JSON, so a body that breaks a JSON limit is refused on any of them. It sits inside
+:class:`service.body_limit.BodyLimit`, so it never buffers more than that cap. The tus endpoint (``/v1/uploads``)
+carries bytes, not JSON, and is not read here.
 """
 
 from __future__ import annotations
@@ -37,17 +42,6 @@ def body_limits(settings: Settings) -> JsonLimits:
     )
 
 
-def is_json_content(scope: Scope) -> bool:
-    """True when FastAPI would parse this request's body as JSON (its rule, fastapi.routing)."""
-    headers: dict[bytes, bytes] = dict(scope["headers"])
-    value = headers.get(b"content-type")
-    if value is None:
-        return True
-    media = value.split(b";", 1)[0].strip().lower()
-    kind, _, subtype = media.partition(b"/")
-    return kind == b"application" and (subtype == b"json" or subtype.endswith(b"+json"))
-
-
 class BoundedJsonBody:
     """Pure ASGI middleware: buffers a JSON body (already capped by ``BodyLimit``), checks it, replays it."""
 
@@ -56,7 +50,7 @@ class BoundedJsonBody:
         self.limits = limits
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["path"].startswith(UNCAPPED_PREFIX) or not is_json_content(scope):
+        if scope["type"] != "http" or scope["path"].startswith(UNCAPPED_PREFIX):
             await self.app(scope, receive, send)
             return
         chunks: list[bytes] = []

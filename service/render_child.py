@@ -10,31 +10,46 @@ Every number of a request is checked against a stated range (docs/service.md, "R
 rotation and a translation of at most ``MAX_TRANSLATION_M``. Outside them the rasterizer's arithmetic overflows, so
 such a view has no image worth drawing; it is a 422 naming the field. A child that fails anyway is logged here with
 its stderr under a request id, and the client gets that id, never the child's traceback or a path.
+
+The ranges bound a render's size, not its work: a wide field of view with the principal point far outside the
+image (every value in range) spread near Gaussians over the whole image and burned 120 s of CPU. So the child
+also runs under a CPU budget (``RENDER_CPU_S``, the kernel's ``RLIMIT_CPU``), and :class:`RenderSlots` lets a
+tenant hold at most ``RENDERS_PER_TENANT`` renders at once (429 with ``Retry-After`` past that).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
 import math
 import os
+import resource
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from service.errors import InvalidInput, NotFound, ServiceUnavailable, sanitize_message
+from service.errors import InvalidInput, NotFound, ServiceUnavailable, TooManyRequests, sanitize_message
 
 logger = logging.getLogger(__name__)
 
 MAX_RENDER_PIXELS = 1920 * 1080  # per render; larger sizes are refused with 422
 RENDER_TIMEOUT_S = 120.0  # the child process is killed after this long (503)
+# CPU seconds a render may use: a 1920 x 1080 render of a ScanNet-size scene takes 2-6 s on one thread; the
+# budget is far above that and far below what one request could take from the API host's cores.
+RENDER_CPU_S = 30
+RENDERS_PER_TENANT = 2  # renders one tenant may have running at once
+RENDER_RETRY_AFTER_S = 2
 FOCAL_RANGE = (0.02, 200.0)  # fx, fy per pixel of the larger side: fields of view from about 176 to 0.3 degrees
 MAX_TRANSLATION_M = 1e5  # a camera farther than 100 km from the scene's origin is refused
 ROTATION_TOLERANCE = 1e-3  # R @ R.T may differ from the identity by this much per entry
@@ -87,6 +102,17 @@ class RenderCreate(BaseModel):
     height: int | None = Field(default=None, ge=1, le=8192)
     layer: Layer = "panoptic"
     query: str | None = Field(default=None, min_length=1, max_length=200, description="for the relevance layer")
+
+    @field_validator("query")
+    @classmethod
+    def _query_is_text(cls, value: str | None) -> str | None:
+        # The query reaches the child as an argument: a NUL cannot be in one, and a query without a word (such as
+        # "--", which argparse takes for its end-of-options marker) means nothing to any encoder.
+        if value is not None and not value.isprintable():
+            raise ValueError("the query holds control characters; send printable text")
+        if value is not None and not any(ch.isalnum() for ch in value):
+            raise ValueError(f"the query {value!r} has no letter or digit")
+        return value
 
     @model_validator(mode="after")
     def _consistent(self) -> RenderCreate:
@@ -170,16 +196,71 @@ def render_layer(body: RenderCreate, out_dir: Path, timeout_s: float = RENDER_TI
             argv.append(f"--query={body.query}")  # one token: a query that starts with "-" is not an option
         # One thread: renders run beside the API's own work (docs/service.md, one thread per call).
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-        try:
-            done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)
-        except subprocess.TimeoutExpired as exc:
-            raise ServiceUnavailable(f"render: no image after {timeout_s:.0f} s") from exc
+        done = _run_child(argv, env, timeout_s)
         if done.returncode == 2:  # a user error, already worded by the CLI; its paths are ours, not the client's
             message = done.stderr.strip().removeprefix("panogs render: ").replace(str(pose_file), "the request")
             raise InvalidInput(sanitize_message(message, [out_dir]))
         if done.returncode != 0:
             raise _child_failed(done.returncode, done.stderr, out_dir)
         return (Path(tmp) / "out" / f"{body.layer}.png").read_bytes()
+
+
+def _run_child(argv: list[str], env: dict[str, str], timeout_s: float) -> subprocess.CompletedProcess[str]:
+    """Run the render child under the CPU budget; 503 when it outlives ``timeout_s`` or its budget."""
+    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) as child:
+        _limit_cpu(child.pid)
+        try:
+            stdout, stderr = child.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired as exc:
+            child.kill()
+            child.communicate()
+            raise ServiceUnavailable(f"render: no image after {timeout_s:.0f} s") from exc
+    if child.returncode in (-signal.SIGXCPU, -signal.SIGKILL) and _cpu_limited():
+        raise ServiceUnavailable(
+            f"render: over its CPU budget of {RENDER_CPU_S} s; a smaller size or a narrower field of view costs less"
+        )
+    return subprocess.CompletedProcess(argv, child.returncode, stdout, stderr)
+
+
+def _cpu_limited() -> bool:
+    return hasattr(resource, "prlimit")
+
+
+def _limit_cpu(pid: int) -> None:
+    """Cap the child's CPU seconds (SIGXCPU at the soft limit, SIGKILL one second later), where the OS allows.
+
+    Set on the running child (``prlimit``) rather than in ``preexec_fn``, which is unsafe in a threaded server.
+    The child has not imported torch yet when this runs; the interpreter's start is inside the budget.
+    """
+    if _cpu_limited():
+        with contextlib.suppress(ProcessLookupError):  # it already ended
+            resource.prlimit(pid, resource.RLIMIT_CPU, (RENDER_CPU_S, RENDER_CPU_S + 1))
+
+
+class RenderSlots:
+    """At most ``per_tenant`` renders of one tenant at once in this process; the next one is a 429."""
+
+    def __init__(self, per_tenant: int = RENDERS_PER_TENANT) -> None:
+        self.per_tenant = per_tenant
+        self._running: dict[uuid.UUID, int] = {}
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def hold(self, tenant_id: uuid.UUID) -> Iterator[None]:
+        with self._lock:
+            if self._running.get(tenant_id, 0) >= self.per_tenant:
+                raise TooManyRequests(
+                    f"{self.per_tenant} renders of this account are running; retry when one ends",
+                    retry_after_s=RENDER_RETRY_AFTER_S,
+                )
+            self._running[tenant_id] = self._running.get(tenant_id, 0) + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._running[tenant_id] -= 1
+                if not self._running[tenant_id]:
+                    del self._running[tenant_id]
 
 
 def _child_failed(returncode: int, stderr: str, out_dir: Path) -> ServiceUnavailable:

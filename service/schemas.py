@@ -7,6 +7,7 @@ import uuid
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -163,6 +164,16 @@ class VocabularyClassIn(BaseModel):
     def _not_zero(cls, v: list[float] | None) -> list[float] | None:
         if v is not None and not any(v):
             raise ValueError("the embedding is all zeros (it has no direction)")
+        if v is not None:
+            # The worker holds embeddings as float32 and normalises them: 1e39 passed here as a finite float and
+            # became inf there. Refuse what float32 cannot hold, or whose float32 length is inf or 0.
+            as_stored = np.asarray(v, dtype=np.float32)
+            length = float(np.linalg.norm(as_stored))
+            if not np.isfinite(as_stored).all() or not np.isfinite(length) or length == 0:
+                raise ValueError(
+                    "the embedding does not fit float32 (a value past 3.4e38, or a length that over- or underflows "
+                    "it); send a unit vector"
+                )
         return v
 
 

@@ -21,6 +21,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from panogs_core.threads import available_cores, threads_per_process
 
 PLACEHOLDER_SECRET = "changethis"
+# Where an operator sets a secret: the compose stack reads .env (POSTGRES_PASSWORD feeds PANOGS_DATABASE_URL).
+_SET_YOUR_OWN = "set your own secret (docker compose: in .env, e.g. POSTGRES_PASSWORD; else the environment)"
 GIB = 1024**3
 
 
@@ -111,14 +113,18 @@ class Settings(BaseSettings):
             raise ValueError(f"PANOGS_STORAGE_URL must be s3://bucket[/prefix], not {self.storage_url!r}")
         secret = self.s3_secret_access_key or ""
         if self.environment == "production" and PLACEHOLDER_SECRET in secret:
-            raise ValueError(f"PANOGS_S3_SECRET_ACCESS_KEY still holds the placeholder {PLACEHOLDER_SECRET!r}")
+            raise ValueError(
+                f"PANOGS_S3_SECRET_ACCESS_KEY still holds the placeholder {PLACEHOLDER_SECRET!r}: {_SET_YOUR_OWN}"
+            )
         if self.environment == "production":
             for name in ("database_url", "broker_url"):
                 value = getattr(self, name)
                 if not value:
                     raise ValueError(f"PANOGS_{name.upper()} must be set in production")
                 if PLACEHOLDER_SECRET in value:
-                    raise ValueError(f"PANOGS_{name.upper()} still holds the placeholder {PLACEHOLDER_SECRET!r}")
+                    raise ValueError(
+                        f"PANOGS_{name.upper()} still holds the placeholder {PLACEHOLDER_SECRET!r}: {_SET_YOUR_OWN}"
+                    )
         return self
 
     @property

@@ -998,3 +998,51 @@ def test_gt_limit_counts_every_read_member(bundle_dir: Path) -> None:
     assert open_bundle(bundle_dir, limits=BundleLimits(max_ground_truth_bytes=576)).has_ground_truth
     with pytest.raises(BundleError, match=r"gt/labels\.npz: arrays expand to 576 bytes, over the ground-truth limit"):
         open_bundle(bundle_dir, limits=BundleLimits(max_ground_truth_bytes=575))
+
+
+class TestValidationBudgets:
+    """Each file kind is bounded by what a scene needs, and each check's work by the file's size."""
+
+    def test_too_many_classes_refused_by_count(self, bundle_dir: Path) -> None:
+        classes = [{"name": f"class {i}", "kind": "thing"} for i in range(20_000)]
+        (bundle_dir / "vocabulary.json").write_text(json.dumps({"classes": classes}))
+        assert "vocabulary.json: 20,000 classes, over the limit of 4,096" in _problems(bundle_dir)
+
+    def test_repeated_name_found_among_many(self, bundle_dir: Path) -> None:
+        classes = [{"name": f"class {i}", "kind": "thing"} for i in range(4_000)] + [{"name": "class 0", "kind": "x"}]
+        (bundle_dir / "vocabulary.json").write_text(json.dumps({"classes": classes}))
+        problems = _problems(bundle_dir)
+        assert "vocabulary.json: classes[4000].name 'class 0' repeated, expected unique names" in problems
+
+    def test_feature_dim_has_a_maximum(self, bundle_dir: Path) -> None:
+        _edit(_set(["features", "dim"], 1_000_000))(bundle_dir)
+        problems = _problems(bundle_dir)
+        assert "scene.json: features.dim 1,000,000, over the limit of 2,048" in problems
+        # The embeddings' width is not read without a valid dim (a 256 MiB vocabulary.npy cost the API 1 GB).
+        assert not any(p.startswith("vocabulary.npy") for p in problems)
+
+    def test_png_of_empty_chunks_refused_by_count(self, bundle_dir: Path) -> None:
+        rel = _manifest(bundle_dir)["frames"][0]["depth"]
+        data = (bundle_dir / rel).read_bytes()
+        empty = struct.pack(">I", 0) + b"zzZz" + struct.pack(">I", zlib.crc32(b"zzZz"))
+        ihdr_end = 8 + 12 + 13  # signature, then IHDR's length, type, 13 data bytes and CRC
+        (bundle_dir / rel).write_bytes(data[:ihdr_end] + empty * 100_000 + data[ihdr_end:])
+        problems = _problems(bundle_dir)
+        assert any(p.startswith(f"{rel}: does not decode as an image (more than ") and "chunks" in p for p in problems)
+
+    def test_a_file_shared_by_frames_is_checked_once(self, bundle_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        doc = _manifest(bundle_dir)
+        for frame in doc["frames"]:
+            frame["depth"] = doc["frames"][0]["depth"]
+        _save(bundle_dir, doc)
+        calls: list[int] = []
+        walk = panogs_core.io.bundle.validation._png_framing_problem
+
+        def counted(data: bytes, max_chunks: int) -> str | None:
+            calls.append(len(data))
+            return walk(data, max_chunks)
+
+        monkeypatch.setattr(panogs_core.io.bundle.validation, "_png_framing_problem", counted)
+        open_bundle(bundle_dir)
+        pngs = {f[k] for f in doc["frames"] for k in ("depth", "masks", "color") if f.get(k, "").endswith(".png")}
+        assert len(calls) == len(pngs)

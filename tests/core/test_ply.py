@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from panogs_core.errors import InputError
-from panogs_core.io.ply import read_ply_vertices, vertex_count, write_ply
+from panogs_core.io.ply import PlyBudget, read_ply_vertices, scan_ply_positions, vertex_count, write_ply
 
 
 def _fields(n: int = 5) -> dict[str, np.ndarray]:
@@ -246,3 +247,76 @@ class TestReadPly:
         mesh = o3d.io.read_triangle_mesh(str(tmp_path / "t.ply"))
         np.testing.assert_allclose(np.asarray(mesh.vertices), pts)
         np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2]])
+
+
+class TestBudget:
+    """What a file may cost is refused by name before the work; data is read in chunks, never whole."""
+
+    def test_vertices_over_the_budget(self, tmp_path: Path) -> None:
+        path = write_ply(tmp_path / "v.ply", _fields(5))
+        with pytest.raises(InputError, match=r"v\.ply: 5 vertices, over the limit of 4 \(subsample the mesh\)"):
+            read_ply_vertices(path, PlyBudget(max_vertices=4))
+        assert scan_ply_positions(path, PlyBudget(max_vertices=5))[0] == 5
+
+    @staticmethod
+    def _faces_first(path: Path, faces: int) -> Path:
+        pre = f"element face {faces}\nproperty list uchar int vertex_indices\n"
+        face = np.array([3], "u1").tobytes() + np.array([0, 0, 0], "<i4").tobytes()
+        rec = np.zeros(1, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])
+        path.write_bytes(_header("binary_little_endian", 1, extra_before=pre) + face * faces + rec.tobytes())
+        return path
+
+    def test_list_rows_before_the_vertices(self, tmp_path: Path) -> None:
+        path = self._faces_first(tmp_path / "faces-first.ply", 300_000)
+        with pytest.raises(InputError, match=r"element 'face' has list properties and 300,000 rows before"):
+            scan_ply_positions(path)  # the default budget, 200,000 such rows, is checked from the header
+        small = self._faces_first(tmp_path / "small.ply", 1_000)
+        assert read_ply_vertices(small, PlyBudget(max_list_rows=1_000))["x"].tolist() == [0.0]
+        with pytest.raises(InputError, match="at most 999 such rows"):
+            read_ply_vertices(small, PlyBudget(max_list_rows=999))
+
+    def test_ascii_values_over_the_budget(self, tmp_path: Path) -> None:
+        path = tmp_path / "zeros.ply"
+        path.write_bytes(_header("ascii", 1000) + b"0 " * 4000)
+        with pytest.raises(InputError, match=r"ASCII body of 4,000 values up to the vertices, over the limit of 3,999"):
+            scan_ply_positions(path, PlyBudget(max_ascii_values=3999))
+
+    def test_ascii_reads_only_what_the_header_declares(self, tmp_path: Path) -> None:
+        path = tmp_path / "trailing.ply"
+        path.write_bytes(_header("ascii", 1) + b"1 2 3 4\n" + b"0 " * 3_000_000)
+        assert scan_ply_positions(path) == (1, True)
+
+    @pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+    def test_chunks_join_to_the_whole(self, tmp_path: Path, encoding: str) -> None:
+        n = 65_537 if encoding == "ascii" else 262_145  # one row past a chunk
+        rng = np.random.default_rng(0)
+        xyz = rng.integers(-1000, 1000, (n, 3)).astype(np.float32) / 8  # exact in ASCII
+        red = rng.integers(0, 256, n).astype(np.uint8)
+        path = tmp_path / f"{encoding}.ply"
+        if encoding == "ascii":
+            rows = "\n".join(f"{a} {b} {c} {r}" for (a, b, c), r in zip(xyz.tolist(), red.tolist(), strict=True))
+            path.write_bytes(_header("ascii", n) + rows.encode() + b"\n")
+        else:
+            write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": red})
+        out = read_ply_vertices(path)
+        np.testing.assert_array_equal(np.stack([out["x"], out["y"], out["z"]], axis=1), xyz)
+        np.testing.assert_array_equal(out["red"], red)
+        assert scan_ply_positions(path) == (n, True)
+
+    def test_scan_finds_a_non_finite_position_in_a_later_chunk(self, tmp_path: Path) -> None:
+        xyz = np.zeros((300_000, 3), np.float32)
+        xyz[-1, 1] = np.inf
+        path = write_ply(tmp_path / "inf.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
+        assert scan_ply_positions(path) == (300_000, False)
+
+    def test_scan_holds_one_chunk_of_an_ascii_mesh(self, tmp_path: Path) -> None:
+        n = 1_000_000  # 8 MB of "0 0 0 0\n": read whole, its tokens alone took over 300 MB
+        path = tmp_path / "big.ply"
+        path.write_bytes(_header("ascii", n) + b"0 0 0 0\n" * n)
+        tracemalloc.start()
+        try:
+            assert scan_ply_positions(path) == (n, True)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 64 * 1024**2, f"peak {peak / 1024**2:.0f} MiB"

@@ -32,6 +32,15 @@ class TestKeys:
             assert verifier.verify(session, key) is None
             assert revoke_api_key(session, str(uuid.uuid4())) is None
 
+    @pytest.mark.parametrize("spelling", ["listed", "pgs_prefix", "whole key"])
+    def test_revoke_takes_the_prefix_as_a_person_copies_it(self, settings: Settings, spelling: str) -> None:
+        with session_scope(get_session_factory(settings.database)) as session:
+            row, key = create_api_key(session, "carol")
+            ident = {"listed": row.prefix, "pgs_prefix": f"pgs_{row.prefix}", "whole key": key}[spelling]
+            revoked = revoke_api_key(session, ident)
+            assert revoked is not None and revoked.id == row.id
+            assert KeyVerifier(ttl_s=0).verify(session, key) is None
+
 
 class TestRequests:
     @pytest.mark.parametrize(

@@ -258,6 +258,35 @@ class TestRequestBodies:
         assert response.status_code == 422
         assert "JSON depth limit" in response.json()["problems"][0]
 
+    @pytest.mark.parametrize(
+        "headers",
+        [
+            [("content-type", "application/json"), ("content-type", "text/plain")],  # FastAPI reads the first
+            [("content-type", "text/plain"), ("content-type", "application/json")],  # a reader of the last
+            [("content-type", "application/json\x1f")],  # str.strip() removes it, bytes.strip() keeps it
+            [("content-type", b"application/json\x85")],  # latin-1 NEL, a str space
+            [("content-type", " APPLICATION/JSON ;charset=utf-8")],
+            [("content-type", "text/plain")],
+            [("content-type", "")],
+        ],
+        ids=["json-then-text", "text-then-json", "x1f", "x85", "upper-spaced", "text", "empty"],
+    )
+    def test_the_bound_holds_whatever_the_content_type_headers_say(
+        self, client: TestClient, auth: dict[str, str], tiny_zip: bytes, headers: list[tuple[str, str | bytes]]
+    ) -> None:
+        scene = make_scene(client, auth, tiny_zip)
+        deep = '{"a": ' * 300 + "1" + "}" * 300
+        body = f'{{"scene_id": "{scene["id"]}", "config": {deep}}}'.encode()
+        response = client.post(
+            "/v1/jobs",
+            content=body,
+            headers=[(k.encode(), v.encode()) for k, v in auth.items()]
+            + [(k.encode(), v if isinstance(v, bytes) else v.encode()) for k, v in headers],
+        )
+        assert response.status_code == 422, response.text
+        assert "PANOGS_MAX_JSON_DEPTH" in response.json()["message"]
+        assert client.get("/v1/jobs", headers=auth).json()["count"] == 0
+
     def test_bodies_within_the_limits_are_unchanged(
         self, make_settings: Callable[..., Settings], tiny_zip: bytes
     ) -> None:

@@ -285,3 +285,43 @@ def test_the_missing_extras_messages_say_what_to_do_in_the_deployment() -> None:
     assert "rebuild the API image with --build-arg API_KIND=full" in _text_extra_hint(missing)
     assert _text_extra_hint("free-text queries are switched off on this server") == ""
     assert "--build-arg API_KIND=full" in (REPO / "service" / "render_child.py").read_text()
+
+
+def test_no_image_declares_a_volume() -> None:
+    # An image's VOLUME gives each container an anonymous volume that `docker compose down` and a scale-down leave
+    # behind (a worker's bundle cache, up to 8 GiB each); what must last is a named volume in the compose file.
+    lines = (REPO / "Dockerfile").read_text().splitlines()
+    assert not [line for line in lines if line.strip().upper().startswith("VOLUME")]
+
+
+def test_install_torch_says_where_a_wheel_goes_when_the_index_is_unreachable(tmp_path: Path) -> None:
+    env = {
+        **os.environ,
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+        "TORCH_INDEX_URL": "http://127.0.0.1:9/simple",  # the discard port: nothing answers
+        "PIP_NO_INDEX": "1",  # and pip may reach no other index: it cannot find the pinned build
+        "PIP_DRY_RUN": "1",
+    }
+    done = subprocess.run(
+        ["sh", str(IMAGE_SCRIPTS / "panogs-install-torch"), "cpu"], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert done.returncode == 1
+    assert "the torch index http://127.0.0.1:9/simple does not answer from this build" in done.stderr
+    assert "UNREACHABLE" in done.stderr
+    assert "in tools/docker/wheels/ of the build context" in done.stderr
+
+
+def test_a_placeholder_secret_is_named_with_where_to_set_it(tmp_path: Path) -> None:
+    env = {**os.environ, "PANOGS_ENVIRONMENT": "production", "PANOGS_DATA_DIR": str(tmp_path)}
+    env |= {
+        "PANOGS_DATABASE_URL": "postgresql+psycopg://panogs:s3cret@db/panogs",
+        "PANOGS_BROKER_URL": "redis://r:6379/0",
+    }
+    env |= {"PANOGS_S3_SECRET_ACCESS_KEY": "changethis", "PANOGS_STORAGE_URL": "s3://panogs/data"}
+    done = subprocess.run(
+        [sys.executable, "-m", "panogs_core.cli", "keys", "list"], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert done.returncode == 1
+    assert "panogs: the settings are not valid:" in done.stderr
+    assert "PANOGS_S3_SECRET_ACCESS_KEY still holds the placeholder 'changethis': set your own secret" in done.stderr
+    assert "Traceback" not in done.stderr

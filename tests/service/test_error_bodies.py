@@ -92,3 +92,20 @@ def test_a_bundle_refusal_names_no_host_path(client: TestClient, auth: dict[str,
     assert str(settings.storage) not in r.text
     assert str(tmp_path) not in r.text
     assert "Traceback" not in r.text
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "allow"),
+    [
+        ("PUT", "/v1/jobs", "GET, POST"),
+        ("DELETE", "/v1/scenes", "GET, POST"),
+        ("PATCH", "/v1/jobs/00000000-0000-0000-0000-000000000000", "DELETE, GET"),
+        ("PUT", "/v1/uploads", "OPTIONS, POST"),
+    ],
+)
+def test_a_405_allows_every_method_of_the_path(client: TestClient, method: str, path: str, allow: str) -> None:
+    # Starlette names only the first matching route's methods (PUT /v1/jobs said "Allow: POST").
+    response = client.request(method, path)
+    assert response.status_code == 405
+    assert response.headers["Allow"] == allow
+    assert response.json()["type"] == "method_not_allowed"

@@ -241,6 +241,9 @@ class TestInline:
             ({"classes": [{"name": "a"}], "embeddings": "vocabulary.npy"}, "vocabulary.inline.embeddings: Extra"),
             ({"classes": [{"name": "a", "embedding": [1, 0]}, {"name": "b"}]}, "for every class or for none"),
             ({"classes": [{"name": "a", "embedding": [0, 0]}]}, "all zeros"),
+            ({"classes": [{"name": "a", "embedding": [1e39, 0]}]}, "does not fit float32"),  # finite, not as float32
+            ({"classes": [{"name": "a", "embedding": [1e20, 1e20]}]}, "does not fit float32"),  # its length overflows
+            ({"classes": [{"name": "a", "embedding": [1e-30, 0]}]}, "does not fit float32"),  # underflows to zero
             ({"classes": [{"name": "a", "embedding": ["x"]}]}, "vocabulary.inline.classes.0.embedding.0"),
             ({"classes": [{"name": f"c{i}"} for i in range(MAX_VOCABULARY_CLASSES + 1)]}, "at most 1000"),
             (["scannet20"], "expected a built-in label-set name or an inline"),

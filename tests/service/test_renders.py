@@ -18,6 +18,8 @@ from panogs_core.gaussians.ply import write_gaussian_ply
 from panogs_core.gaussians.views import write_cameras
 from panogs_core.stages.export import write_vocabulary
 from panogs_core.types import Camera, Frame, Vocabulary
+from service import render_child
+from service.api.routes import renders
 from service.render_child import MAX_RENDER_PIXELS
 from service.settings import Settings
 from service.storage import Storage
@@ -188,3 +190,46 @@ def test_far_and_mirrored_poses_are_refused(client: TestClient, auth: dict[str, 
         assert r.status_code == 422, r.text
         assert "T_world_cam" in json.dumps(r.json())
         assert needle in json.dumps(r.json())
+
+
+@pytest.mark.parametrize(
+    ("query", "needle"),
+    [("--", "has no letter or digit"), ("a\x00b", "control characters"), ("chair\x07", "control characters")],
+)
+def test_a_query_that_is_no_text_is_refused(
+    client: TestClient, auth: dict[str, str], finished_job: str, query: str, needle: str
+) -> None:
+    # A NUL cannot travel in the child's argv, and argparse reads "--query=--" as no value at all: both were 500s.
+    body = {"T_world_cam": np.eye(4).tolist(), "width": 16, "height": 12, "layer": "relevance", "query": query}
+    r = client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth)
+    assert r.status_code == 422, r.text
+    assert needle in json.dumps(r.json())
+
+
+def test_a_render_over_its_cpu_budget_is_a_503(
+    client: TestClient, auth: dict[str, str], finished_job: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # One CPU second does not even import torch in the child: the kernel stops it, and the client is told why.
+    monkeypatch.setattr(render_child, "RENDER_CPU_S", 1)
+    body = {"T_world_cam": np.eye(4).tolist(), "width": 16, "height": 12, "layer": "color"}
+    r = client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth)
+    assert r.status_code == 503, r.text
+    assert "over its CPU budget of 1 s" in r.json()["message"]
+
+
+def test_renders_in_flight_are_capped_per_tenant(
+    client: TestClient, auth: dict[str, str], finished_job: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    slots = render_child.RenderSlots(per_tenant=1)
+    monkeypatch.setattr(renders, "RENDER_SLOTS", slots)
+    body = {"T_world_cam": np.eye(4).tolist(), "width": 16, "height": 12, "layer": "color"}
+    tenant = uuid.uuid4()
+    with slots.hold(tenant):  # another tenant's render in flight takes none of this tenant's slots
+        assert client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth).status_code == 200
+    monkeypatch.setattr(slots, "per_tenant", 0)
+    r = client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth)
+    assert r.status_code == 429, r.text
+    assert r.headers["Retry-After"] == str(render_child.RENDER_RETRY_AFTER_S)
+    assert r.json()["type"] == "too_many_requests"
+    monkeypatch.setattr(slots, "per_tenant", 1)
+    assert client.post(f"/v1/jobs/{finished_job}/render", json=body, headers=auth).status_code == 200  # released

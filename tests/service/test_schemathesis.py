@@ -17,7 +17,9 @@ from hypothesis import HealthCheck, settings
 from pipeline_stand_in import stand_in
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
+    allow_header_conformance,
     content_type_conformance,
+    response_headers_conformance,
     response_schema_conformance,
     status_code_conformance,
 )
@@ -29,7 +31,14 @@ from service.api_app import create_app
 from service.db.session import get_engine
 from service.settings import Settings
 
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+    response_headers_conformance,
+    allow_header_conformance,
+]
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +85,8 @@ schema = schemathesis.openapi.from_asgi("/openapi.json", DEFERRED)
 
 
 @schema.parametrize()
-@settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
+# Derandomised: the same cases on every run (a few hundred over the schema's operations), so a failure repeats.
+@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
 def test_no_server_errors(case: Any, app_and_auth: tuple[FastAPI, dict[str, str]]) -> None:
     _, auth = app_and_auth
     response = case.call(headers={**(case.headers or {}), **auth})

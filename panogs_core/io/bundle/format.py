@@ -32,6 +32,16 @@ DEFAULT_MAX_IMAGE_PIXELS = 100_000_000  # 10000 x 10000; the 8K UHD frame (7680 
 # gt/labels.npz is read whole during validation: 1 GiB holds 38 million labelled points with positions (28 bytes
 # each), 10x a large ScanNet or Replica mesh.
 DEFAULT_MAX_GROUND_TRUTH_BYTES = 1024**3
+# features.dim: CLIP and LSeg are 512-d, CLIP ViT-L/14 and OpenSeg 768, SigLIP so400m 1152, CLIP bigG 1280. The
+# vocabulary's embeddings (classes x dim) and every feature map's last axis are bounded by it.
+DEFAULT_MAX_FEATURE_DIM = 2048
+# vocabulary.json: ScanNet200 has 200 classes, LVIS 1,203, ADE20K-full 3,688. With the dim bound, vocabulary.npy
+# holds at most 64 MiB (float64) and its float32 copy 32 MiB.
+DEFAULT_MAX_CLASSES = 4096
+# The chunks of one PNG that validation walks: libpng writes 8 KiB IDAT chunks and a row-per-chunk writer about one
+# chunk per 200 bytes; a million empty chunks (12 MB, 23 KB zipped) is neither, and cost 21 s of CPU per frame.
+PNG_CHUNKS_PER_KIB = 8
+PNG_CHUNKS_FREE = 64
 
 
 @dataclass(frozen=True)
@@ -43,8 +53,17 @@ class BundleLimits:
         max_image_pixels: Most pixels (width x height) of one image, and cells (Hf x Wf) of one feature map.
         max_ground_truth_bytes: Most bytes the arrays of ``gt/labels.npz`` may expand to (their declared sizes
             are checked before any is decompressed).
+        max_feature_dim: Largest ``features.dim``.
+        max_classes: Most classes in ``vocabulary.json``.
     """
 
     json: JsonLimits = field(default_factory=JsonLimits)
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     max_ground_truth_bytes: int = DEFAULT_MAX_GROUND_TRUTH_BYTES
+    max_feature_dim: int = DEFAULT_MAX_FEATURE_DIM
+    max_classes: int = DEFAULT_MAX_CLASSES
+
+
+def max_png_chunks(file_bytes: int) -> int:
+    """Most chunks a PNG of ``file_bytes`` may hold before validation refuses it (see ``PNG_CHUNKS_PER_KIB``)."""
+    return PNG_CHUNKS_FREE + PNG_CHUNKS_PER_KIB * (file_bytes // 1024)

@@ -35,11 +35,12 @@ from panogs_core.io.bundle.format import (
     ROTATION_TOL,
     TOP_KEYS,
     BundleLimits,
+    max_png_chunks,
 )
-from panogs_core.io.bundle.reader import Bundle, geometry_from_vertices
+from panogs_core.io.bundle.reader import Bundle
 from panogs_core.io.image_header import ImageHeader, read_image_header
 from panogs_core.io.npy_header import NpyHeader, read_npy_header
-from panogs_core.io.ply import read_ply_vertices
+from panogs_core.io.ply import scan_ply_positions
 from panogs_core.types import Camera, ClassKind, Frame, Vocabulary
 
 logger = logging.getLogger(__name__)
@@ -65,7 +66,7 @@ def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> 
     )
     frames = _check_frames(root, manifest, header, limits, problems) if manifest is not None else []
     num_vertices = _check_geometry(root, problems)
-    vocabulary = _check_vocabulary(root, header.feature_dim, limits.json, problems)
+    vocabulary = _check_vocabulary(root, header.feature_dim, limits.json, limits.max_classes, problems)
     has_gt = _check_ground_truth(root, vocabulary, num_vertices, limits, problems)
     if problems:
         raise BundleError(relative_to_root(problems, root), source=source or root.name)
@@ -153,6 +154,9 @@ def _check_header(doc: dict[str, Any], limits: BundleLimits, problems: list[str]
         if dim is None or dim <= 0:
             problems.append(f"scene.json: features.dim {features.get('dim')!r}, expected an integer > 0")
             dim = None
+        elif dim > limits.max_feature_dim:
+            problems.append(f"scene.json: features.dim {dim:,}, over the limit of {limits.max_feature_dim:,}")
+            dim = None
         space = features.get("space")
         if not isinstance(space, str) or not space:
             problems.append(f"scene.json: features.space {space!r}, expected a non-empty string")
@@ -193,12 +197,13 @@ def _check_frames(
         return []
     frames: list[Frame] = []
     seen: set[str] = set()
+    checked: set[tuple[str, str]] = set()  # (kind, path): frames may share a file, which is checked once
     for i, entry in enumerate(entries):
         frame = _check_frame_entry(root, i, entry, seen, problems)
         if frame is None:
             continue
         frames.append(frame)
-        _check_frame_files(root, frame, header, limits, problems)
+        _check_frame_files(root, frame, header, limits, checked, problems)
     if not any(f.features is not None for f in frames):
         problems.append("scene.json: no frame has features, expected at least one")
     if not any(f.masks is not None for f in frames):
@@ -292,14 +297,16 @@ def _check_rel_path(root: Path, value: Any, where: str, exts: tuple[str, ...], p
     return value
 
 
-def _check_frame_files(root: Path, frame: Frame, header: _Header, limits: BundleLimits, problems: list[str]) -> None:
-    """Check each file of one frame, one at a time: the image's header, then the framing of its compressed data."""
-    _check_image(root, frame.depth, "depth", header.size, limits, problems)
-    if frame.color is not None:
-        _check_image(root, frame.color, "color", header.size, limits, problems)
-    if frame.masks is not None:
-        _check_image(root, frame.masks, "masks", header.size, limits, problems)
-    if frame.features is not None:
+def _check_frame_files(
+    root: Path, frame: Frame, header: _Header, limits: BundleLimits, checked: set[tuple[str, str]], problems: list[str]
+) -> None:
+    """Check each file of one frame not checked yet, one at a time: the image's header, then its data's framing."""
+    for kind, rel in (("depth", frame.depth), ("color", frame.color), ("masks", frame.masks)):
+        if rel is not None and (kind, rel) not in checked:
+            checked.add((kind, rel))
+            _check_image(root, rel, kind, header.size, limits, problems)
+    if frame.features is not None and ("features", frame.features) not in checked:
+        checked.add(("features", frame.features))
         _check_features(root, frame.features, header.feature_dim, limits, problems)
 
 
@@ -365,24 +372,29 @@ def _data_problem(root: Path, rel: str) -> str | None:
             # libjpeg decodes a truncated JPEG with only a warning and grey fill: look for the end marker instead.
             return f"{rel}: truncated JPEG (no end-of-image marker after the image data)"
         return None
-    problem = _png_framing_problem(data)
+    problem = _png_framing_problem(data, max_png_chunks(len(data)))
     return None if problem is None else f"{rel}: does not decode as an image ({problem})"
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def _png_framing_problem(data: bytes) -> str | None:
+def _png_framing_problem(data: bytes, max_chunks: int) -> str | None:
     """Why a PNG's chunks are not whole (a length past the end, a CRC-32 that does not match, no IEND), or None.
 
     Every byte of a PNG after its signature is inside a chunk whose CRC covers its type and data, so a truncated
-    or altered file fails here without inflating the image.
+    or altered file fails here without inflating the image. The walk stops after ``max_chunks`` chunks: each one
+    costs a Python step, and no encoder writes that many for the file's size (``format.max_png_chunks``).
     """
     if not data.startswith(_PNG_SIGNATURE):
         return "not a PNG signature"
     view = memoryview(data)
     pos = len(_PNG_SIGNATURE)
+    chunks = 0
     while pos + 12 <= len(data):
+        chunks += 1
+        if chunks > max_chunks:
+            return f"more than {max_chunks:,} chunks in {len(data):,} bytes, expected at most that many"
         length = int.from_bytes(data[pos : pos + 4], "big")
         kind = bytes(data[pos + 4 : pos + 8])
         end = pos + 12 + length
@@ -464,7 +476,12 @@ def _npy_header(path: Path, rel: str, problems: list[str]) -> NpyHeader | None:
 
 
 def _check_geometry(root: Path, problems: list[str]) -> int | None:
-    """Vertex count of ``geometry.ply``, None when absent or invalid."""
+    """Vertex count of ``geometry.ply``, None when absent or invalid.
+
+    The mesh is scanned in chunks (count and finite positions), never held whole: an upload's 96 MB ASCII mesh
+    took the API from 162 to 1,327 MB when it was read at once. The PLY budget bounds vertices, ASCII values and
+    rows with list properties before any is parsed.
+    """
     path = root / "geometry.ply"
     if path.is_symlink():
         problems.append("geometry.ply: is a symbolic link, not allowed")
@@ -472,19 +489,21 @@ def _check_geometry(root: Path, problems: list[str]) -> int | None:
     if not path.exists():
         return None
     try:
-        geometry = geometry_from_vertices(read_ply_vertices(path))
+        count, finite = scan_ply_positions(path)
     except InputError as exc:
         problems.append(f"geometry.ply: {_strip_prefix(str(exc), 'geometry.ply: ')}")
         return None
-    if len(geometry.points) == 0:
+    if count == 0:
         problems.append("geometry.ply: 0 vertices, expected at least one")
         return None
-    if not np.all(np.isfinite(geometry.points)):
+    if not finite:
         problems.append("geometry.ply: vertex positions contain NaN or infinite values")
-    return len(geometry.points)
+    return count
 
 
-def _check_vocabulary(root: Path, dim: int | None, limits: JsonLimits, problems: list[str]) -> Vocabulary | None:
+def _check_vocabulary(
+    root: Path, dim: int | None, limits: JsonLimits, max_classes: int, problems: list[str]
+) -> Vocabulary | None:
     path = root / "vocabulary.json"
     if path.is_symlink():
         problems.append("vocabulary.json: is a symbolic link, not allowed")
@@ -500,22 +519,28 @@ def _check_vocabulary(root: Path, dim: int | None, limits: JsonLimits, problems:
     if not isinstance(classes, list) or not classes:
         problems.append(f"vocabulary.json: classes {_short(classes)}, expected a non-empty list")
         return None
+    if len(classes) > max_classes:
+        problems.append(f"vocabulary.json: {len(classes):,} classes, over the limit of {max_classes:,}")
+        return None
     n_before = len(problems)
     names: list[str] = []
+    seen_names: set[str] = set()  # a set, not the list: the check stays linear (131k classes never finished)
     kinds: list[ClassKind] = []
     for i, item in enumerate(classes):
         name = item.get("name") if isinstance(item, dict) else None
         kind = item.get("kind") if isinstance(item, dict) else None
         if not isinstance(name, str) or not name:
             problems.append(f"vocabulary.json: classes[{i}].name {name!r}, expected a non-empty string")
-        elif name in names:
+        elif name in seen_names:
             problems.append(f"vocabulary.json: classes[{i}].name {name!r} repeated, expected unique names")
         if kind not in ("thing", "stuff"):
             problems.append(f"vocabulary.json: classes[{i}].kind {kind!r}, expected 'thing' or 'stuff'")
         names.append(name if isinstance(name, str) else "")
+        seen_names.add(names[-1])
         kinds.append(kind if kind in ("thing", "stuff") else "thing")
     embeddings = None
-    if isinstance(doc, dict) and doc.get("embeddings") is not None:
+    # Without a valid features.dim (a problem already) the embeddings' declared width is unbounded: not read.
+    if isinstance(doc, dict) and doc.get("embeddings") is not None and dim is not None:
         embeddings = _load_embeddings(root, doc["embeddings"], len(names), dim, problems)
     if len(problems) > n_before:
         return None
@@ -539,12 +564,21 @@ def _load_embeddings(
     if shape != expected:
         problems.append(f"{rel}: shape {shape}, expected {expected} (classes, features.dim)")
         return None
-    emb = np.load(root / rel, allow_pickle=False).astype(np.float32)
+    emb = _float32_rows(root / rel)
     norms = np.linalg.norm(emb, axis=1, keepdims=True)
     if not np.all(np.isfinite(emb)) or np.any(norms == 0):
         problems.append(f"{rel}: contains NaN, infinite or all-zero rows, expected finite non-zero embeddings")
         return None
     return emb / norms
+
+
+def _float32_rows(path: Path, rows_at_once: int = 256) -> np.ndarray:  # (L, D) float32
+    """A 2-D float ``.npy`` as float32, cast a few rows at a time from a memory map (never a float64 copy whole)."""
+    stored = np.load(path, mmap_mode="r", allow_pickle=False)
+    out = np.empty(stored.shape, np.float32)
+    for start in range(0, len(stored), rows_at_once):
+        out[start : start + rows_at_once] = stored[start : start + rows_at_once]
+    return out
 
 
 def _check_ground_truth(

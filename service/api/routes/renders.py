@@ -14,12 +14,13 @@ from service.db.session import get_read_engine
 from service.schemas import error_responses
 
 router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
+RENDER_SLOTS = render_child.RenderSlots()  # renders in flight, per tenant, in this API process
 
 
 @router.post(
     "/render",
     response_class=Response,
-    responses={**error_responses(404, 409, 422, 503), 200: {"content": {"image/png": {}}}},
+    responses={**error_responses(404, 409, 422, 429, 503), 200: {"content": {"image/png": {}}}},
 )
 async def render(
     job_id: uuid.UUID,
@@ -34,5 +35,6 @@ async def render(
     engine = get_read_engine(settings.database)
     # the tenant's job, its Gaussian scene fitted (404 / 409 otherwise; 409 fit_not_ready says how far the fit is)
     await run_in_threadpool(job_results.fitted_scene, engine, job_id, tenant.id)
-    png = await run_in_threadpool(render_child.render_layer, body, storage.run_folder(job_id))
+    with RENDER_SLOTS.hold(tenant.id):
+        png = await run_in_threadpool(render_child.render_layer, body, storage.run_folder(job_id))
     return Response(png, media_type="image/png")
