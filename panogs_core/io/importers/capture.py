@@ -28,7 +28,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.io.importers.common import _id_list, feature_dim_of, is_rigid, masks_to_ids, require_empty
+from panogs_core.io.importers.common import feature_dim_of, id_list, is_rigid, masks_to_ids, require_empty
 from panogs_core.io.importers.sevenscenes import PLACEHOLDER_DIM, PLACEHOLDER_SPACE, placeholder_vocabulary
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Vocabulary
@@ -169,7 +169,7 @@ class CaptureReport:
             f"({self.bundle_bytes / 1e6:.1f} MB); {self.not_selected} left out by stride / key-frame rule / "
             "max frames"
         ]
-        lines += [f"dropped {len(ids)} frames: {reason}: {_id_list(ids)}" for reason, ids in self.dropped]
+        lines += [f"dropped {len(ids)} frames: {reason}: {id_list(ids)}" for reason, ids in self.dropped]
         if self.depth_range is not None:
             lo, mid, hi = self.depth_range
             lines.append(f"depth {lo:.2f} - {hi:.2f} m (median {mid:.2f} m)")
@@ -377,7 +377,7 @@ def _write(
         samples.append(valid[:: max(1, valid.size // _DEPTH_SAMPLE)])
         report(on_progress, done, len(frames))
     if writer.num_frames == 0:
-        reasons = "; ".join(f"{reason}: {_id_list(tuple(ids))}" for reason, ids in dropped.items() if ids)
+        reasons = "; ".join(f"{reason}: {id_list(tuple(ids))}" for reason, ids in dropped.items() if ids)
         raise InputError(
             f"import {capture.source}: no usable frame among {len(capture.frames)} ({reasons or 'none selected'})"
         )

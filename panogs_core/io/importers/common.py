@@ -47,12 +47,12 @@ class ImportReport:
         if self.frames_skipped_invalid_pose:
             lines.append(
                 f"skipped {len(self.frames_skipped_invalid_pose)} frames with invalid poses: "
-                + _id_list(self.frames_skipped_invalid_pose)
+                + id_list(self.frames_skipped_invalid_pose)
             )
         if self.frames_skipped_missing:
             lines.append(
                 f"skipped {len(self.frames_skipped_missing)} frames without pose or depth: "
-                + _id_list(self.frames_skipped_missing)
+                + id_list(self.frames_skipped_missing)
             )
         lines.append(
             f"{self.frames_without_features} frames without features, {self.frames_without_masks} without masks"
@@ -287,7 +287,8 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
-def _id_list(ids: tuple[str, ...], limit: int = 10) -> str:
+def id_list(ids: tuple[str, ...], limit: int = 10) -> str:
+    """The first ``limit`` ids joined by commas, then how many more."""
     shown = ", ".join(ids[:limit])
     return shown + (f" ... (+{len(ids) - limit})" if len(ids) > limit else "")
 
