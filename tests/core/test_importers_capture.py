@@ -3,7 +3,10 @@ capture that labels the room as a run of the room itself does."""
 
 from __future__ import annotations
 
+import argparse
+import shlex
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,6 +15,7 @@ from capture_room import export_maps, quaternion_xyzw, write_tum
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import open_bundle
 from panogs_core.io.importers.capture import FrameSelection, MapSources, keyframes_by_motion, quaternion_pose
+from panogs_core.io.importers.sources import CAPTURE_SOURCES, SourceCli, options_from_values
 from panogs_core.io.importers.tum import TumOptions, import_tum
 
 
@@ -58,6 +62,51 @@ class TestQuaternionPose:
     def test_exception(self) -> None:
         assert np.isnan(quaternion_pose(np.array([0.5, 0.5, 0.5, 0.2]), np.zeros(3))).all()
         assert np.isnan(quaternion_pose(np.array([np.nan, 0, 0, 1]), np.zeros(3))).all()
+
+
+def _parser(cli: SourceCli) -> argparse.ArgumentParser:
+    """An argparse subcommand built from the table alone, as the command line would."""
+    parser = argparse.ArgumentParser(prog=f"panogs import {cli.name}", description=cli.description)
+    parser.add_argument("src")
+    parser.add_argument("dst")
+    types: dict[str, Any] = {"int": int, "float": float, "str": str, "path": str}
+    for opt in cli.options:
+        dest = opt.field.replace(".", "__")
+        if opt.kind in ("switch", "switch_off"):
+            action = "store_true" if opt.kind == "switch" else "store_false"
+            parser.add_argument(opt.flag, dest=dest, action=action, default=opt.default, help=opt.help)
+        else:
+            kw: dict[str, Any] = {"choices": list(opt.choices)} if opt.choices else {}
+            parser.add_argument(opt.flag, dest=dest, type=types[opt.kind], default=opt.default, help=opt.help, **kw)
+    return parser
+
+
+class TestSourceTable:
+    @pytest.mark.parametrize("source", sorted(CAPTURE_SOURCES))
+    def test_defaults_are_the_options_defaults(self, source: str) -> None:
+        entry = CAPTURE_SOURCES[source]
+        args = vars(_parser(entry.cli).parse_args(["SRC", "DST"]))
+        values = {k.replace("__", "."): v for k, v in args.items() if k not in ("src", "dst")}
+        values["maps.vocabulary"] = None  # the command line resolves a name or file first
+        assert options_from_values(entry.options, values) == entry.options()
+
+    @pytest.mark.parametrize("source", sorted(CAPTURE_SOURCES))
+    def test_the_example_parses(self, source: str) -> None:
+        entry = CAPTURE_SOURCES[source]
+        words = shlex.split(entry.cli.example)
+        assert words[:3] == ["panogs", "import", source]
+        args = vars(_parser(entry.cli).parse_args(words[3:]))
+        values = {k.replace("__", "."): v for k, v in args.items() if k not in ("src", "dst")}
+        opts = options_from_values(entry.options, values)
+        assert opts.maps.placeholder_maps
+
+    def test_exception(self) -> None:
+        with pytest.raises(InputError, match="no field colour"):
+            options_from_values(TumOptions, {"colour": 1})
+        with pytest.raises(InputError, match="unknown option field"):
+            options_from_values(TumOptions, {"frames.stride": 1})
+        with pytest.raises(InputError, match="stride"):
+            options_from_values(TumOptions, {"selection.stride": 0})
 
 
 @pytest.mark.slow

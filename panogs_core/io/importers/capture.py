@@ -404,3 +404,4 @@ def _maps_of(feat_path: Path | None, mask_path: Path | None, dim: int) -> tuple[
             raise InputError(f"import: {mask_path}: does not decode as an image")
         mask = masks_to_ids(image)
     return feat, mask
+
