@@ -6,12 +6,13 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
+import zipfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from capture_room import assert_points_agree, assert_same_cameras, write_record3d
+from capture_room import assert_points_agree, assert_same_cameras, pack_r3d, write_record3d
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import open_bundle
@@ -114,3 +115,30 @@ class TestImportRecord3D:
         assert dropped["invalid pose (NaN, infinite or not a rotation)"] == ("000001", "000002")
         assert "4.jpg" in dropped["missing file"][0]
         assert report.frames_written == report.frames_source - 3
+
+
+class TestImportR3D:
+    def test_smoke(self, export: Path, synth_tiny: Path, tmp_path: Path) -> None:
+        pytest.importorskip("liblzfse")
+        pack_r3d(export, tmp_path / "room.r3d")
+        report = import_record3d(tmp_path / "room.r3d", tmp_path / "b", Record3DOptions(maps=PLACEHOLDER))
+        room, scene = open_bundle(synth_tiny), open_bundle(tmp_path / "b")
+        assert report.frames_written == len(room.frames)
+        assert scene.name == "room (placeholder maps)"
+        pairs = [(f.id, r.id) for f, r in zip(scene.frames, room.frames)]
+        assert_same_cameras(scene, room, pairs)
+        assert_points_agree(scene, room, pairs)
+
+    def test_exception(self, export: Path, tmp_path: Path) -> None:
+        pytest.importorskip("liblzfse")
+        pack_r3d(export, tmp_path / "room.r3d")
+        with zipfile.ZipFile(tmp_path / "room.r3d") as zf, zipfile.ZipFile(tmp_path / "cut.r3d", "w") as out:
+            for info in zf.infolist():
+                data = zf.read(info)
+                out.writestr(info.filename, data[: len(data) // 2] if info.filename == "rgbd/2.depth" else data)
+        report = import_record3d(tmp_path / "cut.r3d", tmp_path / "b", Record3DOptions(maps=PLACEHOLDER))
+        assert "2.depth" in dict(report.dropped)["depth does not decode"][0]
+        (tmp_path / "bad.r3d").write_bytes(b"PK\x03\x04 not really")
+        with pytest.raises(InputError, match=r"bad\.r3d"):
+            import_record3d(tmp_path / "bad.r3d", tmp_path / "c", Record3DOptions(maps=PLACEHOLDER))
+        assert not (tmp_path / "c").exists()

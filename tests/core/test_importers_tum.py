@@ -58,7 +58,7 @@ class TestImportTum:
         report = import_tum(src, tmp_path / "b", _options(src))
         assert report.frames_written == len(lines[1:]) // 2 - 1
         reasons = dict(report.dropped)
-        assert list(reasons["no pose within 0.02 s"]) == ["1305031102.000000"]
+        assert list(reasons["no pose within 0.02 s"]) == ["000000 (depth 1305031102.000000)"]
         assert "no pose within 0.02 s" in report.summary()
 
     def test_nan_pose_is_named_and_the_rest_written(self, sequence: Path, tmp_path: Path) -> None:
@@ -131,3 +131,11 @@ def test_associate_takes_the_nearest_within_tolerance() -> None:
     reference = np.array([2.015, 0.01, 0.99, 1.02, 5.0])
     assert associate(query, reference, 0.02).tolist() == [1, 2, 0, -1]
     assert associate(query, np.array([]), 0.02).tolist() == [-1, -1, -1, -1]
+
+
+def test_features_without_masks_are_refused(sequence: Path, synth_tiny: Path, tmp_path: Path) -> None:
+    stamps = sorted(p.stem for p in (sequence / "depth").glob("*.png"))
+    features, _ = export_maps(open_bundle(synth_tiny), stamps, tmp_path / "maps")
+    with pytest.raises(InputError, match="no instance masks"):
+        import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources(features=features)))
+    assert not (tmp_path / "b").exists()

@@ -185,3 +185,25 @@ def assert_points_agree(imported: Bundle, room: Bundle, pairs: list[tuple[str, s
         assert np.linalg.norm(world_point(imported, got, u2, v2) - point) < 0.05 + 0.02 * z
         seen += 1
     assert seen >= 1, "no second frame sees the point"
+
+
+def pack_r3d(export: Path, archive: Path) -> None:
+    """An EXR + JPG export (``write_record3d``) repacked as a ``.r3d`` archive: LZFSE float32 depth and uint8
+    confidence under ``rgbd/``, ``metadata`` with the depth size."""
+    import zipfile
+
+    import liblzfse
+
+    from panogs_core.io.importers.record3d import read_exr_depth
+
+    meta = json.loads((export / "metadata.json").read_text())
+    with zipfile.ZipFile(archive, "w") as zf:
+        for exr in sorted((export / "depth").glob("*.exr")):
+            n = exr.stem
+            depth = read_exr_depth(exr)
+            meta["dh"], meta["dw"] = depth.shape
+            zf.writestr(f"rgbd/{n}.depth", liblzfse.compress(depth.astype(np.float32).tobytes()))
+            conf = cv2.imread(str(export / "conf" / f"{n}.png"), cv2.IMREAD_UNCHANGED).astype(np.uint8)
+            zf.writestr(f"rgbd/{n}.conf", liblzfse.compress(conf.tobytes()))
+            zf.write(export / "rgb" / f"{n}.jpg", f"rgbd/{n}.jpg")
+        zf.writestr("metadata", json.dumps(meta))

@@ -169,7 +169,7 @@ class CaptureReport:
             f"({self.bundle_bytes / 1e6:.1f} MB); {self.not_selected} left out by stride / key-frame rule / "
             "max frames"
         ]
-        lines += [f"dropped {len(ids)} frames: {reason}: {id_list(ids)}" for reason, ids in self.dropped]
+        lines += [f"dropped {len(ids)} frame(s): {reason}: {id_list(ids)}" for reason, ids in self.dropped]
         if self.depth_range is not None:
             lo, mid, hi = self.depth_range
             lines.append(f"depth {lo:.2f} - {hi:.2f} m (median {mid:.2f} m)")
@@ -255,6 +255,12 @@ def import_capture(
     chosen = _select(valid, selection)
     feature_files, mask_files = _map_files(chosen, maps)
     _check_maps(capture.source, feature_files, maps)
+    if any(f is not None for f in feature_files) and not any(m is not None for m in mask_files):
+        where = "no masks folder given" if maps.masks is None else f"none in {maps.masks} for the kept frames"
+        raise InputError(
+            f"import {capture.source}: feature maps but no instance masks ({where}); the bundle format needs masks "
+            "on at least one frame: pass --masks DIR with <frame>.png id maps"
+        )
     stage = dst.parent / f".{dst.name}.partial-{os.getpid()}"
     if stage.exists():
         shutil.rmtree(stage)
@@ -404,4 +410,3 @@ def _maps_of(feat_path: Path | None, mask_path: Path | None, dim: int) -> tuple[
             raise InputError(f"import: {mask_path}: does not decode as an image")
         mask = masks_to_ids(image)
     return feat, mask
-

@@ -1,4 +1,4 @@
-"""Import Record3D's "EXR + JPG" export (an iPhone / iPad LiDAR capture) into a scene bundle.
+"""Import Record3D's "EXR + JPG" export or ``.r3d`` archive (an iPhone / iPad LiDAR capture) into a scene bundle.
 
 Source layout::
 
@@ -15,6 +15,10 @@ y and z. The bundle camera is the depth camera: ``K`` is scaled from the colour 
 of view; the aspect ratios must agree), and the colour JPEG is copied as it is (the bundle resamples colour to
 the camera size, docs/scene_format.md §1). Depth pixels whose confidence is below ``min_confidence`` are cleared.
 
+An ``.r3d`` archive holds the same in other names (``rgbd/<n>.jpg``, LZFSE-compressed ``rgbd/<n>.depth`` float32
+and ``rgbd/<n>.conf`` uint8, ``metadata``): :mod:`record3d_archive` unpacks it into this layout in a temporary
+folder, and the ``pyliblzfse`` package decodes its depth.
+
 EXR is read with the ``OpenEXR`` bindings (the format's reference library): OpenCV decodes EXR only when an
 environment variable is set before its first use, which a library must not depend on, and a reader of our own
 would cover only some of the compressions a capture app may write.
@@ -24,8 +28,9 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,6 +54,7 @@ logger = logging.getLogger(__name__)
 
 RECORD3D_DEPTH_SCALE = 1000.0  # bundle PNG units per metre: millimetres reach 65 m, beyond the LiDAR's 5 m
 ARKIT_UP = (0.0, 1.0, 0.0)  # ARKit's world is gravity-aligned with +Y up
+DEPTH_SUFFIXES = (".exr", ".depth")  # the EXR + JPG export's, the .r3d archive's (LZFSE float32)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,9 +101,18 @@ def import_record3d(
     """
     opts = options or Record3DOptions()
     src = Path(src)
+    if src.is_file() and src.suffix.lower() == ".r3d":
+        from panogs_core.io.importers.record3d_archive import unpacked_r3d
+
+        with unpacked_r3d(src) as folder:
+            named = opts if opts.name else replace(opts, name=src.stem)
+            return import_record3d(folder, dst, named, on_progress=on_progress)
     meta_path, meta = _read_metadata(src)
     depths = sorted(
-        ((int(p.stem), p) for p in (src / "depth").glob("*.exr") if p.stem.isdigit()), key=lambda item: item[0]
+        ((int(p.stem), p) for p in (src / "depth").iterdir() if p.stem.isdigit() and p.suffix in DEPTH_SUFFIXES)
+        if (src / "depth").is_dir()
+        else (),
+        key=lambda item: item[0],
     )
     if not depths:
         raise InputError(f"import record3d: {src / 'depth'} has no <n>.exr depth images")
@@ -108,7 +123,7 @@ def import_record3d(
         if n >= len(poses):
             no_pose.append(f"{n} ({depth.name}: {meta_path.name} has {len(poses)} poses)")
             continue
-        conf = src / "conf" / f"{n}.png"
+        conf = next((c for c in (src / "conf" / f"{n}.png", src / "conf" / f"{n}.conf") if c.is_file()), src)
         frames.append(
             CaptureFrame(
                 id=f"{n:06d}",
@@ -121,7 +136,7 @@ def import_record3d(
         )
 
     def read(frame: CaptureFrame) -> np.ndarray:
-        return _read_depth(frame, camera, opts.min_confidence)
+        return _read_depth(frame, camera, meta, opts.min_confidence)
 
     capture = Capture(
         source="record3d",
@@ -165,8 +180,51 @@ def read_exr_depth(path: Path) -> np.ndarray:  # (H, W) float32
     return pixels.astype(np.float32)
 
 
-def _read_depth(frame: CaptureFrame, camera: Camera, min_confidence: int) -> np.ndarray:  # (H, W) metres
-    depth = read_exr_depth(frame.depth)
+def read_lzfse(path: Path, dtype: type[np.generic], shape: tuple[int, int]) -> np.ndarray:  # (H, W)
+    """An LZFSE-compressed raw image of the ``.r3d`` archive (``.depth`` float32 metres, ``.conf`` uint8).
+
+    Raises:
+        InputError: naming the file, if it does not decompress or holds another number of pixels.
+    """
+    try:
+        import liblzfse  # the pyliblzfse package; only .r3d archives need it
+    except ImportError as exc:
+        raise InputError("import record3d: .r3d archives need the pyliblzfse package (pip install pyliblzfse)") from exc
+    try:
+        raw = liblzfse.decompress(path.read_bytes())
+    except (liblzfse.error, OSError) as exc:
+        raise InputError(f"import record3d: {path}: does not decompress as LZFSE ({exc})") from exc
+    values = np.frombuffer(raw, dtype=dtype)
+    if values.size != shape[0] * shape[1]:
+        raise InputError(f"import record3d: {path}: {values.size} values, expected {shape[1]}x{shape[0]}")
+    return values.reshape(shape)
+
+
+def _depth_shape(meta: dict[str, Any], path: Path) -> tuple[int, int]:
+    """(height, width) of an archive's depth: ``dh`` / ``dw`` of the metadata, else from the value count and the
+    colour's aspect ratio."""
+    if "dh" in meta and "dw" in meta:
+        return int(meta["dh"]), int(meta["dw"])
+    import liblzfse
+
+    count = len(liblzfse.decompress(path.read_bytes())) // 4
+    height = round(float(np.sqrt(count * int(meta["h"]) / int(meta["w"]))))
+    return height, count // max(height, 1)
+
+
+def read_depth_file(path: Path, meta: dict[str, Any]) -> np.ndarray:  # (H, W) float32 metres
+    """A depth image of the export (``.exr``) or of the archive (``.depth``)."""
+    if path.suffix == ".depth":
+        try:
+            shape = _depth_shape(meta, path)
+        except Exception as exc:  # the decoder's own error type, or a malformed size
+            raise InputError(f"import record3d: {path}: does not decompress as LZFSE ({exc})") from exc
+        return read_lzfse(path, np.float32, shape).astype(np.float32)
+    return read_exr_depth(path)
+
+
+def _read_depth(frame: CaptureFrame, camera: Camera, meta: dict[str, Any], min_confidence: int) -> np.ndarray:
+    depth = read_depth_file(frame.depth, meta)
     if depth.shape != (camera.height, camera.width):
         raise InputError(
             f"import record3d: {frame.depth}: {depth.shape[1]}x{depth.shape[0]}, expected {camera.width}x"
@@ -174,7 +232,8 @@ def _read_depth(frame: CaptureFrame, camera: Camera, min_confidence: int) -> np.
         )
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
     if frame.extra:
-        conf = cv2.imread(str(frame.extra[0]), cv2.IMREAD_UNCHANGED)
+        path = frame.extra[0]
+        conf = read_lzfse(path, np.uint8, depth.shape) if path.suffix == ".conf" else cv2.imread(str(path), -1)
         if conf is None or conf.ndim != 2:
             raise InputError(f"import record3d: {frame.extra[0]}: not a single-channel confidence image")
         conf = resample_nearest(conf, depth.shape)
@@ -183,11 +242,14 @@ def _read_depth(frame: CaptureFrame, camera: Camera, min_confidence: int) -> np.
 
 
 def _pose(row: object) -> np.ndarray:  # (4, 4) camera-to-world, OpenCV axes; NaN when malformed
-    values = np.asarray(row, dtype=np.float64) if isinstance(row, list) and len(row) == 7 else np.full(7, np.nan)
+    try:
+        values = np.asarray(row, dtype=np.float64) if isinstance(row, list) and len(row) == 7 else np.full(7, np.nan)
+    except (TypeError, ValueError):
+        values = np.full(7, np.nan)
     return quaternion_pose(values[:4], values[4:]) @ GL_TO_CV
 
 
-def _read_metadata(src: Path) -> tuple[Path, dict[str, object]]:
+def _read_metadata(src: Path) -> tuple[Path, dict[str, Any]]:
     path = next((p for p in (src / "metadata.json", src / "metadata") if p.is_file()), src / "metadata.json")
     if not path.is_file():
         raise InputError(f"import record3d: {path} is missing (Record3D's EXR + JPG export writes it)")
@@ -202,13 +264,13 @@ def _read_metadata(src: Path) -> tuple[Path, dict[str, object]]:
     return path, meta
 
 
-def _depth_camera(meta_path: Path, meta: dict[str, object], first_depth: Path) -> Camera:
+def _depth_camera(meta_path: Path, meta: dict[str, Any], first_depth: Path) -> Camera:
     K = np.asarray(meta["K"], dtype=np.float64).reshape(3, 3).T  # stored column-major
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(f"import record3d: {meta_path}: K is not a pinhole matrix: {meta['K']}")
-    width, height = int(meta["w"]), int(meta["h"])  # type: ignore[call-overload]
+    width, height = int(meta["w"]), int(meta["h"])
     colour = Camera(width=width, height=height, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
-    dh, dw = read_exr_depth(first_depth).shape
+    dh, dw = read_depth_file(first_depth, meta).shape
     if abs(dw / dh - width / height) > 0.01 * width / height:
         raise InputError(
             f"import record3d: colour {width}x{height} ({meta_path.name}) and depth {dw}x{dh} ({first_depth.name}) "

@@ -172,7 +172,7 @@ def _associate(
     frames: list[CaptureFrame] = []
     dropped: dict[str, list[str]] = {}
     for i, (stamp, rel) in enumerate(depth_list):
-        label = f"{stamp:.6f}"
+        label = f"{i:06d} (depth {stamp:.6f})"
         if rgb_of[i] < 0:
             dropped.setdefault(f"no colour image within {tolerance} s", []).append(label)
         elif pose_of[i] < 0:
