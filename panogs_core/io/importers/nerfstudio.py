@@ -111,7 +111,8 @@ def import_nerfstudio(
     depth_size = _first_depth_size(root, entries, with_depth)
     reference = _intrinsics(doc, entries[with_depth[0]], path)
     camera = _camera(reference, depth_size, path)
-    frames, dropped = [], {}
+    frames: list[CaptureFrame] = []
+    dropped: dict[str, list[str]] = {}
     for i, entry in enumerate(entries):
         label = f"{i:06d}"
         if not isinstance(entry, dict) or not entry.get("depth_file_path"):

@@ -14,15 +14,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal
 
 from panogs_core.errors import InputError
 from panogs_core.io.importers.capture import CaptureReport, FrameSelection, MapSources
 from panogs_core.io.importers.nerfstudio import NerfstudioOptions, import_nerfstudio
 from panogs_core.io.importers.record3d import Record3DOptions, import_record3d
 from panogs_core.io.importers.tum import FREIBURG_CAMERAS, TumOptions, import_tum
-
-_Options = TypeVar("_Options")
 
 
 @dataclass(frozen=True)
@@ -82,7 +80,7 @@ SHARED_OPTIONS = (
 )
 
 
-def options_from_values(cls: type[_Options], values: dict[str, Any]) -> _Options:
+def options_from_values(cls: type[Any], values: dict[str, Any]) -> Any:
     """A source's options dataclass from ``{field: value}`` (fields as in :class:`CliOption`; ``maps.vocabulary``
     takes an already resolved :class:`Vocabulary`). Missing fields keep their defaults.
 
