@@ -153,3 +153,20 @@ def test_an_imported_capture_labels_the_room_as_the_room_itself(synth_tiny: Path
     assert np.allclose(direct.points, imported.points, atol=1e-5)
     assert (direct.semantic == imported.semantic).mean() >= 0.99
     assert _purity(direct.instance, imported.instance) >= 0.95
+
+
+def test_a_failed_scannet_import_leaves_nothing_at_dst(tmp_path: Path) -> None:
+    """The research importers share the staged write: a frame that fails half-way removes the whole bundle."""
+    from test_importers import _scannet
+
+    from panogs_core.io.importers.scannet import import_scannet
+
+    src = _scannet(tmp_path / "scan", n=4, bad_pose=-1)
+    (src / "depth" / "2.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)  # a PNG header, no image
+    with pytest.raises(InputError, match=r"2\.png"):
+        import_scannet(src, tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+    assert not list(tmp_path.glob(".b.partial*"))
+    report = import_scannet(_scannet(tmp_path / "good", n=3, bad_pose=-1), tmp_path / "c")
+    assert report.bundle == tmp_path / "c"
+    assert open_bundle(report.bundle).frames

@@ -17,8 +17,6 @@ left. The bundle format has no place for the capture's gravity direction, so the
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +26,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.io.importers.common import feature_dim_of, id_list, is_rigid, masks_to_ids, require_empty
+from panogs_core.io.importers.common import feature_dim_of, id_list, is_rigid, masks_to_ids, require_empty, staged
 from panogs_core.io.importers.sevenscenes import PLACEHOLDER_DIM, PLACEHOLDER_SPACE, placeholder_vocabulary
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Vocabulary
@@ -261,17 +259,8 @@ def import_capture(
             f"import {capture.source}: feature maps but no instance masks ({where}); the bundle format needs masks "
             "on at least one frame: pass --masks DIR with <frame>.png id maps"
         )
-    stage = dst.parent / f".{dst.name}.partial-{os.getpid()}"
-    if stage.exists():
-        shutil.rmtree(stage)
-    try:
+    with staged(dst) as stage:
         written, depth_range = _write(stage, capture, chosen, feature_files, mask_files, maps, dropped, on_progress)
-        if dst.exists():
-            dst.rmdir()  # empty (require_empty): the staged bundle takes its place
-        stage.rename(dst)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
     return CaptureReport(
         bundle=dst,
         frames_source=len(capture.frames) + sum(len(v) for v in capture.dropped.values()),
