@@ -1,1 +1,2 @@
-"""Dataset layouts converted into scene bundles: ScanNet (SensReader export) and Replica (NICE-SLAM layout)."""
+"""Dataset and capture layouts converted into scene bundles: ScanNet, Replica, 7-Scenes, nerfstudio, Record3D,
+TUM RGB-D."""

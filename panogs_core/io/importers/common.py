@@ -4,7 +4,11 @@ with optional geometry, vocabulary and ground truth, then the frames), plus the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,12 +51,12 @@ class ImportReport:
         if self.frames_skipped_invalid_pose:
             lines.append(
                 f"skipped {len(self.frames_skipped_invalid_pose)} frames with invalid poses: "
-                + _id_list(self.frames_skipped_invalid_pose)
+                + id_list(self.frames_skipped_invalid_pose)
             )
         if self.frames_skipped_missing:
             lines.append(
                 f"skipped {len(self.frames_skipped_missing)} frames without pose or depth: "
-                + _id_list(self.frames_skipped_missing)
+                + id_list(self.frames_skipped_missing)
             )
         lines.append(
             f"{self.frames_without_features} frames without features, {self.frames_without_masks} without masks"
@@ -287,7 +291,8 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
-def _id_list(ids: tuple[str, ...], limit: int = 10) -> str:
+def id_list(ids: tuple[str, ...], limit: int = 10) -> str:
+    """The first ``limit`` ids joined by commas, then how many more."""
     shown = ", ".join(ids[:limit])
     return shown + (f" ... (+{len(ids) - limit})" if len(ids) > limit else "")
 
@@ -325,13 +330,39 @@ def write_import(
             if {"x", "y", "z"} <= ply.keys():
                 vertices = np.stack([ply[k] for k in "xyz"], axis=1)
         gt = load_ground_truth(ground_truth, vocabulary, vertices=vertices, vertices_name=f"geometry {geometry}")
-    writer = BundleWriter(
-        dst, name=name, camera=camera, depth_scale=depth_scale, feature_dim=feature_dim, feature_space=feature_space
-    )
-    if geometry is not None:
-        writer.write_geometry_file(geometry)
-    if vocabulary is not None:
-        writer.write_vocabulary(vocabulary)
-    if gt is not None:
-        writer.write_ground_truth(gt.semantic, gt.instance, gt.points)
-    return write_source_frames(writer, frames, on_progress=on_progress)
+    dst = Path(dst)
+    with staged(dst) as stage:
+        writer = BundleWriter(
+            stage,
+            name=name,
+            camera=camera,
+            depth_scale=depth_scale,
+            feature_dim=feature_dim,
+            feature_space=feature_space,
+        )
+        if geometry is not None:
+            writer.write_geometry_file(geometry)
+        if vocabulary is not None:
+            writer.write_vocabulary(vocabulary)
+        if gt is not None:
+            writer.write_ground_truth(gt.semantic, gt.instance, gt.points)
+        result = write_source_frames(writer, frames, on_progress=on_progress)
+    return replace(result, bundle=dst)
+
+
+@contextmanager
+def staged(dst: Path) -> Iterator[Path]:
+    """A staging folder ``.<dst>.partial-<pid>`` beside ``dst``: renamed to ``dst`` when the block ends, removed
+    when it raises, so that an import that fails leaves nothing half-written at ``dst``. ``dst`` must be absent or
+    an empty folder (:func:`require_empty`)."""
+    stage = dst.parent / f".{dst.name}.partial-{os.getpid()}"
+    if stage.exists():
+        shutil.rmtree(stage)
+    try:
+        yield stage
+        if dst.exists():
+            dst.rmdir()  # empty: the staged bundle takes its place
+        stage.rename(dst)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
