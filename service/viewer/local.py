@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import mimetypes
+import sys
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -115,10 +116,30 @@ def make_handler(run: RunViewer) -> type[BaseHTTPRequestHandler]:
     return Handler
 
 
+# A tab closed, reloaded or moved on while its answer was being written: nothing went wrong on this side.
+GONE = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError)
+
+
+class ViewerServer(ThreadingHTTPServer):
+    """The standard library's threading server, quiet about browsers that leave before their answer is written."""
+
+    daemon_threads = True
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        if isinstance(sys.exc_info()[1], GONE):
+            logger.debug("%s left before its answer was written", client_address)
+            return
+        super().handle_error(request, client_address)
+
+
+def make_server(run: RunViewer, port: int) -> ViewerServer:
+    """The server of ``run`` on 127.0.0.1 (port 0: any free port), listening, not yet serving."""
+    return ViewerServer(("127.0.0.1", port), make_handler(run))
+
+
 def serve(run: RunViewer, port: int, on_ready: Callable[[str], None]) -> None:
     """Serve until interrupted; ``on_ready(url)`` once the socket listens (port 0: any free port)."""
-    server = ThreadingHTTPServer(("127.0.0.1", port), make_handler(run))
-    server.daemon_threads = True
+    server = make_server(run, port)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     on_ready(url)
     try:

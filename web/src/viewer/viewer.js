@@ -11,21 +11,28 @@ import { summaryText } from "./describe.js";
 import { SIZE_STEP, ViewState, nextMode } from "./state.js";
 
 export class Viewer {
-  // root: an empty element; options: { queryFn(text) -> Promise<{hits}>, state, onStateChange(state), photo? }
+  // root: an empty element; options: { queryFn(text, {min_score}) -> Promise<{hits, candidates, min_score}>, state,
+  // onStateChange(state), photo?, canAsk? }
   // photo: { load() -> Promise<photo.js module>, bytes() -> Promise<Uint8Array of gaussians.ply> }, given by a
-  // host that has a fitted scene (the app); without it the photo view is unavailable.
+  // host that has a fitted scene (or later, by offerPhoto, once the fit ends); without it the photo view is
+  // unavailable. canAsk (default true): the host answers any threshold (the offline file answers stored ones).
   constructor(root, options) {
     this.root = root;
     this.options = options;
     this.store = new ViewState(options.state || {}, options.onStateChange);
-    this.panels = new Panels(root, {
-      command: (name) => this.command(name),
-      query: (text) => this.runQuery(text),
-      select: (id, keepQuery) => this.select(id, true, keepQuery),
-      toggle: (id) => this.select(this.state.sel === id ? null : id),
-      preview: (id) => this.preview(id),
-      classVisible: (index, visible) => this.toggleClass(index, visible),
-    });
+    this.panels = new Panels(
+      root,
+      {
+        command: (name) => this.command(name),
+        query: (text) => this.runQuery(text),
+        threshold: (value) => this.setMinScore(value),
+        select: (id, keepQuery) => this.select(id, true, keepQuery),
+        toggle: (id) => this.select(this.state.sel === id ? null : id),
+        preview: (id) => this.preview(id),
+        classVisible: (index, visible) => this.toggleClass(index, visible),
+      },
+      options.canAsk !== false,
+    );
     this.layer = null; // once a scene is loaded
     this.ready = false;
     this.photo = null; // the splats, once loaded (photo.js)
@@ -76,11 +83,23 @@ export class Viewer {
     else this.layer.fit();
     this.setMode(this.state.mode, false);
     if (this.state.sel !== null && this.instanceById.has(this.state.sel)) this.select(this.state.sel, false);
+    this.panels.setThreshold(this.state.minScore);
     this.panels.showPhoto(this.options.photo ? "off" : "unavailable");
     this.panels.showReady();
     this.ready = true;
     if (this.state.q) this.runQuery(this.state.q);
+    if (this.state.photo && this.options.photo) this.togglePhoto(true);
     this.render();
+  }
+
+  // The fit ended after the viewer opened (the host watched the job): the photo view is offered from now on, and
+  // opened when the URL asked for it.
+  offerPhoto(photo) {
+    if (this.options.photo) return;
+    this.options.photo = photo;
+    if (!this.layer) return; // load() offers it
+    this.panels.showPhoto("off");
+    if (this.state.photo) this.togglePhoto(true);
   }
 
   // A button's or a key's command (keys.js).
@@ -149,6 +168,15 @@ export class Viewer {
     this.photo.setVisible(show);
     this.layer.setPhoto(show, this.overlayAlpha());
     this.panels.showPhoto(show ? "on" : "off");
+    this.store.setPhoto(show);
+    this.store.changed();
+  }
+
+  // The query's threshold (the control beside the query box): the shown query is asked again with it.
+  setMinScore(value) {
+    this.panels.setThreshold(this.store.setMinScore(value));
+    this.store.changed();
+    if (this.state.q && this.ready) this.runQuery(this.state.q);
   }
 
   setSize(size) {
@@ -192,13 +220,17 @@ export class Viewer {
     this.panels.showAsking(text);
     let answer;
     try {
-      answer = await this.options.queryFn(text);
+      answer = await this.options.queryFn(text, { min_score: this.state.minScore });
     } catch (err) {
+      // Nothing of the last answer stays lit or listed under the refusal.
+      this.store.answer(text, []);
+      this.panels.markInstances(this.store.lit);
+      this.reflag();
       this.panels.showQueryError(err.message);
       return;
     }
     this.store.answer(text, answer.hits);
-    this.panels.showHits(text, answer.hits, (id) => this.instanceById.get(id)?.color || [0, 0, 0]);
+    this.panels.showHits(text, answer, (id) => this.instanceById.get(id)?.color || [0, 0, 0]);
     this.panels.markInstances(this.store.lit);
     this.reflag();
     this.panels.showQueryDone();
