@@ -1,8 +1,9 @@
 """``panogs view RUN_DIR``: the viewer for one finished run folder, served on 127.0.0.1 by the standard library.
 
 Routes: ``/`` the viewer page, ``/static/...`` the built assets, ``/scene.bin`` the binary scene (built once at
-start), ``/gaussians.ply`` the run's Gaussian scene for the photo view (key ``p``), ``POST /query`` the same query
-code as the API's ``/v1/jobs/{id}/query``.
+start), ``/gaussians.ply`` the run's Gaussian scene for the photo view (key ``p``), ``/cameras.json`` the capture
+frames' poses (the viewer's "look from" list), ``POST /query`` the same query code as the API's
+``/v1/jobs/{id}/query``.
 """
 
 from __future__ import annotations
@@ -85,8 +86,9 @@ def make_handler(run: RunViewer) -> type[BaseHTTPRequestHandler]:
                 return self._file(run.static / "viewer.html")
             if path == "/scene.bin":
                 return self._send(200, run.scene.data, "application/octet-stream")
-            if path == "/gaussians.ply" and (run.run_dir / "gaussians.ply").is_file():
-                return self._file(run.run_dir / "gaussians.ply")
+            for name in ("gaussians.ply", "cameras.json"):
+                if path == f"/{name}" and (run.run_dir / name).is_file():
+                    return self._file(run.run_dir / name)
             if path.startswith("/static/"):
                 name = path.removeprefix("/static/")
                 if "/" not in name and (run.static / name).is_file():

@@ -241,6 +241,39 @@ def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
     page.wait_for_selector(".pgs-viewer[data-photo=off]")
 
 
+def test_look_from_a_capture_frame_puts_the_camera_at_its_pose_and_the_url_keeps_it(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, artifacts: Path
+) -> None:
+    cameras = api.get(f"/v1/jobs/{job_id}/artifacts/cameras.json").json()
+    frame = cameras["frames"][len(cameras["frames"]) // 2]
+    _open_viewer(page, served["url"], job_id, "?mode=camera")
+    choose = page.locator("[data-role=frame]")
+    choose.wait_for(state="visible")
+    ids = choose.locator("option").evaluate_all("els => els.map(e => e.value)")
+    assert ids == ["", *(str(f["id"]) for f in cameras["frames"])]
+    read = "(c => [c.position.toArray(), c.up.toArray(), c.fov])(window.__panogs.viewer.camera)"
+    choose.select_option(str(frame["id"]))
+    pose = np.asarray(frame["T_world_cam"])
+    fov = np.degrees(2 * np.arctan(cameras["camera"]["height"] / (2 * cameras["camera"]["fy"])))
+
+    def at_the_frame() -> None:
+        position, up, shown_fov = page.evaluate(read)
+        np.testing.assert_allclose(position, pose[:3, 3], atol=1e-5)
+        np.testing.assert_allclose(up, -pose[:3, 1], atol=1e-5)  # the frame's own up: OpenCV's y points down
+        assert shown_fov == pytest.approx(fov)
+
+    at_the_frame()
+    assert f"frame={frame['id']}" in page.url
+    canvas_pixels(page, artifacts / "look-from-frame.png")
+    page.reload()  # the URL keeps the frame's view, roll and field of view included
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+    page.wait_for_function("window.__panogs.viewer.cameras !== null")
+    at_the_frame()
+    page.keyboard.press("f")  # the orbit view again: z up, the frame forgotten
+    assert page.evaluate(read)[1] == [0, 0, 1]
+    assert "frame=" not in page.url
+
+
 def _fit_running_for(page: Any, job_id: str, polls: int) -> list[int]:
     """The job answers "results ready, fit running" to the page's next ``polls`` status requests, then as it is
     (succeeded, fitted): a viewer opened while the fit ran. Returns the list the answers are counted in."""

@@ -98,6 +98,12 @@ def test_export_html_is_self_contained_and_answers_class_queries(
     assert stats == {"count": 20, "total": 60, "bytes": len(page.encode())}
     assert not re.search(r"<(script|link)[^>]+(src|href)=", page)  # nothing loaded from anywhere
     header, _ = decode(_inline_scene(page))
+    assert "cameras" not in header  # this run has no cameras.json
+    cameras = {"camera": {"fy": 100.0, "height": 120}, "frames": [{"id": "f0", "T_world_cam": np.eye(4).tolist()}]}
+    (folder / "cameras.json").write_text(json.dumps(cameras))
+    export_html(folder, out, max_primitives=20)
+    header, _ = decode(_inline_scene(out.read_text()))
+    assert header["cameras"] == cameras  # the "look from" list works offline too
     result = load_result(folder)
     for name in ("wall", "chair", "table"):
         api = run_query(result, QueryCreate(text=name), None).model_dump(mode="json")
@@ -126,6 +132,10 @@ def test_local_viewer_serves_the_scene_and_the_api_query(run: tuple[Path, dict[s
         assert client.get("scene.bin").content == viewer.scene.data
         assert "static/view.js" in client.get("").text
         assert client.get("gaussians.ply").content == (folder / "gaussians.ply").read_bytes()
+        assert client.get("cameras.json").status_code == 404  # none in this run: the viewer shows no frame list
+        cameras = {"camera": {"fy": 100.0, "height": 120}, "frames": [{"id": "f0", "T_world_cam": np.eye(4).tolist()}]}
+        (folder / "cameras.json").write_text(json.dumps(cameras))
+        assert client.get("cameras.json").json() == cameras
         answer = client.post("query", json={"text": "chair", "top_k": 2}).json()
         expected = run_query(load_result(folder), QueryCreate(text="chair", top_k=2), None)
         assert answer["hits"] == expected.model_dump(mode="json")["hits"]

@@ -18,6 +18,12 @@ async function localQuery(url, text, options) {
   return body;
 }
 
+async function fetchJson(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: ${response.status}`);
+  return response.json();
+}
+
 function offlineQuery(header, text) {
   const answer = (header.class_queries || {})[text.trim().toLowerCase()];
   if (!answer) {
@@ -39,6 +45,7 @@ export async function startViewer(photo) {
     state: paramsToState(params),
     photo: inline ? null : photo,
     canAsk: !inline, // the offline file's answers were computed at the default threshold
+    cameras: inline ? async () => header.cameras || { frames: [] } : () => fetchJson("cameras.json"),
     queryFn: (text, options) => (inline ? offlineQuery(header, text) : localQuery("query", text, options)),
     onStateChange: (state) => history.replaceState(null, "", "#" + stateToParams(state).toString()),
   });

@@ -13,6 +13,7 @@ const FULL = {
   q: "office chair & desk = 2 #1 ü",
   minScore: 0.25,
   cam: [1.25, -2.5, 3, 0, 0.001, -0.5],
+  frame: "frame-007",
   photo: true,
 };
 

@@ -25,6 +25,7 @@ describe("ViewState", () => {
       q: "",
       minScore: 0.5,
       cam: null,
+      frame: null,
       photo: false,
     });
   });
@@ -87,6 +88,10 @@ describe("ViewState", () => {
     assert.equal(store.setMinScore("x"), 0.5);
     store.setPhoto(1);
     assert.equal(store.snapshot().photo, true);
+    store.setFrame(12);
+    assert.equal(store.value.frame, "12");
+    store.setFrame("");
+    assert.equal(store.value.frame, null);
   });
 
   it("keeps the camera to the millimetre", () => {

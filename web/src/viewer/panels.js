@@ -13,7 +13,7 @@ function swatch(color) {
 }
 
 export class Panels {
-  // on: { command(name), query(text), threshold(value), select(id, keepQuery), toggle(id), preview(id),
+  // on: { command(name), query(text), threshold(value), frame(id), select(id, keepQuery), toggle(id), preview(id),
   //       classVisible(index, visible) }
   // canAsk: whether the host can ask again with another threshold (the offline file answers stored class queries)
   constructor(root, on, canAsk = true) {
@@ -117,6 +117,16 @@ export class Panels {
         "photo",
       )),
       (this.photoStatus = h("span", { class: "pgs-photo-status", "aria-live": "polite" })),
+      (this.frameBox = h(
+        "label",
+        { class: "pgs-frames", hidden: true },
+        "look from ",
+        (this.frameSelect = h("select", {
+          "data-role": "frame",
+          "aria-label": "look from a capture frame",
+          onchange: () => on.frame(this.frameSelect.value),
+        })),
+      )),
       queryForm,
       threshold,
       this.queryStatus,
@@ -224,6 +234,18 @@ export class Panels {
 
   setQueryText(text) {
     this.queryInput.value = text;
+  }
+
+  // ids: the capture frames whose poses the run has (cameras.json), in its order; selected: the one looked from
+  fillFrames(ids, selected) {
+    const option = (value, text) => h("option", { value }, text);
+    this.frameSelect.replaceChildren(option("", "a capture frame ..."), ...ids.map((id) => option(id, `frame ${id}`)));
+    this.frameSelect.value = selected ?? "";
+    this.frameBox.hidden = !ids.length;
+  }
+
+  showFrame(id) {
+    this.frameSelect.value = id ?? "";
   }
 
   setThreshold(value) {

@@ -1,5 +1,5 @@
 // The one owner of the viewer's state. `value` is what the URL keeps (mode, size, hidden classes, selection, query,
-// the query's threshold, camera, photo on); `lit`, `hover` and `hits` are what is shown now and never leave the page. No DOM, no three.js.
+// the query's threshold, camera, the capture frame looked from, photo on); `lit`, `hover` and `hits` are what is shown now and never leave the page. No DOM, no three.js.
 
 export const MODES = ["camera", "semantic", "instance"];
 export const DEFAULT_MODE = "semantic";
@@ -44,6 +44,7 @@ export class ViewState {
       q: "",
       minScore: DEFAULT_MIN_SCORE,
       cam: null,
+      frame: null,
       photo: false,
       ...initial,
     };
@@ -103,6 +104,11 @@ export class ViewState {
   setMinScore(value) {
     this.value.minScore = clampMinScore(value);
     return this.value.minScore;
+  }
+
+  // The capture frame the camera looks from (its id as text), or null once the view moves.
+  setFrame(id) {
+    this.value.frame = id === null || id === undefined || id === "" ? null : String(id);
   }
 
   setPhoto(on) {

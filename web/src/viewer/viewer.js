@@ -16,6 +16,7 @@ export class Viewer {
   // photo: { load() -> Promise<photo.js module>, bytes() -> Promise<Uint8Array of gaussians.ply> }, given by a
   // host that has a fitted scene (or later, by offerPhoto, once the fit ends); without it the photo view is
   // unavailable. canAsk (default true): the host answers any threshold (the offline file answers stored ones).
+  // cameras?: () -> Promise<cameras.json of the run> ({camera, frames: [{id, T_world_cam}]}): the "look from" list.
   constructor(root, options) {
     this.root = root;
     this.options = options;
@@ -26,6 +27,7 @@ export class Viewer {
         command: (name) => this.command(name),
         query: (text) => this.runQuery(text),
         threshold: (value) => this.setMinScore(value),
+        frame: (id) => this.lookFromFrame(id),
         select: (id, keepQuery) => this.select(id, true, keepQuery),
         toggle: (id) => this.select(this.state.sel === id ? null : id),
         preview: (id) => this.preview(id),
@@ -37,6 +39,7 @@ export class Viewer {
     this.ready = false;
     this.photo = null; // the splats, once loaded (photo.js)
     this.photoOn = false;
+    this.cameras = null; // cameras.json, once read
     this.unbind = [];
   }
 
@@ -81,6 +84,7 @@ export class Viewer {
     );
     if (this.state.cam) this.layer.setCameraPose(this.state.cam);
     else this.layer.fit();
+    this.loadFrames();
     this.setMode(this.state.mode, false);
     if (this.state.sel !== null && this.instanceById.has(this.state.sel)) this.select(this.state.sel, false);
     this.panels.setThreshold(this.state.minScore);
@@ -133,9 +137,33 @@ export class Viewer {
     if (save) this.saveCamera();
   }
 
-  saveCamera() {
+  // An orbit, pan, zoom or fit: the view is no longer a capture frame's.
+  saveCamera(frame = null) {
     this.store.setCamera(this.layer.cameraPose());
+    this.store.setFrame(frame);
+    this.panels.showFrame(frame);
     this.store.changed();
+  }
+
+  // The capture frames' list, from the host's cameras.json; the URL's frame looked from once it is read.
+  async loadFrames() {
+    if (!this.options.cameras) return;
+    try {
+      this.cameras = await this.options.cameras();
+    } catch (_) {
+      return; // no list: the orbit view only
+    }
+    const ids = this.cameras.frames.map((frame) => String(frame.id));
+    this.panels.fillFrames(ids, this.state.frame);
+    if (this.state.frame !== null && ids.includes(this.state.frame)) this.lookFromFrame(this.state.frame);
+  }
+
+  // The camera at a capture frame's pose and field of view ("" or an unknown id: nothing changes).
+  lookFromFrame(id) {
+    const frame = this.cameras?.frames.find((f) => String(f.id) === String(id));
+    if (!frame || !this.layer) return;
+    this.layer.lookFrom(frame.T_world_cam, this.cameras.camera);
+    this.saveCamera(String(frame.id));
   }
 
   setMode(mode, notify = true) {

@@ -95,6 +95,7 @@ export async function viewerPage(ctx, jobId, params) {
     state: paramsToState(params),
     photo: fitted ? photoSource(jobId) : null,
     queryFn: (text, options) => api("POST", `/v1/jobs/${jobId}/query`, { text, ...options }),
+    cameras: () => api("GET", `/v1/jobs/${jobId}/artifacts/cameras.json`),
     onStateChange: (state) => history.replaceState(null, "", viewerHash(jobId, stateToParams(state))),
   });
   ctx.onLeave(() => viewer.dispose());
