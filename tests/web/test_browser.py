@@ -267,7 +267,7 @@ def test_look_from_a_capture_frame_puts_the_camera_at_its_pose_and_the_url_keeps
     canvas_pixels(page, artifacts / "look-from-frame.png")
     page.reload()  # the URL keeps the frame's view, roll and field of view included
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
-    page.wait_for_function("window.__panogs.viewer.cameras !== null")
+    page.wait_for_function("() => window.__panogs.viewer.cameras !== null")
     at_the_frame()
     page.keyboard.press("f")  # the orbit view again: z up, the frame forgotten
     assert page.evaluate(read)[1] == [0, 0, 1]
@@ -355,7 +355,7 @@ def test_a_query_lists_its_best_candidates_below_the_threshold_and_the_threshold
     assert len(lowered["hits"]) > len(answer["hits"])
     page.fill("[data-role=threshold]", "0")
     page.press("[data-role=threshold]", "Enter")
-    page.wait_for_function(f"document.querySelectorAll('[data-hit-id]').length === {len(lowered['hits'])}")
+    page.wait_for_function("n => document.querySelectorAll('[data-hit-id]').length === n", arg=len(lowered["hits"]))
     assert page.locator("[data-hit-id]").evaluate_all(read) == [h["instance_id"] for h in lowered["hits"]]
     assert "min=0&" in page.url or page.url.endswith("min=0")
     page.keyboard.press("Escape")
