@@ -358,6 +358,22 @@ def test_a_query_lists_its_best_candidates_below_the_threshold_and_the_threshold
     page.wait_for_function("n => document.querySelectorAll('[data-hit-id]').length === n", arg=len(lowered["hits"]))
     assert page.locator("[data-hit-id]").evaluate_all(read) == [h["instance_id"] for h in lowered["hits"]]
     assert "min=0&" in page.url or page.url.endswith("min=0")
+    # Free text at the default threshold: ranked instances with their scores, passing or the closest below it.
+    page.fill("[data-role=threshold]", "0.5")
+    page.press("[data-role=threshold]", "Enter")
+    page.wait_for_function("() => document.querySelector('.pgs-query-status').textContent.includes('≥ 0.50')")
+    text = "something soft to sit on"
+    page.fill(".pgs-query input", text)
+    page.press(".pgs-query input", "Enter")
+    page.wait_for_selector(".pgs-viewer[data-query=done]", timeout=120_000)  # the encoder's first start
+    free = api.post(f"/v1/jobs/{job_id}/query", json={"text": text}).json()
+    assert free["query_kind"] == "text"
+    listed = page.locator("[data-hit-id], [data-candidate-id]").evaluate_all(read)
+    assert listed == [h["instance_id"] for h in free["hits"] + free["candidates"]]
+    assert listed, "a free-text question always gets ranked instances"
+    scores = page.locator(".pgs-hits .pgs-score").all_inner_texts()
+    assert [float(x) for x in scores] == [round(h["score"], 3) for h in free["hits"] + free["candidates"]]
+    page.screenshot(path=str(artifacts / "query-free-text.png"))
     page.keyboard.press("Escape")
 
 

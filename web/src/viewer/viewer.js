@@ -246,10 +246,13 @@ export class Viewer {
     this.panels.setQueryText(text);
     if (!text) return this.clear();
     this.panels.showAsking(text);
+    const asked = (this.asked = (this.asked || 0) + 1);
     let answer;
     try {
       answer = await this.options.queryFn(text, { min_score: this.state.minScore });
+      if (asked !== this.asked) return; // a later question (or threshold) was asked meanwhile: its answer shows
     } catch (err) {
+      if (asked !== this.asked) return;
       // Nothing of the last answer stays lit or listed under the refusal.
       this.store.answer(text, []);
       this.panels.markInstances(this.store.lit);
