@@ -159,7 +159,7 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
     import numpy as np
 
     from panogs_core.errors import EncoderUnavailableError, InputError
-    from panogs_core.language.query import query_instances
+    from panogs_core.language.query import rank_instances
 
     start = time.perf_counter()
     vocabulary = loaded.vocabulary
@@ -180,11 +180,11 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
         if encoder is not None
         else _NoEncoder(loaded.feature_space, dim)
     )
-    options: dict[str, Any] = {"top_k": body.top_k}
+    options: dict[str, Any] = {"top_k": body.top_k, "candidates": body.candidates}
     if body.min_score is not None:
         options["min_score"] = body.min_score
     try:
-        hits = query_instances(
+        answer = rank_instances(
             loaded.instances, vocabulary, query, feature_space=loaded.feature_space, encoder=remote, **options
         )
     except EncoderUnavailableError as exc:
@@ -195,7 +195,11 @@ def run_query(loaded: Any, body: QueryCreate, encoder: EncoderProcess | None) ->
         raise ServiceUnavailable(f"text encoder unavailable: {exc}") from exc
     took_ms = (time.perf_counter() - start) * 1000.0
     return QueryResult(
-        hits=[QueryHitPublic(**hit.to_json()) for hit in hits], query_kind=kind, took_ms=round(took_ms, 3)
+        hits=[QueryHitPublic(**hit.to_json()) for hit in answer.hits],
+        candidates=[QueryHitPublic(**hit.to_json()) for hit in answer.candidates],
+        min_score=answer.min_score,
+        query_kind=kind,
+        took_ms=round(took_ms, 3),
     )
 
 

@@ -403,8 +403,20 @@ class QueryCreate(BaseModel):
     vector: list[float] | None = Field(
         default=None, min_length=1, max_length=MAX_VECTOR_DIM, description="(D,) in the scene's feature space"
     )
-    top_k: int = Field(default=10, ge=1, le=1000)
-    min_score: float | None = Field(default=None, ge=-1.0, le=1.0)
+    top_k: int = Field(default=10, ge=1, le=1000, description="at most this many hits")
+    min_score: float | None = Field(
+        default=None,
+        ge=-1.0,
+        le=1.0,
+        description="the threshold a hit's score reaches (default 0.5: the query beats the other classes together)",
+    )
+    candidates: int = Field(
+        default=3,
+        ge=0,
+        le=100,
+        description="at most this many of the best instances under min_score, listed apart in `candidates` "
+        "(0: none); the hits are the same whatever this is",
+    )
 
     @field_validator("vector")
     @classmethod
@@ -442,6 +454,12 @@ class QueryResult(BaseModel):
     """Instances ranked by similarity to the query, best first."""
 
     hits: list[QueryHitPublic]
+    candidates: list[QueryHitPublic] = Field(
+        default_factory=list,
+        description="the best instances scoring under min_score, best first: no hits, shown so that a query that "
+        "matched nothing well still says what came closest and how close",
+    )
+    min_score: float = Field(description="the threshold the hits reached")
     query_kind: Literal["class", "text", "vector"]
     took_ms: float
 

@@ -216,14 +216,22 @@ class Fitter:
             scores.append((psnr(img, target), float(ssim(img, target))))
         return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores]))
 
+    def trained_sh_degree(self) -> int:
+        """The highest SH degree any iteration rendered with (the schedule's degree at the last iteration run)."""
+        last = max(self.iteration - 1, 0)
+        return min(self.cfg.sh_degree, last // self.cfg.sh_increase_every)
+
     def result(self) -> GaussianScene:
+        """The fitted scene, with the SH bands the schedule reached: a band no iteration rendered with got no
+        gradient and is all zeros, so it is left out (gaussians.ply then says the degree the colours have)."""
         from panogs_core.gaussians.config import GaussianScene
 
         with torch.no_grad():
             quats = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)[:, : num_coefficients(self.trained_sh_degree())]
             return GaussianScene(
                 means=_np(self.anchor + self.offsets),
-                sh=_np(torch.cat([self.sh_dc, self.sh_rest], dim=1)),
+                sh=_np(sh),
                 opacity_logits=_np(self.opacity),
                 log_scales=_np(self.log_scales),
                 quats=_np(quats),

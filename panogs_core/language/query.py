@@ -66,6 +66,94 @@ class QueryHit:
         }
 
 
+@dataclass(frozen=True)
+class QueryAnswer:
+    """A query's ranking, split at the threshold: what passed, and the best of the rest with their scores.
+
+    The candidates are there so that a person whose words matched nothing well still sees what came closest (and
+    how close), instead of an empty answer; they are never counted as hits.
+    """
+
+    hits: list[QueryHit]  # best first: score >= min_score, or labelled with the class the query names
+    candidates: list[QueryHit]  # best first: the highest-scoring instances that are not hits
+    min_score: float
+
+
+def rank_instances(
+    instances: Sequence[InstanceInfo],
+    vocabulary: Vocabulary,  # embeddings (L, D) unit rows
+    query: str | np.ndarray,  # text, or a (D,) embedding
+    *,
+    feature_space: str,
+    encoder: TextEncoder | None = None,
+    top_k: int = 10,
+    min_score: float = 0.5,
+    candidates: int = 3,
+    temperature: float | None = None,
+    synonym_cos: float | None = None,
+) -> QueryAnswer:
+    """Every instance scored against a text or vector query, best first, split at ``min_score``.
+
+    Args:
+        instances: The scene's instances (their ``feature`` is the unit mean feature, ``(D,)``).
+        vocabulary: The label set of the run, with embeddings ``(L, D)``.
+        query: A class name (no encoder needed), any other text (encoded with ``encoder``), or a ``(D,)``
+            vector.
+        feature_space: ``features.space`` of the scene; picks the default encoder, temperature, synonym cut.
+        encoder: Text encoder for free text; default ``get_text_encoder(feature_space)``.
+        top_k: At most this many hits.
+        min_score: Hits score at least this (0.5: the query beats the competing classes together).
+        candidates: At most this many of the best instances that are not hits (0: none).
+        temperature: Softmax temperature in cosine units; default ``label_sets.default_temperature``.
+        synonym_cos: Near-synonym cut for free text and vectors; default ``SYNONYM_COS`` of the space.
+
+    Returns:
+        The hits (score >= ``min_score``, or labelled with the class a class-name query names; by descending
+        score, ties: lower instance id first; at most ``top_k``) and the candidates (the best instances scoring
+        under ``min_score`` that are not hits, in the same order, at most ``candidates``).
+
+    Raises:
+        InputError: empty text, vocabulary without embeddings, bad ``top_k`` / ``candidates`` / ``temperature``.
+        ShapeError: vector or instance features not ``D``-dimensional.
+        EncoderUnavailableError: free text but no encoder for the space.
+    """
+    if vocabulary.embeddings is None:
+        raise InputError("query: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)")
+    if top_k < 1:
+        raise InputError(f"query: top_k must be >= 1, found {top_k}")
+    if candidates < 0:
+        raise InputError(f"query: candidates must be >= 0, found {candidates}")
+    emb = _unit(np.asarray(vocabulary.embeddings, np.float32), name="vocabulary embeddings")
+    q, own_class = _query_vector(query, vocabulary, emb, feature_space, encoder)
+    if own_class is not None:  # the class itself is the query; every other class competes
+        competitors, allies = np.delete(emb, own_class, axis=0), emb[:0]
+    else:
+        cut = synonym_cos if synonym_cos is not None else default_synonym_cos(feature_space, emb)
+        near = emb @ q >= cut
+        competitors, allies = emb[~near], emb[near]
+    if not instances:
+        return QueryAnswer(hits=[], candidates=[], min_score=min_score)
+    temp = temperature if temperature is not None else default_temperature(feature_space, emb)
+    if not temp > 0:
+        raise InputError(f"query: temperature must be > 0, found {temp}")
+    feats = _instance_features(instances, emb.shape[1])
+    scores = query_scores(feats, q, competitors, temp, allies=allies)
+    # A class-name query answers with every instance labelled with that class, whatever its softmax score:
+    # labelling decided per primitive (and split clusters by class), while the score here uses the instance's
+    # mean feature, which can fall just under min_score for a correctly labelled instance.
+    labelled = np.array([own_class is not None and i.class_index == own_class for i in instances])
+    order = np.lexsort((np.array([i.id for i in instances]), -scores, ~labelled))
+    passed = [k for k in order if labelled[k] or scores[k] >= min_score][:top_k]
+    taken = set(passed)
+    # Below the threshold only (a passing instance that top_k cut is no candidate), by score alone.
+    rest = [k for k in order if k not in taken and not labelled[k] and scores[k] < min_score]
+    return QueryAnswer(
+        hits=[_hit(instances[k], float(scores[k])) for k in passed],
+        candidates=[_hit(instances[k], float(scores[k])) for k in rest[:candidates]],
+        min_score=min_score,
+    )
+
+
 def query_instances(
     instances: Sequence[InstanceInfo],
     vocabulary: Vocabulary,  # embeddings (L, D) unit rows
@@ -78,55 +166,42 @@ def query_instances(
     temperature: float | None = None,
     synonym_cos: float | None = None,
 ) -> list[QueryHit]:
-    """Instances that match a text or vector query, best first.
+    """The hits of ``rank_instances`` (same arguments, no candidates): instances at or above ``min_score``."""
+    return rank_instances(
+        instances,
+        vocabulary,
+        query,
+        feature_space=feature_space,
+        encoder=encoder,
+        top_k=top_k,
+        min_score=min_score,
+        candidates=0,
+        temperature=temperature,
+        synonym_cos=synonym_cos,
+    ).hits
 
-    Args:
-        instances: The scene's instances (their ``feature`` is the unit mean feature, ``(D,)``).
-        vocabulary: The label set of the run, with embeddings ``(L, D)``.
-        query: A class name (no encoder needed), any other text (encoded with ``encoder``), or a ``(D,)``
-            vector.
-        feature_space: ``features.space`` of the scene; picks the default encoder, temperature, synonym cut.
-        encoder: Text encoder for free text; default ``get_text_encoder(feature_space)``.
-        top_k: At most this many hits.
-        min_score: Hits score at least this (0.5: the query beats the competing classes together).
-        temperature: Softmax temperature in cosine units; default ``label_sets.default_temperature``.
-        synonym_cos: Near-synonym cut for free text and vectors; default ``SYNONYM_COS`` of the space.
 
-    Returns:
-        Hits with score >= ``min_score``, by descending score (ties: lower instance id first), at most
-        ``top_k``.
-
-    Raises:
-        InputError: empty text, vocabulary without embeddings, bad ``top_k`` / ``temperature``.
-        ShapeError: vector or instance features not ``D``-dimensional.
-        EncoderUnavailableError: free text but no encoder for the space.
-    """
-    if vocabulary.embeddings is None:
-        raise InputError("query: the vocabulary has no embeddings (call language.label_sets.ensure_embeddings)")
-    if top_k < 1:
-        raise InputError(f"query: top_k must be >= 1, found {top_k}")
-    emb = _unit(np.asarray(vocabulary.embeddings, np.float32), name="vocabulary embeddings")
-    q, own_class = _query_vector(query, vocabulary, emb, feature_space, encoder)
-    if own_class is not None:  # the class itself is the query; every other class competes
-        competitors, allies = np.delete(emb, own_class, axis=0), emb[:0]
+def format_answer(label: str, answer: QueryAnswer) -> str:
+    """The answer as ``panogs query`` prints it: the hits, or, when none passed, the best candidates with their
+    scores and the threshold they missed (so that a person sees what came closest and what to lower)."""
+    lines = []
+    if answer.hits:
+        lines.append(f"query {label}: {len(answer.hits)} instance(s)")
+        lines += [_hit_line(hit) for hit in answer.hits]
     else:
-        cut = synonym_cos if synonym_cos is not None else default_synonym_cos(feature_space, emb)
-        near = emb @ q >= cut
-        competitors, allies = emb[~near], emb[near]
-    if not instances:
-        return []
-    temp = temperature if temperature is not None else default_temperature(feature_space, emb)
-    if not temp > 0:
-        raise InputError(f"query: temperature must be > 0, found {temp}")
-    feats = _instance_features(instances, emb.shape[1])
-    scores = query_scores(feats, q, competitors, temp, allies=allies)
-    # A class-name query answers with every instance labelled with that class, whatever its softmax score:
-    # labelling decided per primitive (and split clusters by class), while the score here uses the instance's
-    # mean feature, which can fall just under min_score for a correctly labelled instance.
-    labelled = np.array([own_class is not None and i.class_index == own_class for i in instances])
-    order = np.lexsort((np.array([i.id for i in instances]), -scores, ~labelled))
-    hits = [_hit(instances[k], float(scores[k])) for k in order if labelled[k] or scores[k] >= min_score]
-    return hits[:top_k]
+        lines.append(f"query {label}: no instance scored at least {answer.min_score:g}")
+        if answer.candidates:
+            lines.append("  closest (below the threshold; --min-score lowers it):")
+            lines += [_hit_line(hit) for hit in answer.candidates]
+    return "\n".join(lines)
+
+
+def _hit_line(hit: QueryHit) -> str:
+    lo, hi = hit.bbox_min, hit.bbox_max
+    return (
+        f"  instance {hit.instance_id:>4}  {hit.class_name:<16} score {hit.score:.3f}  "
+        f"box [{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}] - [{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}]"
+    )
 
 
 def query_scores(

@@ -2,7 +2,8 @@
 
 Above ``max_primitives`` the scene is decimated (a seeded random subset, said in the viewer's summary); a file
 that would still exceed ``max_bytes`` is refused with a message naming both limits. Class-name queries work
-offline: the file carries each vocabulary class's answer, computed by the API's query code.
+offline: the file carries each vocabulary class's answer, computed by the API's query code, and the capture frames'
+poses (``cameras.json``) for the viewer's "look from" list.
 """
 
 from __future__ import annotations
@@ -33,6 +34,15 @@ def class_queries(run_dir: Path) -> dict[str, Any]:
     return answers
 
 
+def capture_frames(run_dir: Path) -> dict[str, Any]:
+    """``{"cameras": cameras.json}`` for the viewer's "look from" list, or nothing when the run has none."""
+    from panogs_core.io.run_folder import CAMERAS_JSON
+    from panogs_core.io.run_json import read_run_json
+
+    path = CAMERAS_JSON.path(run_dir)
+    return {"cameras": read_run_json(path)} if path.is_file() else {}
+
+
 def export_html(
     run_dir: str | Path,
     out: str | Path,
@@ -48,7 +58,7 @@ def export_html(
     from service.viewer.scene import build_scene  # numpy: not at import (the panogs CLI's parser imports this)
 
     run = Path(run_dir)
-    extra = {"title": run.resolve().name, "class_queries": class_queries(run)}
+    extra = {"title": run.resolve().name, "class_queries": class_queries(run), **capture_frames(run)}
     scene = build_scene(run, max_primitives=max_primitives, extra=extra)
     assets = static_dir()
     script = (assets / "viewer.js").read_text().replace("</script", "<\\/script")

@@ -1,8 +1,9 @@
 """``panogs view RUN_DIR``: the viewer for one finished run folder, served on 127.0.0.1 by the standard library.
 
 Routes: ``/`` the viewer page, ``/static/...`` the built assets, ``/scene.bin`` the binary scene (built once at
-start), ``/gaussians.ply`` the run's Gaussian scene for the photo view (key ``p``), ``POST /query`` the same query
-code as the API's ``/v1/jobs/{id}/query``.
+start), ``/gaussians.ply`` the run's Gaussian scene for the photo view (key ``p``), ``/cameras.json`` the capture
+frames' poses (the viewer's "look from" list), ``POST /query`` the same query code as the API's
+``/v1/jobs/{id}/query``.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import mimetypes
+import sys
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -84,8 +86,9 @@ def make_handler(run: RunViewer) -> type[BaseHTTPRequestHandler]:
                 return self._file(run.static / "viewer.html")
             if path == "/scene.bin":
                 return self._send(200, run.scene.data, "application/octet-stream")
-            if path == "/gaussians.ply" and (run.run_dir / "gaussians.ply").is_file():
-                return self._file(run.run_dir / "gaussians.ply")
+            for name in ("gaussians.ply", "cameras.json"):
+                if path == f"/{name}" and (run.run_dir / name).is_file():
+                    return self._file(run.run_dir / name)
             if path.startswith("/static/"):
                 name = path.removeprefix("/static/")
                 if "/" not in name and (run.static / name).is_file():
@@ -115,10 +118,30 @@ def make_handler(run: RunViewer) -> type[BaseHTTPRequestHandler]:
     return Handler
 
 
+# A tab closed, reloaded or moved on while its answer was being written: nothing went wrong on this side.
+GONE = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError)
+
+
+class ViewerServer(ThreadingHTTPServer):
+    """The standard library's threading server, quiet about browsers that leave before their answer is written."""
+
+    daemon_threads = True
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        if isinstance(sys.exc_info()[1], GONE):
+            logger.debug("%s left before its answer was written", client_address)
+            return
+        super().handle_error(request, client_address)
+
+
+def make_server(run: RunViewer, port: int) -> ViewerServer:
+    """The server of ``run`` on 127.0.0.1 (port 0: any free port), listening, not yet serving."""
+    return ViewerServer(("127.0.0.1", port), make_handler(run))
+
+
 def serve(run: RunViewer, port: int, on_ready: Callable[[str], None]) -> None:
     """Serve until interrupted; ``on_ready(url)`` once the socket listens (port 0: any free port)."""
-    server = ThreadingHTTPServer(("127.0.0.1", port), make_handler(run))
-    server.daemon_threads = True
+    server = make_server(run, port)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     on_ready(url)
     try:

@@ -372,3 +372,20 @@ def test_an_unreadable_snapshot_is_ignored(wall_bundle: Path, tmp_path: Path) ->
     progress = _StopAt(None)
     assert _fit_with(wall_bundle, snapshot, progress).fitted
     assert progress.seen[0] == 1
+
+
+@pytest.mark.slow  # two fits of 40 iterations
+def test_the_fitted_scene_keeps_only_the_sh_bands_the_schedule_reached(wall_bundle: Path, tmp_path: Path) -> None:
+    from panogs_core.gaussians.ply import read_gaussian_ply, write_gaussian_ply
+    from panogs_core.io.ply import read_ply_vertices
+
+    short = _fit(wall_bundle, sh_degree=1)  # 40 iterations, the degree rises at 1000: never above 0
+    assert short.sh_degree == 0
+    path = write_gaussian_ply(
+        tmp_path / "g.ply", short, np.zeros_like(short.means), *([np.zeros(len(short.means))] * 2)
+    )
+    assert not [k for k in read_ply_vertices(path) if k.startswith("f_rest_")]
+    assert read_gaussian_ply(path)[0].sh_degree == 0
+    reached = _fit(wall_bundle, sh_degree=1, sh_increase_every=20)  # degree 1 from iteration 20 on: trained
+    assert reached.sh_degree == 1
+    assert np.abs(reached.sh[:, 1:]).max() > 0

@@ -9,7 +9,7 @@ import pytest
 
 from panogs_core.errors import EncoderUnavailableError, InputError, ShapeError
 from panogs_core.language.label_sets import SPACE_TEMPERATURES, builtin_vocabulary
-from panogs_core.language.query import QueryHit, query_instances, query_scores
+from panogs_core.language.query import QueryHit, format_answer, query_instances, query_scores, rank_instances
 from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.types import Vocabulary
 
@@ -228,3 +228,56 @@ def test_class_name_query_returns_every_instance_labelled_with_it() -> None:
     hits = query_instances(instances, vocab, "b", feature_space="test", top_k=10, min_score=0.9, temperature=0.05)
     assert [h.instance_id for h in hits] == [2, 0]
     assert hits[1].score < 0.9  # kept for its label, not for its score
+
+
+class TestRankInstances:
+    def test_free_text_that_passes_nothing_still_names_its_best_candidates(self) -> None:
+        # "somewhere to bathe" lands by the bathtub class, and the room has none: no instance passes.
+        vocab, instances = _room()
+        assert vocab.embeddings is not None
+        between = vocab.embeddings[vocab.names.index("bathtub")]
+        enc = _FixedEncoder({"a somewhere to bathe in a scene": between})
+        answer = rank_instances(instances, vocab, "somewhere to bathe", feature_space=CLIP, encoder=enc, candidates=3)
+        assert answer.hits == []
+        assert answer.min_score == 0.5
+        assert len(answer.candidates) == 3
+        scores = [c.score for c in answer.candidates]
+        assert scores == sorted(scores, reverse=True)
+        assert all(s < 0.5 for s in scores)
+        # the candidates are the head of the full ranking (the same scores as a threshold of 0)
+        everything = rank_instances(instances, vocab, between, feature_space=CLIP, min_score=0.0).hits
+        assert [c.instance_id for c in answer.candidates] == [h.instance_id for h in everything[:3]]
+        assert [c.score for c in answer.candidates] == pytest.approx([h.score for h in everything[:3]])
+
+    def test_candidates_are_never_hits_and_never_pass(self) -> None:
+        vocab, instances = _room()
+        answer = rank_instances(instances, vocab, "chair", feature_space=CLIP, candidates=10)
+        assert [h.instance_id for h in answer.hits] == [1, 3]
+        assert sorted(c.instance_id for c in answer.candidates) == [0, 2, 4]
+        assert all(c.score < 0.5 for c in answer.candidates)
+        one = rank_instances(instances, vocab, "chair", feature_space=CLIP, top_k=1, candidates=10)
+        assert [h.instance_id for h in one.hits] == [1]
+        assert 3 not in [c.instance_id for c in one.candidates]  # cut by top_k, yet it passed: no candidate
+        assert rank_instances(instances, vocab, "chair", feature_space=CLIP, candidates=0).candidates == []
+        with pytest.raises(InputError, match="candidates"):
+            rank_instances(instances, vocab, "chair", feature_space=CLIP, candidates=-1)
+
+    def test_query_instances_is_the_hits_of_the_ranking(self) -> None:
+        vocab, instances = _room()
+        for text in ("chair", "bathtub", "wall"):
+            hits = query_instances(instances, vocab, text, feature_space=CLIP)
+            assert hits == rank_instances(instances, vocab, text, feature_space=CLIP).hits
+
+    def test_format_answer_prints_the_closest_when_nothing_passes(self) -> None:
+        vocab, instances = _room()
+        empty = rank_instances(instances, vocab, "bathtub", feature_space=CLIP, candidates=2)
+        text = format_answer("'bathtub'", empty)
+        lines = text.splitlines()
+        assert lines[0] == "query 'bathtub': no instance scored at least 0.5"
+        assert "closest" in lines[1]
+        assert "--min-score" in lines[1]
+        assert len(lines) == 4
+        assert all("score 0." in line for line in lines[2:])
+        found = format_answer("'chair'", rank_instances(instances, vocab, "chair", feature_space=CLIP))
+        assert found.splitlines()[0] == "query 'chair': 2 instance(s)"
+        assert "closest" not in found

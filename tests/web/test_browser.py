@@ -31,6 +31,7 @@ SHORT_FIT = {"appearance": {"iterations": 2}}
 VIEWPORT = {"width": 1200, "height": 760}
 CSP_VIOLATIONS: list[str] = []  # what Chromium refused under the app's Content-Security-Policy, from every page
 WHILE_FITTING: dict[str, Any] = {}  # the job's row and its instances while its results are ready and its fit runs
+UPLOAD_NOTE: list[str] = []  # what the upload form said under it once the job had succeeded
 
 
 def _sign_in(context: Any, url: str, key: str) -> Any:
@@ -109,6 +110,7 @@ def job_id(page: Any, bundle_zip: Path, served: dict[str, Any]) -> str:
                 ).status_code,
             )
         page.wait_for_selector(f'tr[data-job-id="{ident}"][data-state=succeeded]', timeout=JOB_TIMEOUT_MS)
+        UPLOAD_NOTE.append(page.inner_text("#upload-message"))
     except Exception:
         print(served["log"]())
         raise
@@ -131,6 +133,10 @@ def test_the_results_answer_while_the_fit_runs(job_id: str) -> None:
     assert WHILE_FITTING["instances"] == 200
 
 
+def test_the_upload_form_does_not_say_job_queued_for_the_whole_run(job_id: str) -> None:
+    assert UPLOAD_NOTE == [""], "the job's row says how it goes; the form's note is gone by its end"
+
+
 def test_upload_reaches_succeeded_and_opens_the_viewer(
     page: Any, job_id: str, served: dict[str, Any], artifacts: Path
 ) -> None:
@@ -141,6 +147,12 @@ def test_upload_reaches_succeeded_and_opens_the_viewer(
     page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
     assert page.locator(".pgs-instances li").count() > 3
     page.screenshot(path=str(artifacts / "viewer.png"))
+    scene_id = page.evaluate(f"fetch('/v1/jobs/{job_id}').then(r => r.json()).then(j => j.scene_id)")
+    name = page.evaluate(f"fetch('/v1/scenes/{scene_id}').then(r => r.json()).then(s => s.name)")
+    page.wait_for_function("name => document.title.startsWith(name)", arg=name)
+    assert job_id not in page.title()
+    assert page.title() == f"{name} · panogs viewer"
+    assert page.inner_text(".pgs-summary").startswith(f"{name}: ")
 
 
 def test_canvas_draws_the_palette_where_the_scene_is(page: Any, job_id: str, served: dict[str, Any]) -> None:
@@ -153,6 +165,21 @@ def test_canvas_draws_the_palette_where_the_scene_is(page: Any, job_id: str, ser
     assert len(present) >= 3, f"palette colours on the canvas: {present}"
     background = (np.abs(pixels - BACKGROUND).sum(axis=1) <= 3).mean()
     assert 0.05 < background < 0.95  # the scene covers part of the canvas, not none and not all
+
+
+def test_the_fitted_scene_draws_points_no_larger_than_their_spacing(
+    page: Any, job_id: str, served: dict[str, Any]
+) -> None:
+    # The fit grows Gaussians up to 4x their start to close gaps softly; drawn as hard opaque discs at that size
+    # the tiny room's first view was big overlapping discs. The points keep the radius the fit started from.
+    from panogs_core.stages.primitives import gaussian_log_scales
+
+    _open_viewer(page, served["url"], job_id)
+    position, scale = page.evaluate("(v => [Array.from(v.scene.position), Array.from(v.scene.scale)])"
+                                    "(window.__panogs.viewer)")  # fmt: skip
+    spacing = np.exp(gaussian_log_scales(np.asarray(position, np.float32).reshape(-1, 3))[:, 0])
+    assert (np.asarray(scale) <= spacing * 1.0001).all()
+    assert np.median(scale) > 0.5 * np.median(spacing)  # still the fitted size where it is smaller
 
 
 def test_colour_modes_change_the_pixels_and_the_url_reopens_the_view(
@@ -212,6 +239,142 @@ def test_photo_mode_draws_the_fitted_splats_with_the_labels_over_them(
     cv2.imwrite(str(artifacts / "photo-beside-colour-frame.png"), np.hstack([photo[:, :, ::-1], colour]))
     page.keyboard.press("p")
     page.wait_for_selector(".pgs-viewer[data-photo=off]")
+
+
+def test_look_from_a_capture_frame_puts_the_camera_at_its_pose_and_the_url_keeps_it(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, artifacts: Path
+) -> None:
+    cameras = api.get(f"/v1/jobs/{job_id}/artifacts/cameras.json").json()
+    frame = cameras["frames"][len(cameras["frames"]) // 2]
+    _open_viewer(page, served["url"], job_id, "?mode=camera")
+    choose = page.locator("[data-role=frame]")
+    choose.wait_for(state="visible")
+    ids = choose.locator("option").evaluate_all("els => els.map(e => e.value)")
+    assert ids == ["", *(str(f["id"]) for f in cameras["frames"])]
+    read = "(c => [c.position.toArray(), c.up.toArray(), c.fov])(window.__panogs.viewer.camera)"
+    choose.select_option(str(frame["id"]))
+    pose = np.asarray(frame["T_world_cam"])
+    fov = np.degrees(2 * np.arctan(cameras["camera"]["height"] / (2 * cameras["camera"]["fy"])))
+
+    def at_the_frame() -> None:
+        position, up, shown_fov = page.evaluate(read)
+        np.testing.assert_allclose(position, pose[:3, 3], atol=1e-5)
+        np.testing.assert_allclose(up, -pose[:3, 1], atol=1e-5)  # the frame's own up: OpenCV's y points down
+        assert shown_fov == pytest.approx(fov)
+
+    at_the_frame()
+    assert f"frame={frame['id']}" in page.url
+    canvas_pixels(page, artifacts / "look-from-frame.png")
+    page.reload()  # the URL keeps the frame's view, roll and field of view included
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+    page.wait_for_function("() => window.__panogs.viewer.cameras !== null")
+    at_the_frame()
+    page.keyboard.press("f")  # the orbit view again: z up, the frame forgotten
+    assert page.evaluate(read)[1] == [0, 0, 1]
+    assert "frame=" not in page.url
+
+
+def _fit_running_for(page: Any, job_id: str, polls: int) -> list[int]:
+    """The job answers "results ready, fit running" to the page's next ``polls`` status requests, then as it is
+    (succeeded, fitted): a viewer opened while the fit ran. Returns the list the answers are counted in."""
+    seen: list[int] = []
+
+    def running(route: Any) -> None:
+        if route.request.method != "GET" or len(seen) >= polls:
+            route.continue_()
+            return
+        seen.append(1)
+        job = route.fetch().json()
+        job.update(state="running", results_ready=True, fit={**(job.get("fit") or {}), "state": "running",
+                   "progress": 0.4})  # fmt: skip
+        route.fulfill(json=job)
+
+    page.route(f"**/v1/jobs/{job_id}", running)
+    return seen
+
+
+def test_a_viewer_opened_while_the_fit_runs_offers_the_photo_when_it_ends(
+    page: Any, job_id: str, served: dict[str, Any], artifacts: Path
+) -> None:
+    seen = _fit_running_for(page, job_id, polls=3)  # the check on opening, then two of the viewer's polls
+    try:
+        _open_viewer(page, served["url"], job_id, "?mode=semantic")
+        assert page.get_attribute(".pgs-viewer", "data-photo") == "unavailable"
+        assert "being fitted (40%)" in page.inner_text(".pgs-fit-note")
+        page.keyboard.press("p")  # nothing to show yet
+        assert page.get_attribute(".pgs-viewer", "data-photo") == "unavailable"
+        # The fit ends (the job's own status from the fourth request on): offered without a reload.
+        page.wait_for_selector(".pgs-viewer[data-photo=off]", timeout=20_000)
+        assert len(seen) == 3
+        assert page.locator(".pgs-fit-note").count() == 0
+        assert page.locator("[data-action=photo]").is_visible()
+    finally:
+        page.unroute(f"**/v1/jobs/{job_id}")
+
+    def slow_ply(route: Any) -> None:  # long enough to see what the canvas says while the splats load
+        page.wait_for_timeout(1500)
+        route.continue_()
+
+    page.route("**/artifacts/gaussians.ply", slow_ply)
+    try:
+        page.keyboard.press("p")
+        page.wait_for_selector(".pgs-photo-loading:visible", timeout=5_000)
+        assert "loading" in page.inner_text(".pgs-photo-loading")
+        page.screenshot(path=str(artifacts / "photo-loading.png"))
+        page.wait_for_selector(".pgs-viewer[data-photo=on]", timeout=120_000)
+        assert not page.locator(".pgs-photo-loading").is_visible()
+    finally:
+        page.unroute("**/artifacts/gaussians.ply")
+    assert "photo=1" in page.url
+    page.reload()  # the URL keeps the photo view
+    page.wait_for_selector(".pgs-viewer[data-photo=on]", timeout=120_000)
+
+
+def test_a_query_lists_its_best_candidates_below_the_threshold_and_the_threshold_lowers(
+    page: Any, job_id: str, served: dict[str, Any], api: httpx.Client, artifacts: Path
+) -> None:
+    _open_viewer(page, served["url"], job_id)
+    instances = api.get(f"/v1/jobs/{job_id}/instances").json()["data"]
+    name = next(i["class_name"] for i in instances if i["kind"] == "thing")
+    answer = api.post(f"/v1/jobs/{job_id}/query", json={"text": name}).json()
+    assert answer["candidates"]
+    assert all(c["score"] < 0.5 for c in answer["candidates"])
+    page.fill(".pgs-query input", name)
+    page.press(".pgs-query input", "Enter")
+    page.wait_for_selector(".pgs-viewer[data-query=done]")
+    read = "els => els.map(e => +(e.dataset.hitId ?? e.dataset.candidateId))"
+    assert page.locator("[data-hit-id]").evaluate_all(read) == [h["instance_id"] for h in answer["hits"]]
+    below = page.locator("[data-candidate-id]")
+    assert below.evaluate_all(read) == [c["instance_id"] for c in answer["candidates"]]
+    assert all("below" in text for text in below.all_inner_texts())
+    lit = {int(x) for x in page.get_attribute(".pgs-viewer", "data-lit").split(",")}
+    assert lit == {h["instance_id"] for h in answer["hits"]}, "a candidate is listed, not lit"
+    page.screenshot(path=str(artifacts / "query-candidates.png"))
+    # The threshold lowered in place: the query is asked again and what now passes is lit.
+    lowered = api.post(f"/v1/jobs/{job_id}/query", json={"text": name, "min_score": 0.0}).json()
+    assert len(lowered["hits"]) > len(answer["hits"])
+    page.fill("[data-role=threshold]", "0")
+    page.press("[data-role=threshold]", "Enter")
+    page.wait_for_function("n => document.querySelectorAll('[data-hit-id]').length === n", arg=len(lowered["hits"]))
+    assert page.locator("[data-hit-id]").evaluate_all(read) == [h["instance_id"] for h in lowered["hits"]]
+    assert "min=0&" in page.url or page.url.endswith("min=0")
+    # Free text at the default threshold: ranked instances with their scores, passing or the closest below it.
+    page.fill("[data-role=threshold]", "0.5")
+    page.press("[data-role=threshold]", "Enter")
+    page.wait_for_function("() => document.querySelector('.pgs-query-status').textContent.includes('≥ 0.50')")
+    text = "something soft to sit on"
+    page.fill(".pgs-query input", text)
+    page.press(".pgs-query input", "Enter")
+    page.wait_for_selector(".pgs-viewer[data-query=done]", timeout=120_000)  # the encoder's first start
+    free = api.post(f"/v1/jobs/{job_id}/query", json={"text": text}).json()
+    assert free["query_kind"] == "text"
+    listed = page.locator("[data-hit-id], [data-candidate-id]").evaluate_all(read)
+    assert listed == [h["instance_id"] for h in free["hits"] + free["candidates"]]
+    assert listed, "a free-text question always gets ranked instances"
+    scores = page.locator(".pgs-hits .pgs-score").all_inner_texts()
+    assert [float(x) for x in scores] == [round(h["score"], 3) for h in free["hits"] + free["candidates"]]
+    page.screenshot(path=str(artifacts / "query-free-text.png"))
+    page.keyboard.press("Escape")
 
 
 def test_class_query_lights_exactly_the_instances_the_api_returns(
@@ -301,15 +464,54 @@ def test_an_open_rerun_form_keeps_its_text_and_focus_while_the_table_polls(
     page.goto(f"{served['url']}/app#/")
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     row.locator("[data-action=re-run]").click()
-    settings = row.locator("textarea")
-    settings.fill('{"clustering": {"thresholds": [0.8]}}')
+    settings = row.locator("[data-field='clustering.thresholds']")
+    settings.fill("0.8, 0.7")
     for _ in range(2):  # two polls of the table: each used to move every row, which takes the focus away
         with page.expect_response(lambda r: "/v1/jobs?limit=" in r.url, timeout=15_000):
             pass
         page.wait_for_timeout(100)  # the answer is drawn
     assert settings.evaluate("el => el === document.activeElement")
     page.keyboard.type(" ")  # typing goes on where it was
-    assert settings.input_value() == '{"clustering": {"thresholds": [0.8]}} '
+    assert settings.input_value() == "0.8, 0.7 "
+    row.locator("[data-action=re-run]").click()  # the next test opens its own form
+
+
+def test_rerun_form_checks_as_typed_and_keeps_what_was_typed_on_a_refusal(
+    page: Any, job_id: str, served: dict[str, Any], artifacts: Path
+) -> None:
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    row.locator("[data-action=re-run]").click()
+    form = row.locator("form.pgs-rerun")
+    thresholds = form.locator("[data-field='clustering.thresholds']")
+    thresholds.fill("0.7, 0.9")  # increasing: refused as typed
+    assert thresholds.get_attribute("aria-invalid") == "true"
+    assert "larger than 0.7" in form.locator(".pgs-field-note").first.inner_text()
+    assert form.locator("[data-field=fit]").is_checked()
+    assert not form.locator("textarea").is_visible(), "the raw JSON is the advanced option, folded"
+    before = page.evaluate("fetch('/v1/jobs').then(r => r.json()).then(b => b.count)")
+    form.locator("button[type=submit]").click()
+    assert "larger than 0.7" in form.locator("[data-role=form-error]").inner_text()
+    thresholds.fill("0.9, 0.7")
+    assert thresholds.get_attribute("aria-invalid") == "false"
+    form.locator("summary").click()
+    advanced = form.locator("textarea")
+    assert json.loads(advanced.input_value()) == SHORT_FIT  # the job's other settings, kept for the re-run
+    advanced.fill('{"clustering": {"bogus": 1}')  # not JSON
+    form.locator("button[type=submit]").click()
+    assert "not valid JSON" in form.locator("[data-role=form-error]").inner_text()
+    advanced.fill('{"clustering": {"bogus": 1}}')  # JSON, refused by the server: an unknown key
+    form.locator("button[type=submit]").click()
+    page.wait_for_function("() => /bogus/.test(document.querySelector('[data-role=form-error]').textContent)")
+    assert advanced.input_value() == '{"clustering": {"bogus": 1}}'
+    assert thresholds.input_value() == "0.9, 0.7"
+    assert page.evaluate("fetch('/v1/jobs').then(r => r.json()).then(b => b.count)") == before
+    box = form.bounding_box()
+    card = page.locator("#jobs").bounding_box()
+    assert box is not None
+    assert card is not None
+    assert box["x"] + box["width"] <= card["x"] + card["width"] + 1
+    page.screenshot(path=str(artifacts / "rerun-form.png"))
     row.locator("[data-action=re-run]").click()  # the next test opens its own form
 
 
@@ -319,7 +521,8 @@ def test_rerun_with_other_settings_then_cancel(
     page.goto(f"{served['url']}/app#/")
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     row.locator("[data-action=re-run]").click()
-    row.locator("textarea").fill('{"clustering": {"thresholds": [0.9, 0.7]}}')
+    row.locator("[data-field='clustering.thresholds']").fill("0.9, 0.7")
+    row.locator("[data-field=fit]").uncheck()
     row.locator("input[aria-label=vocabulary]").fill("lamp, rug, wall")  # an inline vocabulary, by names
     before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
     row.locator("form button[type=submit]").click()
@@ -328,8 +531,12 @@ def test_rerun_with_other_settings_then_cancel(
     new = page.wait_for_selector(f"#jobs tbody tr[data-job-id]:not({known})")
     new_id = new.get_attribute("data-job-id")
     assert new_id not in before
+    # The form closed with a confirmation that names the new job.
+    assert row.locator("form").count() == 0
+    assert f"re-run queued as job {new_id[:8]}" in row.locator("[data-role=message]").inner_text()
     created = api.get(f"/v1/jobs/{new_id}").json()
-    assert created["config"] == {"clustering": {"thresholds": [0.9, 0.7]}}
+    assert created["config"] == {"appearance": {**SHORT_FIT["appearance"], "enabled": False},
+                                 "clustering": {"thresholds": [0.9, 0.7]}}  # fmt: skip
     kinds = {"lamp": "thing", "rug": "thing", "wall": "stuff"}
     assert created["vocabulary"] == {"classes": [{"name": n, "kind": k} for n, k in kinds.items()]}
     page.locator(f'tr[data-job-id="{new_id}"] [data-action=cancel]').click()
@@ -343,8 +550,8 @@ def test_a_rerun_with_other_clustering_settings_shows_the_stages_it_reused(
     row = page.locator(f'tr[data-job-id="{job_id}"]')
     first = api.get(f"/v1/jobs/{job_id}").json()
     row.locator("[data-action=re-run]").click()
-    config = {**first["config"], "clustering": {"thresholds": [0.9, 0.75, 0.6]}}  # the vocabulary field as it was
-    row.locator("textarea").fill(json.dumps(config))
+    assert first["config"] == SHORT_FIT  # kept by the form's advanced settings; the vocabulary field as it was
+    row.locator("[data-field='clustering.thresholds']").fill("0.9, 0.75, 0.6")
     before = {j["id"] for j in api.get("/v1/jobs").json()["data"]}
     row.locator("form button[type=submit]").click()
     known = ",".join(f'[data-job-id="{j}"]' for j in before)
@@ -391,6 +598,12 @@ def test_deleting_the_job_removes_it_and_its_files(
     page.wait_for_selector(f'tr[data-job-id="{job_id}"]', state="detached", timeout=15_000)
     assert not folder.exists()
     assert api.get(f"/v1/jobs/{job_id}").status_code == 404
+    # Its viewer's URL says so and leads back to the jobs.
+    page.goto("about:blank")
+    page.goto(f"{served['url']}/app#/jobs/{job_id}")
+    page.wait_for_selector(".pgs-message.pgs-bad [data-action=back]")
+    page.click("[data-action=back]")
+    page.wait_for_selector("#upload")
 
 
 def test_the_app_ran_under_its_content_security_policy(page: Any, served: dict[str, Any]) -> None:

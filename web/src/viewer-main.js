@@ -7,15 +7,21 @@ import { base64ToBuffer, fetchScene, parseScene } from "./scene.js";
 import { paramsToState, stateToParams } from "./viewer/url-state.js";
 import { Viewer } from "./viewer/viewer.js";
 
-async function localQuery(url, text) {
+async function localQuery(url, text, options) {
   const response = await fetch(url, {
     method: "POST",
     headers: { "Content-Type": "application/json" },
-    body: JSON.stringify({ text }),
+    body: JSON.stringify({ text, ...options }),
   });
   const body = await response.json();
   if (!response.ok) throw new Error([body.message, ...(body.problems || [])].join("\n"));
   return body;
+}
+
+async function fetchJson(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: ${response.status}`);
+  return response.json();
 }
 
 function offlineQuery(header, text) {
@@ -38,7 +44,9 @@ export async function startViewer(photo) {
   const viewer = new Viewer(root, {
     state: paramsToState(params),
     photo: inline ? null : photo,
-    queryFn: (text) => (inline ? offlineQuery(header, text) : localQuery("query", text)),
+    canAsk: !inline, // the offline file's answers were computed at the default threshold
+    cameras: inline ? async () => header.cameras || { frames: [] } : () => fetchJson("cameras.json"),
+    queryFn: (text, options) => (inline ? offlineQuery(header, text) : localQuery("query", text, options)),
     onStateChange: (state) => history.replaceState(null, "", "#" + stateToParams(state).toString()),
   });
   window.__panogs = { viewer, startedAt: performance.now() };

@@ -11,7 +11,10 @@ const FULL = {
   hidden: [-1, 3, 12],
   sel: 7,
   q: "office chair & desk = 2 #1 ü",
+  minScore: 0.25,
   cam: [1.25, -2.5, 3, 0, 0.001, -0.5],
+  frame: "frame-007",
+  photo: true,
 };
 
 // Through the string, as a reload reads it.
@@ -26,6 +29,17 @@ describe("URL state", () => {
     const state = new ViewState().snapshot();
     assert.equal(stateToParams(state).toString(), "mode=semantic");
     assert.deepEqual(roundTrip(state), { mode: "semantic" });
+  });
+
+  it("reopens the photo view and the query's threshold, and leaves them out at their defaults", () => {
+    const params = stateToParams({ ...FULL, minScore: 0.3, photo: true });
+    assert.equal(params.get("photo"), "1");
+    assert.equal(params.get("min"), "0.3");
+    const plain = stateToParams({ ...FULL, minScore: 0.5, photo: false });
+    assert.equal(plain.get("photo"), null);
+    assert.equal(plain.get("min"), null);
+    assert.equal(paramsToState(new URLSearchParams("min=7&photo=yes")).minScore, 1);
+    assert.equal(paramsToState(new URLSearchParams("photo=yes")).photo, undefined);
   });
 
   it("keeps the size to three decimals", () => {

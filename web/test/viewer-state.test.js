@@ -2,6 +2,7 @@
 import assert from "node:assert/strict";
 import { describe, it } from "node:test";
 import {
+  answerText,
   hitsText,
   instanceOrder,
   instanceTitle,
@@ -16,7 +17,17 @@ import { MAX_SIZE, MIN_SIZE, ViewState, nextMode } from "../src/viewer/state.js"
 describe("ViewState", () => {
   it("starts from the defaults under what the URL gave", () => {
     const store = new ViewState({ mode: "instance", sel: 4 });
-    assert.deepEqual(store.snapshot(), { mode: "instance", size: 1.5, hidden: [], sel: 4, q: "", cam: null });
+    assert.deepEqual(store.snapshot(), {
+      mode: "instance",
+      size: 1.5,
+      hidden: [],
+      sel: 4,
+      q: "",
+      minScore: 0.5,
+      cam: null,
+      frame: null,
+      photo: false,
+    });
   });
 
   it("hands the host a copy, not the live state", () => {
@@ -67,6 +78,20 @@ describe("ViewState", () => {
     assert.deepEqual(store.boxed(), [8]);
     store.setHover(null);
     assert.deepEqual(store.boxed(), [3, 1]);
+  });
+
+  it("keeps the threshold in [0, 1] and the photo view as a flag", () => {
+    const store = new ViewState();
+    assert.equal(store.setMinScore("0.25"), 0.25);
+    assert.equal(store.setMinScore(3), 1);
+    assert.equal(store.setMinScore(-1), 0);
+    assert.equal(store.setMinScore("x"), 0.5);
+    store.setPhoto(1);
+    assert.equal(store.snapshot().photo, true);
+    store.setFrame(12);
+    assert.equal(store.value.frame, "12");
+    store.setFrame("");
+    assert.equal(store.value.frame, null);
   });
 
   it("keeps the camera to the millimetre", () => {
@@ -158,6 +183,20 @@ describe("read-outs", () => {
       instanceTitle({ num_points: 12, bbox_min: [0, 0, 0], bbox_max: [1, 0.5, 2.125] }),
       "12 primitives, box 1.00×0.50×2.13 m",
     );
+  });
+
+  it("says when nothing passed the threshold and the closest are listed below it", () => {
+    const hit = { instance_id: 1, score: 0.42 };
+    assert.equal(
+      answerText("sofa", { hits: [hit], candidates: [], min_score: 0.3 }),
+      '1 hit for "sofa" (score ≥ 0.30)',
+    );
+    assert.equal(
+      answerText("a place for books", { hits: [], candidates: [hit], min_score: 0.5 }),
+      'no instance scored ≥ 0.50 for "a place for books"; the closest, below it (lower the threshold to light them):',
+    );
+    assert.equal(answerText("rug", { hits: [], candidates: [], min_score: 0.5 }), '0 hits for "rug" (score ≥ 0.50)');
+    assert.equal(answerText("rug", { hits: [] }), '0 hits for "rug" (score ≥ 0.50)', "an older server's answer");
   });
 
   it("takes the median radius from a sample", () => {

@@ -85,6 +85,13 @@ export function fitText(job) {
   return fit.error && fit.state === "failed" ? `${text}: ${fit.error}` : text;
 }
 
+// The note above a viewer opened before the fit ended: the fit's progress while it runs, else how it ended.
+export function fitNoteText(job) {
+  if (fitRunning(job))
+    return `The Gaussian scene is being fitted (${Math.round(job.fit.progress * 100)}%); the point views show the results now, the photo view comes when it ends.`;
+  return `The Gaussian scene: ${fitText(job) || job.state}; the point views show the results.`;
+}
+
 export function sceneText(scene) {
   return `${scene.name} (${(scene.size_bytes / 1e6).toFixed(1)} MB, ${scene.num_frames} frames) `;
 }

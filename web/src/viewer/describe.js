@@ -19,6 +19,20 @@ export function hitsText(count, text) {
   return `${count} hit${count === 1 ? "" : "s"} for "${text}"`;
 }
 
+// What the query status says of an answer ({hits, candidates, min_score}): the hits, and when none passed, that the
+// closest are listed below the threshold (and how to see more of them).
+export function answerText(text, answer) {
+  const count = answer.hits.length;
+  const threshold = formatScore(answer.min_score ?? 0.5);
+  if (count || !(answer.candidates || []).length) return `${hitsText(count, text)} (score ≥ ${threshold})`;
+  return `no instance scored ≥ ${threshold} for "${text}"; the closest, below it (lower the threshold to light them):`;
+}
+
+// Scores as the hit list shows them: two decimals, the threshold likewise.
+export function formatScore(score) {
+  return Number(score).toFixed(2);
+}
+
 // The legend: classes that have primitives, in vocabulary order, then void when some primitives are void.
 export function legendRows(header) {
   const rows = header.classes

@@ -4,7 +4,7 @@
 // browser tests and benchmarks wait on.
 import { h } from "../dom.js";
 import { cssRgb } from "./colours.js";
-import { hitsText, instanceOrder, instanceTitle, legendRows, progressText } from "./describe.js";
+import { answerText, formatScore, instanceOrder, instanceTitle, legendRows, progressText } from "./describe.js";
 import { SHORTCUTS } from "./keys.js";
 import { MODES } from "./state.js";
 
@@ -13,13 +13,21 @@ function swatch(color) {
 }
 
 export class Panels {
-  // on: { command(name), query(text), select(id, keepQuery), toggle(id), preview(id), classVisible(index, visible) }
-  constructor(root, on) {
+  // on: { command(name), query(text), threshold(value), frame(id), select(id, keepQuery), toggle(id), preview(id),
+  //       classVisible(index, visible) }
+  // canAsk: whether the host can ask again with another threshold (the offline file answers stored class queries)
+  constructor(root, on, canAsk = true) {
     this.root = root;
     this.on = on;
     root.classList.add("pgs-viewer");
     root.dataset.state = "loading";
     this.canvasBox = h("div", { class: "pgs-canvas" });
+    // Over the canvas while the Gaussian scene is fetched and built (seconds for a real capture).
+    this.photoLoading = h(
+      "div",
+      { class: "pgs-photo-loading", role: "status", hidden: true },
+      "loading the photo view ...",
+    );
     this.progress = h("div", { class: "pgs-progress", role: "status" }, "Loading scene ...");
     this.progressBar = h("progress", { max: 1, value: 0 });
     this.progress.append(this.progressBar);
@@ -47,6 +55,23 @@ export class Panels {
       },
       this.queryInput,
       h("button", { type: "submit" }, "Ask"),
+    );
+    // The score a hit reaches: lowered, a query that matched nothing well lights its closest instances.
+    this.thresholdInput = h("input", {
+      type: "number",
+      min: 0,
+      max: 1,
+      step: 0.05,
+      "data-role": "threshold",
+      "aria-label": "minimum score of a hit",
+      title: "a hit scores at least this (0.5: the query beats the other classes together)",
+      onchange: () => on.threshold(this.thresholdInput.value),
+    });
+    const threshold = h(
+      "label",
+      { class: "pgs-threshold", hidden: !canAsk },
+      "hits score at least ",
+      this.thresholdInput,
     );
     this.queryStatus = h("div", { class: "pgs-query-status", "aria-live": "polite" });
     this.hitList = h("ol", { class: "pgs-hits" });
@@ -92,7 +117,18 @@ export class Panels {
         "photo",
       )),
       (this.photoStatus = h("span", { class: "pgs-photo-status", "aria-live": "polite" })),
+      (this.frameBox = h(
+        "label",
+        { class: "pgs-frames", hidden: true },
+        "look from ",
+        (this.frameSelect = h("select", {
+          "data-role": "frame",
+          "aria-label": "look from a capture frame",
+          onchange: () => on.frame(this.frameSelect.value),
+        })),
+      )),
       queryForm,
+      threshold,
       this.queryStatus,
       this.hitList,
       h("h3", {}, "Classes"),
@@ -100,7 +136,7 @@ export class Panels {
       h("h3", {}, "Instances"),
       this.instanceList,
     );
-    root.append(this.canvasBox, side, this.progress, this.help);
+    root.append(this.canvasBox, side, this.progress, this.photoLoading, this.help);
   }
 
   showProgress(received, total) {
@@ -125,6 +161,7 @@ export class Panels {
     this.photoButton.hidden = state === "unavailable";
     this.photoButton.setAttribute("aria-pressed", String(state === "on"));
     this.photoStatus.textContent = text;
+    this.photoLoading.hidden = state !== "loading";
   }
 
   showMode(mode) {
@@ -199,6 +236,22 @@ export class Panels {
     this.queryInput.value = text;
   }
 
+  // ids: the capture frames whose poses the run has (cameras.json), in its order; selected: the one looked from
+  fillFrames(ids, selected) {
+    const option = (value, text) => h("option", { value }, text);
+    this.frameSelect.replaceChildren(option("", "a capture frame ..."), ...ids.map((id) => option(id, `frame ${id}`)));
+    this.frameSelect.value = selected ?? "";
+    this.frameBox.hidden = !ids.length;
+  }
+
+  showFrame(id) {
+    this.frameSelect.value = id ?? "";
+  }
+
+  setThreshold(value) {
+    this.thresholdInput.value = formatScore(value);
+  }
+
   focusQuery() {
     this.queryInput.focus();
   }
@@ -213,30 +266,37 @@ export class Panels {
     this.root.dataset.query = "running";
   }
 
+  // The refusal replaces the last answer's list: hits left under it would read as this query's.
   showQueryError(message) {
+    this.hitList.replaceChildren();
     this.queryStatus.textContent = message;
     this.root.dataset.query = "error";
   }
 
-  // hits: the server's ranking, kept; colourOf(id): an instance's colour
-  showHits(text, hits, colourOf) {
+  // answer: the server's ranking ({hits, candidates, min_score}), kept in its order; the candidates (no hits: under
+  // the threshold) follow the hits, marked, unlit, with their scores. colourOf(id): an instance's colour
+  showHits(text, answer, colourOf) {
+    const row = (hit, below) =>
+      h(
+        "li",
+        {
+          [below ? "data-candidate-id" : "data-hit-id"]: hit.instance_id,
+          class: below ? "pgs-below" : null,
+          title: below ? `under the threshold (${formatScore(answer.min_score ?? 0.5)})` : null,
+          onclick: () => this.on.select(hit.instance_id, true),
+          onmouseenter: () => this.on.preview(hit.instance_id),
+          onmouseleave: () => this.on.preview(null),
+        },
+        swatch(colourOf(hit.instance_id)),
+        `#${hit.instance_id} ${hit.class_name} `,
+        below ? h("span", { class: "pgs-kind" }, "below") : null,
+        h("span", { class: "pgs-score" }, hit.score.toFixed(3)),
+      );
     this.hitList.replaceChildren(
-      ...hits.map((hit) =>
-        h(
-          "li",
-          {
-            "data-hit-id": hit.instance_id,
-            onclick: () => this.on.select(hit.instance_id, true),
-            onmouseenter: () => this.on.preview(hit.instance_id),
-            onmouseleave: () => this.on.preview(null),
-          },
-          swatch(colourOf(hit.instance_id)),
-          `#${hit.instance_id} ${hit.class_name} `,
-          h("span", { class: "pgs-score" }, hit.score.toFixed(3)),
-        ),
-      ),
+      ...answer.hits.map((hit) => row(hit, false)),
+      ...(answer.candidates || []).map((hit) => row(hit, true)),
     );
-    this.queryStatus.textContent = hitsText(hits.length, text);
+    this.queryStatus.textContent = answerText(text, answer);
   }
 
   showQueryDone() {

@@ -43,6 +43,8 @@ export const OVERLAY_ALPHA = 0.45; // the class or instance colours over the pho
 
 const BACKGROUND = 0x101418;
 const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize(); // from above, front left
+const FOV_DEG = 50; // the orbit view's vertical field of view (a capture frame's view takes the frame's own)
+const Z_UP = new THREE.Vector3(0, 0, 1); // captures are z-up
 
 export class PointsLayer {
   // container: the element the canvas fills; scene: the parsed binary scene (scene.js); size: the size factor;
@@ -80,8 +82,8 @@ export class PointsLayer {
     container.append(this.renderer.domElement);
     this.three = new THREE.Scene();
     this.three.add(this.points);
-    this.camera = new THREE.PerspectiveCamera(50, 1, 0.01, 1000);
-    this.camera.up.set(0, 0, 1); // captures are z-up
+    this.camera = new THREE.PerspectiveCamera(FOV_DEG, 1, 0.01, 1000);
+    this.camera.up.copy(Z_UP);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.addEventListener("change", () => this.render());
     this.controls.addEventListener("end", onCameraEnd);
@@ -103,9 +105,13 @@ export class PointsLayer {
     const h = this.container.clientHeight || 1;
     this.renderer.setSize(w, h);
     this.camera.aspect = w / h;
+    this.updateProjection();
+  }
+
+  updateProjection() {
     this.camera.updateProjectionMatrix();
     // Pixels per unit of size at distance 1: points keep their size in metres whatever the canvas height.
-    const pixelHeight = h * this.renderer.getPixelRatio();
+    const pixelHeight = (this.container.clientHeight || 1) * this.renderer.getPixelRatio();
     this.material.uniforms.projScale.value = pixelHeight / (2 * Math.tan((this.camera.fov * Math.PI) / 360));
     this.render();
   }
@@ -141,6 +147,8 @@ export class PointsLayer {
 
   // The whole scene in view from above, front left; near and far planes from its size.
   fit() {
+    this.camera.up.copy(Z_UP); // a capture frame's view may have left its own up and field of view
+    this.camera.fov = FOV_DEG;
     const { min, max } = this.scene.header.bounds;
     const center = new THREE.Vector3((min[0] + max[0]) / 2, (min[1] + max[1]) / 2, (min[2] + max[2]) / 2);
     const radius = Math.max(0.1, new THREE.Vector3(...max).distanceTo(new THREE.Vector3(...min)) / 2);
@@ -148,10 +156,24 @@ export class PointsLayer {
     this.camera.position.copy(center).addScaledVector(FIT_DIRECTION, distance);
     this.camera.near = distance / 100;
     this.camera.far = distance * 10;
-    this.camera.updateProjectionMatrix();
     this.controls.target.copy(center);
     this.controls.update();
-    this.render();
+    this.updateProjection();
+  }
+
+  // The view of a capture frame: pose, its 4x4 T_world_cam (OpenCV camera: x right, y down, z forward);
+  // camera: cameras.json's intrinsics ({fy, height}). The frame's own up (minus its y axis), so a frame held at a
+  // tilt is seen at that tilt; its vertical field of view; the orbit target one metre ahead.
+  lookFrom(pose, camera) {
+    this.fit(); // near and far from the scene's size
+    const at = (r, c) => pose[r][c];
+    this.camera.position.set(at(0, 3), at(1, 3), at(2, 3));
+    this.camera.up.set(-at(0, 1), -at(1, 1), -at(2, 1));
+    this.controls.target.set(at(0, 3) + at(0, 2), at(1, 3) + at(1, 2), at(2, 3) + at(2, 2));
+    this.camera.fov = (2 * Math.atan(camera.height / (2 * camera.fy)) * 180) / Math.PI;
+    this.camera.near = Math.min(this.camera.near, 0.01);
+    this.controls.update();
+    this.updateProjection();
   }
 
   // [position x, y, z, target x, y, z]

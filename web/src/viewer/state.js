@@ -1,5 +1,5 @@
 // The one owner of the viewer's state. `value` is what the URL keeps (mode, size, hidden classes, selection, query,
-// camera); `lit`, `hover` and `hits` are what is shown now and never leave the page. No DOM, no three.js.
+// the query's threshold, camera, the capture frame looked from, photo on); `lit`, `hover` and `hits` are what is shown now and never leave the page. No DOM, no three.js.
 
 export const MODES = ["camera", "semantic", "instance"];
 export const DEFAULT_MODE = "semantic";
@@ -7,6 +7,14 @@ export const DEFAULT_SIZE = 1.5; // primitives are drawn a little larger than th
 export const SIZE_STEP = 1.25;
 export const MIN_SIZE = 1 / 16;
 export const MAX_SIZE = 16;
+// A query's hits score at least this by default: the query beats the vocabulary's other classes together (the
+// server's default; panogs_core/language/query.py). The viewer's threshold control starts here.
+export const DEFAULT_MIN_SCORE = 0.5;
+
+export function clampMinScore(value) {
+  const number = Number(value);
+  return Number.isFinite(number) ? Math.min(1, Math.max(0, number)) : DEFAULT_MIN_SCORE;
+}
 
 export function normaliseMode(mode) {
   return MODES.includes(mode) ? mode : DEFAULT_MODE;
@@ -28,7 +36,18 @@ export function roundCamera(numbers) {
 export class ViewState {
   // initial: a partial state (from the URL); onChange(snapshot): told when the host should save the state
   constructor(initial = {}, onChange = null) {
-    this.value = { mode: DEFAULT_MODE, size: DEFAULT_SIZE, hidden: [], sel: null, q: "", cam: null, ...initial };
+    this.value = {
+      mode: DEFAULT_MODE,
+      size: DEFAULT_SIZE,
+      hidden: [],
+      sel: null,
+      q: "",
+      minScore: DEFAULT_MIN_SCORE,
+      cam: null,
+      frame: null,
+      photo: false,
+      ...initial,
+    };
     this.onChange = onChange;
     this.lit = new Set(); // instances lit by the selection or the query's hits
     this.hover = null; // an instance previewed from a list (the pointer is on its row): its box is drawn
@@ -80,6 +99,20 @@ export class ViewState {
     this.value.sel = null;
     this.hits = hits;
     this.lit = new Set(hits.map((hit) => hit.instance_id));
+  }
+
+  setMinScore(value) {
+    this.value.minScore = clampMinScore(value);
+    return this.value.minScore;
+  }
+
+  // The capture frame the camera looks from (its id as text), or null once the view moves.
+  setFrame(id) {
+    this.value.frame = id === null || id === undefined || id === "" ? null : String(id);
+  }
+
+  setPhoto(on) {
+    this.value.photo = Boolean(on);
   }
 
   setHover(id) {

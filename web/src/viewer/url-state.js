@@ -1,6 +1,6 @@
-// The view state <-> URL parameters (mode, size, hidden classes, selection, query, camera): the app keeps them after
+// The view state <-> URL parameters (mode, size, hidden classes, selection, query and its threshold, camera, capture frame, photo): the app keeps them after
 // `#/jobs/<id>?`, `panogs view` and the offline file after `#`. A parameter at its default is left out.
-import { DEFAULT_SIZE } from "./state.js";
+import { DEFAULT_MIN_SCORE, DEFAULT_SIZE, clampMinScore } from "./state.js";
 
 export function stateToParams(state, params = new URLSearchParams()) {
   params.set("mode", state.mode);
@@ -10,7 +10,10 @@ export function stateToParams(state, params = new URLSearchParams()) {
     ["hidden", state.hidden.join(",")],
     ["sel", state.sel ?? ""],
     ["q", state.q],
+    ["min", state.minScore === undefined || state.minScore === DEFAULT_MIN_SCORE ? "" : String(state.minScore)],
     ["cam", state.cam ? state.cam.join(",") : ""],
+    ["frame", state.frame ?? ""],
+    ["photo", state.photo ? "1" : ""],
   ];
   for (const [key, value] of optional) {
     if (value === "" || value === null) params.delete(key);
@@ -31,6 +34,9 @@ export function paramsToState(params) {
   const sel = params.get("sel") ? Number(params.get("sel")) : NaN;
   if (Number.isInteger(sel)) state.sel = sel;
   if (params.get("q")) state.q = params.get("q");
+  if (params.get("min")) state.minScore = clampMinScore(params.get("min"));
+  if (params.get("photo") === "1") state.photo = true;
+  if (params.get("frame")) state.frame = params.get("frame");
   const cam = numbers(params.get("cam") || "");
   if (cam.length === 6 && cam.every(Number.isFinite)) state.cam = cam;
   return state;

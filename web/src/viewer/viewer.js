@@ -11,25 +11,35 @@ import { summaryText } from "./describe.js";
 import { SIZE_STEP, ViewState, nextMode } from "./state.js";
 
 export class Viewer {
-  // root: an empty element; options: { queryFn(text) -> Promise<{hits}>, state, onStateChange(state), photo? }
+  // root: an empty element; options: { queryFn(text, {min_score}) -> Promise<{hits, candidates, min_score}>, state,
+  // onStateChange(state), photo?, canAsk? }
   // photo: { load() -> Promise<photo.js module>, bytes() -> Promise<Uint8Array of gaussians.ply> }, given by a
-  // host that has a fitted scene (the app); without it the photo view is unavailable.
+  // host that has a fitted scene (or later, by offerPhoto, once the fit ends); without it the photo view is
+  // unavailable. canAsk (default true): the host answers any threshold (the offline file answers stored ones).
+  // cameras?: () -> Promise<cameras.json of the run> ({camera, frames: [{id, T_world_cam}]}): the "look from" list.
   constructor(root, options) {
     this.root = root;
     this.options = options;
     this.store = new ViewState(options.state || {}, options.onStateChange);
-    this.panels = new Panels(root, {
-      command: (name) => this.command(name),
-      query: (text) => this.runQuery(text),
-      select: (id, keepQuery) => this.select(id, true, keepQuery),
-      toggle: (id) => this.select(this.state.sel === id ? null : id),
-      preview: (id) => this.preview(id),
-      classVisible: (index, visible) => this.toggleClass(index, visible),
-    });
+    this.panels = new Panels(
+      root,
+      {
+        command: (name) => this.command(name),
+        query: (text) => this.runQuery(text),
+        threshold: (value) => this.setMinScore(value),
+        frame: (id) => this.lookFromFrame(id),
+        select: (id, keepQuery) => this.select(id, true, keepQuery),
+        toggle: (id) => this.select(this.state.sel === id ? null : id),
+        preview: (id) => this.preview(id),
+        classVisible: (index, visible) => this.toggleClass(index, visible),
+      },
+      options.canAsk !== false,
+    );
     this.layer = null; // once a scene is loaded
     this.ready = false;
     this.photo = null; // the splats, once loaded (photo.js)
     this.photoOn = false;
+    this.cameras = null; // cameras.json, once read
     this.unbind = [];
   }
 
@@ -74,13 +84,26 @@ export class Viewer {
     );
     if (this.state.cam) this.layer.setCameraPose(this.state.cam);
     else this.layer.fit();
+    this.loadFrames();
     this.setMode(this.state.mode, false);
     if (this.state.sel !== null && this.instanceById.has(this.state.sel)) this.select(this.state.sel, false);
+    this.panels.setThreshold(this.state.minScore);
     this.panels.showPhoto(this.options.photo ? "off" : "unavailable");
     this.panels.showReady();
     this.ready = true;
     if (this.state.q) this.runQuery(this.state.q);
+    if (this.state.photo && this.options.photo) this.togglePhoto(true);
     this.render();
+  }
+
+  // The fit ended after the viewer opened (the host watched the job): the photo view is offered from now on, and
+  // opened when the URL asked for it.
+  offerPhoto(photo) {
+    if (this.options.photo) return;
+    this.options.photo = photo;
+    if (!this.layer) return; // load() offers it
+    this.panels.showPhoto("off");
+    if (this.state.photo) this.togglePhoto(true);
   }
 
   // A button's or a key's command (keys.js).
@@ -114,9 +137,33 @@ export class Viewer {
     if (save) this.saveCamera();
   }
 
-  saveCamera() {
+  // An orbit, pan, zoom or fit: the view is no longer a capture frame's.
+  saveCamera(frame = null) {
     this.store.setCamera(this.layer.cameraPose());
+    this.store.setFrame(frame);
+    this.panels.showFrame(frame);
     this.store.changed();
+  }
+
+  // The capture frames' list, from the host's cameras.json; the URL's frame looked from once it is read.
+  async loadFrames() {
+    if (!this.options.cameras) return;
+    try {
+      this.cameras = await this.options.cameras();
+    } catch (_) {
+      return; // no list: the orbit view only
+    }
+    const ids = this.cameras.frames.map((frame) => String(frame.id));
+    this.panels.fillFrames(ids, this.state.frame);
+    if (this.state.frame !== null && ids.includes(this.state.frame)) this.lookFromFrame(this.state.frame);
+  }
+
+  // The camera at a capture frame's pose and field of view ("" or an unknown id: nothing changes).
+  lookFromFrame(id) {
+    const frame = this.cameras?.frames.find((f) => String(f.id) === String(id));
+    if (!frame || !this.layer) return;
+    this.layer.lookFrom(frame.T_world_cam, this.cameras.camera);
+    this.saveCamera(String(frame.id));
   }
 
   setMode(mode, notify = true) {
@@ -149,6 +196,15 @@ export class Viewer {
     this.photo.setVisible(show);
     this.layer.setPhoto(show, this.overlayAlpha());
     this.panels.showPhoto(show ? "on" : "off");
+    this.store.setPhoto(show);
+    this.store.changed();
+  }
+
+  // The query's threshold (the control beside the query box): the shown query is asked again with it.
+  setMinScore(value) {
+    this.panels.setThreshold(this.store.setMinScore(value));
+    this.store.changed();
+    if (this.state.q && this.ready) this.runQuery(this.state.q);
   }
 
   setSize(size) {
@@ -190,15 +246,22 @@ export class Viewer {
     this.panels.setQueryText(text);
     if (!text) return this.clear();
     this.panels.showAsking(text);
+    const asked = (this.asked = (this.asked || 0) + 1);
     let answer;
     try {
-      answer = await this.options.queryFn(text);
+      answer = await this.options.queryFn(text, { min_score: this.state.minScore });
+      if (asked !== this.asked) return; // a later question (or threshold) was asked meanwhile: its answer shows
     } catch (err) {
+      if (asked !== this.asked) return;
+      // Nothing of the last answer stays lit or listed under the refusal.
+      this.store.answer(text, []);
+      this.panels.markInstances(this.store.lit);
+      this.reflag();
       this.panels.showQueryError(err.message);
       return;
     }
     this.store.answer(text, answer.hits);
-    this.panels.showHits(text, answer.hits, (id) => this.instanceById.get(id)?.color || [0, 0, 0]);
+    this.panels.showHits(text, answer, (id) => this.instanceById.get(id)?.color || [0, 0, 0]);
     this.panels.markInstances(this.store.lit);
     this.reflag();
     this.panels.showQueryDone();

@@ -16,9 +16,8 @@ import {
   resultsReady,
   shortId,
   tileReadouts,
-  vocabularyBody,
-  vocabularyText,
 } from "../rules.js";
+import { rerunForm } from "./rerun.js";
 
 export const JOB_COLUMNS = ["job", "scene", "state", "stage", "progress", "Gaussian scene", "", ""];
 
@@ -141,49 +140,4 @@ function jobCells(job, scenes, refresh, message) {
     h("td", {}, error),
     actions,
   ];
-}
-
-// The re-run form, shown in the row's message box: the job's settings as JSON and its vocabulary, both editable.
-function rerunForm(job, message, refresh) {
-  const config = h("textarea", { rows: 4, cols: 60, "aria-label": "settings (JSON)" });
-  config.value = JSON.stringify(job.config || {}, null, 1);
-  const vocabulary = h("input", {
-    type: "text",
-    size: 40,
-    "aria-label": "vocabulary",
-    placeholder: "vocabulary (optional): scannet20 | matterport21 | lamp, rug, ...",
-  });
-  vocabulary.value = vocabularyText(job.vocabulary);
-  const form = h(
-    "form",
-    {
-      onsubmit: async (e) => {
-        e.preventDefault();
-        let parsed;
-        try {
-          parsed = JSON.parse(config.value || "{}");
-        } catch (err) {
-          return showError(message, new Error(`settings: not valid JSON (${err.message})`));
-        }
-        try {
-          await api("POST", "/v1/jobs", {
-            scene_id: job.scene_id,
-            config: parsed,
-            vocabulary: vocabularyBody(vocabulary.value, job.vocabulary),
-          });
-          refresh();
-        } catch (err) {
-          showError(message, err);
-        }
-      },
-    },
-    h("div", {}, 'Settings (PipelineConfig overrides, e.g. {"clustering": {"thresholds": [0.9, 0.7]}}):'),
-    config,
-    h("br"),
-    vocabulary,
-    " ",
-    h("button", { type: "submit" }, "Run"),
-  );
-  message.className = "pgs-message";
-  message.replaceChildren(form);
 }

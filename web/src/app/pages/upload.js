@@ -7,6 +7,8 @@ import { showError } from "../messages.js";
 import { uploadProgressText } from "../rules.js";
 
 const CHUNK_BYTES = 8 * 1024 * 1024;
+// How long "job queued" stays under the form: the job's row in the table below says the rest of its life.
+const QUEUED_NOTE_MS = 6000;
 const RETRY_DELAYS_MS = [0, 1000, 3000, 5000, 10000];
 
 // onQueued(): a job was queued (the job list refreshes)
@@ -33,7 +35,11 @@ export function uploadCard(onQueued) {
       const scene = await api("POST", "/v1/scenes", { upload_id: uploadId, name: name.value.trim() || undefined });
       message.textContent = `scene ${scene.name} is valid; starting a job ...`;
       await api("POST", "/v1/jobs", { scene_id: scene.id });
-      message.textContent = `scene ${scene.name}: job queued`;
+      const queued = `scene ${scene.name}: job queued (its row is in the jobs below)`;
+      message.textContent = queued;
+      setTimeout(() => {
+        if (message.textContent === queued) message.textContent = "";
+      }, QUEUED_NOTE_MS);
       form.reset();
       bar.hidden = true;
       onQueued();
