@@ -22,11 +22,12 @@ def add_command(sub: Any) -> None:
 
 
 def run_query(args: argparse.Namespace) -> int:
-    """Score the run's instances against the query and print the hits with their boxes."""
+    """Score the run's instances against the query and print the hits with their boxes, or, when none passes
+    ``--min-score``, the closest candidates with their scores."""
     import numpy as np
 
     from panogs_core.io.run_folder import load_result
-    from panogs_core.language.query import query_instances
+    from panogs_core.language.query import format_answer, rank_instances
     from panogs_core.language.text_encoders import get_text_encoder
 
     loaded = load_result(args.run)
@@ -34,7 +35,7 @@ def run_query(args: argparse.Namespace) -> int:
     encoder = None
     if args.model_path and isinstance(query, str):
         encoder = get_text_encoder(loaded.feature_space, model_path=args.model_path)
-    hits = query_instances(
+    answer = rank_instances(
         loaded.instances,
         loaded.vocabulary,
         query,
@@ -43,15 +44,5 @@ def run_query(args: argparse.Namespace) -> int:
         top_k=args.top_k,
         min_score=args.min_score,
     )
-    label = args.vector or repr(query)
-    if not hits:
-        print(f"query {label}: no instance scored at least {args.min_score}")
-        return 0
-    print(f"query {label}: {len(hits)} instance(s)")
-    for hit in hits:
-        lo, hi = hit.bbox_min, hit.bbox_max
-        print(
-            f"  instance {hit.instance_id:>4}  {hit.class_name:<16} score {hit.score:.3f}  "
-            f"box [{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}] - [{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}]"
-        )
+    print(format_answer(args.vector or repr(query), answer))
     return 0
