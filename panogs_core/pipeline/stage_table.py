@@ -231,7 +231,7 @@ def masks(bundle: Bundle, vis: Visibility, cfg: PipelineConfig, progress: Progre
 
 
 def neighbors(prims: Primitives, cfg: PipelineConfig, progress: ProgressFn | None = None) -> KnnGraph:
-
+    """The kNN graph (``progress``: the table passes every stage one; this one reports no steps of its own)."""
     return build_knn(prims.points, cfg.superprimitives.k_neighbors)
 
 
@@ -274,7 +274,7 @@ def labeling(
     cfg: PipelineConfig,
     progress: ProgressFn | None = None,
 ) -> PanopticLabels:
-
+    """The panoptic labels (``progress``: the table passes every stage one; this one reports no steps of its own)."""
     return assign_panoptic(
         prims.points,
         features,
