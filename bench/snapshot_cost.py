@@ -1,4 +1,4 @@
-"""The cost of one appearance-fit snapshot (panogs_core.pipeline.snapshots): seconds to write and read it, and its size.
+"""The cost of one appearance-fit snapshot (panogs_core.snapshots): seconds to write and read it, and its size.
 
 Usage:
     python bench/snapshot_cost.py [--gaussians 30000 150000] [--degrees 1 3] [--repeats 3]
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from panogs_core.gaussians.spherical_harmonics import num_coefficients
-from panogs_core.pipeline.snapshots import StageSnapshot
+from panogs_core.snapshots import StageSnapshot
 
 
 def fit_state(n: int, degree: int) -> dict[str, object]:

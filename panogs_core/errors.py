@@ -49,7 +49,7 @@ class Cancelled(PanoGSError):
     """Raised (usually by a progress callback) to stop a pipeline run cooperatively.
 
     A long stage that keeps snapshots of its partial work (the appearance fit,
-    :mod:`panogs_core.pipeline.snapshots`) writes one before it lets the exception through, so that a resumed run
+    :mod:`panogs_core.snapshots`) writes one before it lets the exception through, so that a resumed run
     continues where this one stopped; a subclass whose run must write nothing more (another worker now owns the
     job's folder) sets ``save_partial_work`` False.
     """

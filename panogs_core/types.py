@@ -1,4 +1,5 @@
-"""Small frozen dataclasses shared by the loader and the stages: camera, frames, vocabulary, ground truth.
+"""Small frozen dataclasses shared by the loader, the stages and the run reader: camera, frames, vocabulary, ground
+truth, and the instance table's rows.
 
 Conventions (see docs/conventions.md): world frame in metres; poses are camera-to-world ``T_world_cam`` (4, 4)
 with OpenCV camera axes (x right, y down, z forward); labels are int64 and -1 means void everywhere.
@@ -7,7 +8,7 @@ with OpenCV camera axes (x right, y down, z forward); labels are int64 and -1 me
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -96,3 +97,40 @@ class Geometry:
     points: np.ndarray  # (N, 3) float32, world frame, metres
     colors: np.ndarray | None = None  # (N, 3) float32 in [0, 1]
     normals: np.ndarray | None = None  # (N, 3) float32 (from the file, if it had them)
+
+
+@dataclass(frozen=True)
+class InstanceInfo:
+    """One panoptic segment: a thing instance, or all primitives of one stuff class.
+
+    ``score`` is the mean, over the instance's primitives, of the softmax probability (over the vocabulary, at
+    ``LabelingConfig.score_temperature``) of the instance's class; in ``[0, 1]``.
+    """
+
+    id: int
+    class_index: int
+    class_name: str
+    kind: str  # "thing" | "stuff"
+    score: float
+    num_points: int
+    centroid: np.ndarray  # (3,) float32, mean position
+    bbox_min: np.ndarray  # (3,) float32, axis-aligned box
+    bbox_max: np.ndarray  # (3,) float32
+    feature: np.ndarray  # (D,) float32, unit mean feature
+
+    def to_json(self, *, with_feature: bool = False) -> dict[str, Any]:
+        """Plain dict (ints, floats, lists); the ``(D,)`` feature only when asked."""
+        out: dict[str, Any] = {
+            "id": int(self.id),
+            "class_index": int(self.class_index),
+            "class_name": self.class_name,
+            "kind": self.kind,
+            "score": float(self.score),
+            "num_points": int(self.num_points),
+            "centroid": [float(v) for v in self.centroid],
+            "bbox_min": [float(v) for v in self.bbox_min],
+            "bbox_max": [float(v) for v in self.bbox_max],
+        }
+        if with_feature:
+            out["feature"] = [float(v) for v in self.feature]
+        return out

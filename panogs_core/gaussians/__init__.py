@@ -12,7 +12,7 @@ the L1 + D-SSIM loss, centres fixed. Here:
 * centres fixed by default; ``move_centres`` lets each move within ``max_centre_offset`` metres of its vertex;
 * frames without colour are skipped (listed in the result, for report.json); a bundle without any colour frame
   returns the initialisation unchanged, with a note saying why;
-* given a :class:`~panogs_core.pipeline.snapshots.StageSnapshot`, the fit saves its state periodically and when
+* given a :class:`~panogs_core.snapshots.StageSnapshot`, the fit saves its state periodically and when
   cancelled, and a fit that finds a snapshot continues from it to the same result.
 
 DEPARTURE (schedule, docs/method.md §2 and docs/gaussians.md): per device and far shorter than 3DGS's: on the CPU
@@ -34,8 +34,8 @@ from panogs_core.gaussians.config import (
     resolve_schedule,
 )
 from panogs_core.io.bundle import Bundle
-from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.threads import torch_threads
 from panogs_core.types import Frame
 

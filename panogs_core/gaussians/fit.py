@@ -16,8 +16,8 @@ from panogs_core.gaussians.photometric import photometric_loss, psnr, ssim
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera
 from panogs_core.gaussians.spherical_harmonics import num_coefficients, sh_to_color
 from panogs_core.io.bundle import Bundle
-from panogs_core.pipeline.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.progress import ProgressFn, report
+from panogs_core.snapshots import SNAPSHOT_EVERY_S, StageSnapshot
 from panogs_core.types import Frame
 
 if TYPE_CHECKING:

@@ -20,17 +20,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.io.run_json import read_run_json
-from panogs_core.types import Vocabulary
-
-if TYPE_CHECKING:
-    from panogs_core.stages.labeling import InstanceInfo
+from panogs_core.types import InstanceInfo, Vocabulary
 
 BINARY = "application/octet-stream"
 JSON = "application/json"
@@ -60,6 +56,9 @@ class RunFile:
 
 _EXPORT = "panogs_core.stages.export"
 _PIPELINE = "panogs_core.pipeline.run"
+_REPORT = "panogs_core.pipeline.report"
+_CHECKPOINTS = "panogs_core.pipeline.checkpoints"
+_STAGE_TABLE = "panogs_core.pipeline.stage_table"  # its validate stage opens the bundle
 _READER = "panogs_core.io.run_folder"
 
 PANOPTIC_PLY = RunFile(
@@ -139,7 +138,7 @@ REPORT_JSON = RunFile(
     "the results are (`appearance.state` `running`), again when the fit ends (`succeeded`, `skipped`, `failed` "
     "or `canceled`, with `error`). A tiled run's (`panogs run --tiles`) has `tiling`: the plan and per tile its core "
     "and halo primitives, frames, wall time and peak memory",
-    _PIPELINE,
+    _REPORT,
     ("bench.speed", "bench.service.bench_service", "bench.tiling"),
     downloadable=True,
 )
@@ -158,15 +157,15 @@ STAGES_FOLDER = RunFile(
     FOLDER,
     "the stage checkpoints (`<stage>.npz`), `manifest.json` (the key each was made with) and a stopped fit's "
     "`appearance.partial.pt`: what a re-run resumes from",
-    _PIPELINE,
-    (_PIPELINE,),
+    _CHECKPOINTS,
+    (_CHECKPOINTS,),
 )
 BUNDLE_FOLDER = RunFile(
     "bundle/",
     FOLDER,
     "the input archive, extracted; only when the run was given a `.zip` or `.tar.gz`",
-    _PIPELINE,
-    (_PIPELINE,),
+    _STAGE_TABLE,
+    (_STAGE_TABLE,),
     optional=True,
 )
 TILES_FOLDER = RunFile(
@@ -239,8 +238,6 @@ def load_result(out_dir: str | Path) -> LoadedResult:
     Raises:
         InputError: a file is missing or does not match the others.
     """
-    from panogs_core.stages.labeling import InstanceInfo  # here: the labeling stage imports scipy
-
     out = Path(out_dir)
     vocab, space = load_vocabulary(out)
     rows = read_run_json(INSTANCES_JSON.path(out))

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from panogs_core.bounded_json import read_json_file
 from panogs_core.errors import EncoderUnavailableError, InputError
-from panogs_core.io.bounded_json import read_json_file
 from panogs_core.language.text_encoders import TextEncoder, encode_labels, get_text_encoder
 from panogs_core.types import ClassKind, Vocabulary
 

@@ -30,8 +30,7 @@ import numpy as np
 from panogs_core.errors import EncoderUnavailableError, InputError, ShapeError
 from panogs_core.language.label_sets import default_temperature
 from panogs_core.language.text_encoders import TextEncoder, encode_labels, get_text_encoder
-from panogs_core.stages.labeling import InstanceInfo
-from panogs_core.types import Vocabulary
+from panogs_core.types import InstanceInfo, Vocabulary
 
 # A class at least this similar to a free-text or vector query is a near-synonym and does not compete with it.
 # CLIP: distinct label-set classes reach 0.94 (table/desk; chair/table 0.904), so 0.9 would let "chair" find

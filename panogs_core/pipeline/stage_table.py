@@ -1,12 +1,15 @@
-"""Glue between :mod:`panogs_core.pipeline.run` and the stage modules: the stage table, one call per stage, and keys.
+"""The stage table: every stage of a run, in order, with how it is called and what its checkpoint key covers.
 
-Kept apart from ``pipeline/run.py`` so the orchestration reads as the list of stages. Importing this module imports
-the stage modules, which are light (numpy, scipy): each imports torch or open3d only inside the function that
-needs it, so a stage's heavy imports still happen only when that stage runs.
+:func:`panogs_core.pipeline.run.run_pipeline` reads :data:`PIPELINE` and nothing else to know the stages, their
+order and their calls; adding a stage is adding its entry here. Importing this module imports the stage modules,
+which are light (numpy, scipy): each imports torch or open3d only inside the function that needs it, so a stage's
+heavy imports still happen only when that stage runs.
 
-A checkpointed stage is a :class:`StageSpec`: its name, how its output is read back, and what its checkpoint key
-covers, namely the keys of the stages it reads and exactly the settings it reads (never a whole config section
-that other stages share), so that changing one stage's setting redoes that stage and those after it, no more.
+A stage is a :class:`StageSpec`: its name, the values of the run it reads (the bundle, the vocabulary, the outputs
+of the stages before it) and the one it writes, its call, and for a checkpointed stage how its output is read back
+and what its key covers, namely the keys of the stages it reads and exactly the settings it reads (never a whole
+config section that other stages share), so that changing one stage's setting redoes that stage and those after
+it, no more. The run drops each value after the last stage that reads it.
 """
 
 from __future__ import annotations
@@ -17,15 +20,18 @@ import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Generic, Protocol, TypeVar
+from typing import Any, Protocol
 
 import numpy as np
 
+from panogs_core.errors import InputError
 from panogs_core.gaussians import GaussianScene, fit_appearance
-from panogs_core.io.bundle import Bundle
+from panogs_core.io.bundle import Bundle, open_bundle
+from panogs_core.io.run_folder import BUNDLE_FOLDER
+from panogs_core.language.label_sets import builtin_vocabulary, ensure_embeddings
 from panogs_core.pipeline.config import PipelineConfig
-from panogs_core.pipeline.snapshots import StageSnapshot
 from panogs_core.progress import ProgressFn
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.stages.affinity import AffinityConfig, segment_affinity
 from panogs_core.stages.clustering import Clusters, progressive_clustering
 from panogs_core.stages.fusion import FusedFeatures, fuse_features
@@ -38,6 +44,10 @@ from panogs_core.stages.superprimitives import SuperPrimitives, graph_cut_superp
 from panogs_core.stages.visibility import Visibility, compute_visibility
 from panogs_core.types import Vocabulary
 
+# The values a run starts with: the ``bundle`` argument (a path or an opened bundle), the run folder and the
+# ``vocabulary`` argument. Every other value is written by a stage of the table.
+RUN_ARGUMENTS = ("source", "out", "vocabulary_spec")
+
 
 class Checkpoint(Protocol):
     """A stage output that writes itself to one ``.npz`` (its class's ``load`` reads it back)."""
@@ -45,63 +55,68 @@ class Checkpoint(Protocol):
     def save(self, path: Path) -> None: ...
 
 
-C = TypeVar("C", bound=Checkpoint)
+KeyFn = Callable[[Mapping[str, str], PipelineConfig], str]
 
 
 @dataclass(frozen=True)
-class StageSpec(Generic[C]):
-    """A checkpointed stage of the pipeline.
+class StageSpec:
+    """One entry of the stage table.
 
     Attributes:
-        name: The stage's name in ``pipeline.STAGES``, ``report.json`` and ``stages/manifest.json``.
-        load: Reads the stage's checkpoint back (the output class's ``load``).
+        name: The stage's name in ``STAGES``, progress, ``report.json`` and ``stages/manifest.json``.
+        call: ``call(*values, cfg, progress)``: the values named by ``reads``, in order, then the pipeline config
+            and the stage's progress callback; returns the value the stage writes.
+        reads: The values it takes: ``source``, ``out``, ``vocabulary_spec`` (:data:`RUN_ARGUMENTS`) or what an
+            entry before it writes.
+        writes: The value it writes (default: its name). A stage that writes a value an earlier one wrote
+            replaces it for the stages after it.
+        timed: A stage of ``STAGES``: timed, reported in ``report.json``, its progress sent. False for a value
+            derived between two stages (the features the labelling reads, the fused colours), which is neither.
+        when: Runs only when this says so of the config; else its value is None and it is not reported.
+        after_results: Runs after the results are written and ``on_results`` is called (the appearance fit): its
+            failure leaves the results (``appearance.state`` ``failed``).
+        resumable: Takes ``snapshot=`` (:class:`StageSnapshot`), to keep and resume its partial work.
+        load: A checkpointed stage's reader of its checkpoint (the output class's ``load``); None: no checkpoint.
         inputs: The keys its key includes: upstream stages, or ``"input"`` (the bundle's hash), ``"features"``
             (the per-primitive language features, see :func:`primitive_features`), ``"vocabulary"``.
-        settings: Exactly the settings the stage reads, from the pipeline config.
+        settings: Exactly the settings the stage reads, from the pipeline config (with ``inputs``, its key).
+        key_of: A key made otherwise than from ``inputs`` and ``settings`` (the features': the field's or the
+            fusion's, by ``features_source``).
     """
 
     name: str
-    load: Callable[[Path], C]
-    inputs: tuple[str, ...]
-    settings: Callable[[PipelineConfig], object]
+    call: Callable[..., Any]
+    reads: tuple[str, ...]
+    writes: str = ""
+    timed: bool = True
+    when: Callable[[PipelineConfig], bool] | None = None
+    after_results: bool = False
+    resumable: bool = False
+    load: Callable[[Path], Any] | None = None
+    inputs: tuple[str, ...] = ()
+    settings: Callable[[PipelineConfig], object] | None = None
+    key_of: KeyFn | None = None
 
-    def key(self, keys: Mapping[str, str], cfg: PipelineConfig) -> str:
-        """Checkpoint key: a hash of the input keys and the settings."""
+    @property
+    def output(self) -> str:
+        """The name of the value it writes."""
+        return self.writes or self.name
+
+    def runs(self, cfg: PipelineConfig) -> bool:
+        return self.when is None or self.when(cfg)
+
+    def key(self, keys: Mapping[str, str], cfg: PipelineConfig) -> str | None:
+        """Its key: a hash of the input keys and the settings; None for a stage without one."""
+        if self.key_of is not None:
+            return self.key_of(keys, cfg)
+        if self.settings is None:
+            return None
         return _key(*(keys[name] for name in self.inputs), self.settings(cfg))
 
 
 def _affinity_measure(cfg: AffinityConfig) -> dict[str, object]:
     """The affinity settings the clustering reads: all but the two the mask look-ups read (same YAML section)."""
     return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if not f.name.startswith("mask_")}
-
-
-PRIMITIVES = StageSpec("primitives", Primitives.load, ("input",), lambda c: c.primitives)
-# Reads the colour frames (covered by "input" through the primitives' key) and its own settings.
-APPEARANCE = StageSpec("appearance", GaussianScene.load, ("primitives",), lambda c: c.appearance)
-# "with-depth-residual": checkpoints written before Visibility carried depth residuals must not be reused.
-VISIBILITY = StageSpec("visibility", Visibility.load, ("primitives",), lambda c: (c.visibility, "with-depth-residual"))
-FUSION = StageSpec("fusion", FusedFeatures.load, ("visibility",), lambda c: c.fusion)
-LANGUAGE_FIELD = StageSpec("language_field", LanguageField.load, ("fusion",), lambda c: c.language_field)
-MASKS = StageSpec("masks", MaskObservations.load, ("visibility",), lambda c: c.affinity.mask_lookup())
-NEIGHBORS = StageSpec("neighbors", KnnGraph.load, ("primitives",), lambda c: c.superprimitives.k_neighbors)
-SUPERPRIMITIVES = StageSpec(
-    "superprimitives",
-    SuperPrimitives.load,
-    ("primitives", "features", "masks", "neighbors"),
-    lambda c: c.superprimitives,
-)
-CLUSTERING = StageSpec(
-    "clustering",
-    Clusters.load,
-    ("superprimitives", "neighbors", "masks", "features"),
-    lambda c: (c.clustering, _affinity_measure(c.affinity)),
-)
-LABELING = StageSpec(
-    "labeling",
-    PanopticLabels.load,
-    ("clustering", "superprimitives", "neighbors", "features", "fusion", "vocabulary"),
-    lambda c: c.labeling,
-)
 
 
 def _plain(obj: object) -> object:
@@ -123,15 +138,42 @@ def _vocabulary_hash(vocab: Vocabulary) -> str:
 
 
 def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[str, str]:
-    """Checkpoint key of every checkpointed stage (and of the inputs they name), in pipeline order."""
+    """Checkpoint key of every stage that has one (and of the inputs they name), in table order."""
     keys = {"input": input_hash, "vocabulary": _vocabulary_hash(vocab)}
-    for upstream in (PRIMITIVES, APPEARANCE, VISIBILITY, FUSION, LANGUAGE_FIELD):
-        keys[upstream.name] = upstream.key(keys, cfg)
-    features_from = LANGUAGE_FIELD if cfg.features_source == "field" else FUSION
-    keys["features"] = _key(keys[features_from.name], cfg.features_source)
-    for downstream in (MASKS, NEIGHBORS, SUPERPRIMITIVES, CLUSTERING, LABELING):
-        keys[downstream.name] = downstream.key(keys, cfg)
+    for spec in PIPELINE:
+        key = spec.key(keys, cfg)
+        if key is not None:
+            keys[spec.name] = key
     return keys
+
+
+def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vocabulary:
+    """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for the CLIP space.
+
+    ``spec`` is a built-in label-set name or an already parsed :class:`Vocabulary`; never a path, so that a
+    service job cannot name a file of the worker's host (the CLI reads a ``--vocabulary FILE`` itself). Embeddings
+    are added with the space's text encoder when the chosen vocabulary has none.
+    """
+    if isinstance(spec, Vocabulary):
+        vocabulary = spec
+    elif spec is not None:
+        vocabulary = builtin_vocabulary(spec, feature_space=scene.feature_space)
+    elif scene.vocabulary is not None:
+        vocabulary = scene.vocabulary
+    elif scene.feature_space == "clip-vit-b32":
+        vocabulary = builtin_vocabulary("scannet20", feature_space=scene.feature_space)
+    else:
+        raise InputError(
+            f"{scene.root / 'scene.json'}: the bundle has no vocabulary.json and features.space "
+            f"{scene.feature_space!r} has no default label set; pass a vocabulary "
+            "(--vocabulary scannet20|matterport21|FILE)"
+        )
+    return ensure_embeddings(vocabulary, scene.feature_space, scene.feature_dim)
+
+
+def validate(source: str | Path | Bundle, out: Path, cfg: PipelineConfig, progress: ProgressFn) -> Bundle:
+    """The bundle, opened and validated (an archive extracted into the run folder's ``bundle/``)."""
+    return source if isinstance(source, Bundle) else open_bundle(source, workdir=BUNDLE_FOLDER.path(out))
 
 
 def primitives(bundle: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
@@ -188,8 +230,8 @@ def masks(bundle: Bundle, vis: Visibility, cfg: PipelineConfig, progress: Progre
     return observe_masks(bundle, vis, cfg.affinity.mask_lookup(), on_progress=progress)
 
 
-def neighbors(prims: Primitives, cfg: PipelineConfig) -> KnnGraph:
-
+def neighbors(prims: Primitives, cfg: PipelineConfig, progress: ProgressFn | None = None) -> KnnGraph:
+    """The kNN graph (``progress``: the table passes every stage one; this one reports no steps of its own)."""
     return build_knn(prims.points, cfg.superprimitives.k_neighbors)
 
 
@@ -230,8 +272,9 @@ def labeling(
     clusters: Clusters,
     vocab: Vocabulary,
     cfg: PipelineConfig,
+    progress: ProgressFn | None = None,
 ) -> PanopticLabels:
-
+    """The panoptic labels (``progress``: the table passes every stage one; this one reports no steps of its own)."""
     return assign_panoptic(
         prims.points,
         features,
@@ -242,3 +285,168 @@ def labeling(
         neighbors=knn.neighbors,
         fused=fused,
     )
+
+
+def fused_colours(fused: FusedFeatures) -> FusedFeatures:
+    """``fused`` without its features (an ``(N, 0)`` array): the weights, seen counts and colours stay.
+
+    What the export reads of the fusion once the labelling has its cosines: the ``(N, D)`` fused features are
+    then dropped, never held beside the decoded ones (161 MB each at ScanNet size)."""
+    return dataclasses.replace(fused, features=np.empty((fused.features.shape[0], 0), np.float32))
+
+
+def export(
+    out: Path,
+    bundle: Bundle,
+    prims: Primitives,
+    fused: FusedFeatures,
+    sp: SuperPrimitives,
+    clusters: Clusters,
+    labels: PanopticLabels,
+    vocab: Vocabulary,
+    cfg: PipelineConfig,
+    progress: ProgressFn,
+) -> tuple[dict[str, Path], dict[str, Any] | None]:
+    """The results' files and the metrics (with ground truth). ``gaussians.ply`` is the initialisation here (the
+    labels with the primitives' colours and scales), so that the point views have what they read; the fit
+    replaces it."""
+    from panogs_core.stages.export import write_outputs
+
+    return write_outputs(out, bundle, prims, fused, sp, clusters, labels, vocab, gaussians=None)
+
+
+def gaussian_colours(prims: Primitives, fused: FusedFeatures) -> np.ndarray:  # (N, 3) float32
+    """The primitives' colours, as the Gaussian scene's file takes them (the geometry's, else the fused ones)."""
+    from panogs_core.stages.export import primitive_colors
+
+    return primitive_colors(prims, fused)
+
+
+def _features_key(keys: Mapping[str, str], cfg: PipelineConfig) -> str:
+    """The features' key: the field's, or the fusion's when ``features_source`` is ``fused``."""
+    return _key(keys["language_field" if cfg.features_source == "field" else "fusion"], cfg.features_source)
+
+
+def _fits_field(cfg: PipelineConfig) -> bool:
+    return cfg.features_source == "field"
+
+
+# The stages of a run, in order. The results (labels, instances, queries, the point views) are written by "export";
+# the appearance fit comes after them, since the labels do not depend on it, and replaces the initialisation's
+# gaussians.ply when it ends. Every value is dropped after the last entry that reads it: the fused features once
+# the field is fitted, the visibility after the masks, the masks after the clustering, the decoded features and the
+# segments after the export, so the appearance fit runs without them.
+PIPELINE: tuple[StageSpec, ...] = (
+    StageSpec("validate", validate, ("source", "out"), writes="bundle"),
+    StageSpec(
+        "vocabulary",
+        lambda bundle, spec, _c, _p: resolve_scene_vocabulary(bundle, spec),
+        ("bundle", "vocabulary_spec"),
+        timed=False,
+    ),
+    StageSpec(
+        "primitives", primitives, ("bundle",), load=Primitives.load, inputs=("input",), settings=lambda c: c.primitives
+    ),
+    # "with-depth-residual": checkpoints written before Visibility carried depth residuals must not be reused.
+    StageSpec(
+        "visibility",
+        visibility,
+        ("bundle", "primitives"),
+        load=Visibility.load,
+        inputs=("primitives",),
+        settings=lambda c: (c.visibility, "with-depth-residual"),
+    ),
+    StageSpec(
+        "fusion",
+        fusion,
+        ("bundle", "visibility", "primitives"),
+        load=FusedFeatures.load,
+        inputs=("visibility",),
+        settings=lambda c: c.fusion,
+    ),
+    StageSpec(
+        "language_field",
+        language_field,
+        ("primitives", "fusion"),
+        when=_fits_field,
+        load=LanguageField.load,
+        inputs=("fusion",),
+        settings=lambda c: c.language_field,
+    ),
+    StageSpec(
+        "features",
+        lambda field, fused, _c, _p: primitive_features(field, fused),
+        ("language_field", "fusion"),
+        timed=False,
+        key_of=_features_key,
+    ),
+    StageSpec(
+        "evidence", lambda fused, vocab, _c, _p: fused_evidence(fused, vocab), ("fusion", "vocabulary"), timed=False
+    ),
+    StageSpec("fused_colours", lambda fused, _c, _p: fused_colours(fused), ("fusion",), timed=False),
+    StageSpec(
+        "masks",
+        masks,
+        ("bundle", "visibility"),
+        load=MaskObservations.load,
+        inputs=("visibility",),
+        settings=lambda c: c.affinity.mask_lookup(),
+    ),
+    StageSpec(
+        "neighbors",
+        neighbors,
+        ("primitives",),
+        load=KnnGraph.load,
+        inputs=("primitives",),
+        settings=lambda c: c.superprimitives.k_neighbors,
+    ),
+    StageSpec(
+        "superprimitives",
+        superprimitives,
+        ("primitives", "features", "masks", "neighbors"),
+        load=SuperPrimitives.load,
+        inputs=("primitives", "features", "masks", "neighbors"),
+        settings=lambda c: c.superprimitives,
+    ),
+    StageSpec(
+        "clustering",
+        clustering,
+        ("superprimitives", "neighbors", "masks", "features"),
+        load=Clusters.load,
+        inputs=("superprimitives", "neighbors", "masks", "features"),
+        settings=lambda c: (c.clustering, _affinity_measure(c.affinity)),
+    ),
+    StageSpec(
+        "labeling",
+        labeling,
+        ("primitives", "features", "evidence", "superprimitives", "neighbors", "clustering", "vocabulary"),
+        load=PanopticLabels.load,
+        inputs=("clustering", "superprimitives", "neighbors", "features", "fusion", "vocabulary"),
+        settings=lambda c: c.labeling,
+    ),
+    StageSpec(
+        "export",
+        export,
+        ("out", "bundle", "primitives", "fused_colours", "superprimitives", "clustering", "labeling", "vocabulary"),
+    ),
+    StageSpec(
+        "colours",
+        lambda prims, fused, _c, _p: gaussian_colours(prims, fused),
+        ("primitives", "fused_colours"),
+        timed=False,
+    ),
+    # Reads the colour frames (covered by "input" through the primitives' key) and its own settings.
+    StageSpec(
+        "appearance",
+        appearance,
+        ("bundle", "primitives"),
+        after_results=True,
+        resumable=True,
+        load=GaussianScene.load,
+        inputs=("primitives",),
+        settings=lambda c: c.appearance,
+    ),
+)
+BY_NAME: dict[str, StageSpec] = {spec.name: spec for spec in PIPELINE}
+# The stages a run reports, in order (report.json's "stages", the progress of a job).
+STAGES: tuple[str, ...] = tuple(spec.name for spec in PIPELINE if spec.timed)

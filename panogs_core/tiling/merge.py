@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from panogs_core.io.run_folder import LABELS_NPZ, load_result
-from panogs_core.stages.labeling import InstanceInfo, PanopticLabels
-from panogs_core.types import Vocabulary
+from panogs_core.stages.labeling import PanopticLabels
+from panogs_core.types import InstanceInfo, Vocabulary
 
 
 @dataclass(frozen=True)

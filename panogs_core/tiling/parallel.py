@@ -19,7 +19,7 @@ from typing import Any
 
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.profiling import StageStats
-from panogs_core.pipeline.run import StageProgressFn
+from panogs_core.pipeline.result import StageProgressFn
 from panogs_core.tiling.plan import TilePlan
 from panogs_core.types import Vocabulary
 

@@ -10,7 +10,6 @@ with the plan and, per tile, its core and halo primitives, frames, wall time and
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections.abc import Iterator
@@ -21,20 +20,15 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import Bundle, open_bundle
-from panogs_core.io.run_folder import BUNDLE_FOLDER, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
+from panogs_core.io.run_folder import BUNDLE_FOLDER, STAGES_FOLDER, TILES_FOLDER
 from panogs_core.pipeline.config import PipelineConfig
-from panogs_core.pipeline.profiling import StageStats, StageTimer, lifetime_peak_rss_bytes
-from panogs_core.pipeline.run import (
-    FIT_SKIPPED,
-    PipelineResult,
-    ResultsFn,
-    StageProgressFn,
-    hash_bundle,
-    report_versions,
-    resolve_scene_vocabulary,
-    run_pipeline,
-    vocabulary_label,
-)
+from panogs_core.pipeline.input_hash import hash_bundle
+from panogs_core.pipeline.profiling import StageStats, StageTimer
+from panogs_core.pipeline.report import stage_rows
+from panogs_core.pipeline.report import write_report as write_run_report
+from panogs_core.pipeline.result import FIT_SKIPPED, PipelineResult, ResultsFn, StageProgressFn
+from panogs_core.pipeline.run import run_pipeline
+from panogs_core.pipeline.stage_table import resolve_scene_vocabulary
 from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
 from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
@@ -249,25 +243,8 @@ def write_report(
     seam_joins: int,
     result: PipelineResult,
 ) -> None:
-    """``report.json`` of a tiled run: an untiled run's fields, with ``tiling`` (the plan and every tile)."""
-
-    report = {
-        "scene": scene.name,
-        "input_sha256": hash_bundle(scene),
-        "num_primitives": result.num_primitives,
-        "num_instances": len(result.instances),
-        "unseen_primitives": {},  # per tile, under "tiling" (a tile counts its halo too)
-        "appearance": result.appearance,
-        "num_frames": len(scene.frames),
-        "feature_space": scene.feature_space,
-        "feature_dim": scene.feature_dim,
-        "vocabulary": vocabulary_label(vocabulary_spec, scene),
-        "stages": [{**t.to_json(), "device": "cpu"} for t in result.timings],
-        "total_wall_s": round(result.total_s, 3),
-        "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
-        "tiling": {**plan.to_json(), "tiles": tile_rows, "seam_joins": seam_joins},
-        "config": cfg.to_dict(),
-        "versions": report_versions(),
-    }
-    REPORT_JSON.path(out).write_text(json.dumps(report, indent=2))
-    result.files[REPORT_JSON.name] = REPORT_JSON.path(out)
+    """``report.json`` of a tiled run: an untiled run's fields (every stage on the CPU: the fit does not run), with
+    ``tiling`` (the plan and every tile)."""
+    tiling = {**plan.to_json(), "tiles": tile_rows, "seam_joins": seam_joins}
+    write_run_report(out, scene, cfg, vocabulary_spec, hash_bundle(scene), result, stage_rows(result.timings),
+                     tiling=tiling)  # fmt: skip

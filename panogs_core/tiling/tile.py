@@ -21,7 +21,8 @@ from panogs_core.io.run_folder import LABELS_NPZ, REPORT_JSON, STAGES_FOLDER, TI
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.input_hash import hash_bundle
 from panogs_core.pipeline.profiling import StageStats
-from panogs_core.pipeline.run import StageProgressFn, run_pipeline
+from panogs_core.pipeline.result import StageProgressFn
+from panogs_core.pipeline.run import run_pipeline
 from panogs_core.tiling.plan import TilePlan, TileSpec
 from panogs_core.tiling.view import tile_bundle
 from panogs_core.types import Vocabulary

@@ -25,7 +25,7 @@ from panogs_core.gaussians.config import (
 from panogs_core.gaussians.rasterizer import Gaussians3D, PinholeCamera, rasterize
 from panogs_core.io.bundle import open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.pipeline.snapshots import StageSnapshot
+from panogs_core.snapshots import StageSnapshot
 from panogs_core.stages.primitives import gaussian_log_scales
 from panogs_core.types import Camera
 

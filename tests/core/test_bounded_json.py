@@ -9,8 +9,7 @@ from typing import Any
 
 import pytest
 
-from panogs_core.errors import InputError
-from panogs_core.io.bounded_json import (
+from panogs_core.bounded_json import (
     JsonLimitError,
     JsonLimits,
     JsonSyntaxError,
@@ -18,6 +17,7 @@ from panogs_core.io.bounded_json import (
     nesting_depth,
     read_json_file,
 )
+from panogs_core.errors import InputError
 
 
 def _depth(value: Any) -> int:  # the reference: levels of nested containers, by recursion over the parsed value

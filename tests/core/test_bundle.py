@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 import panogs_core.io.bundle.validation
+from panogs_core.bounded_json import JsonLimits
 from panogs_core.errors import BundleError, InputError
-from panogs_core.io.bounded_json import JsonLimits
 from panogs_core.io.bundle import FORMAT_ID, Bundle, BundleLimits, open_bundle
 from panogs_core.io.bundle.archive import extract_archive
 from panogs_core.io.bundle.writer import BundleWriter

@@ -21,14 +21,13 @@ from panogs_core.language.label_sets import (
     vocabulary_from_name_or_file,
 )
 from panogs_core.stages.labeling import (
-    InstanceInfo,
     LabelingConfig,
     PanopticLabels,
     assign_panoptic,
     instances_to_json,
     vote_in_segments,
 )
-from panogs_core.types import Vocabulary
+from panogs_core.types import InstanceInfo, Vocabulary
 
 WALL, FLOOR, CHAIR, TABLE = 0, 1, 2, 3
 

@@ -363,7 +363,7 @@ def test_a_fit_that_fails_leaves_the_results_and_says_so(
     def broken_fit(*args: object, **kwargs: object) -> None:
         raise NumericalError("the loss is NaN at iteration 1")
 
-    monkeypatch.setattr(stage_table, "appearance", broken_fit)
+    monkeypatch.setattr(stage_table, "fit_appearance", broken_fit)  # what the table's appearance entry calls
     result = run_pipeline(tiny_bundle, tmp_path, SHORT_FIT)
     assert result.fit_state == "failed"
     assert result.instances == first.instances
@@ -485,7 +485,7 @@ def test_a_later_run_of_the_same_bundle_takes_its_hash_from_the_shared_store(
     """Hashing the bundle is most of a re-run's time at ScanNet size: the first run keeps the hash with the shared
     checkpoints, a later run of the same bundle finds its stage keys from it without reading the bundle's files."""
     from panogs_core.io.bundle import open_bundle
-    from panogs_core.pipeline import run as pipeline_run
+    from panogs_core.pipeline import checkpoints
     from panogs_core.pipeline.input_hash import hash_bundle
 
     shared = MemoryCheckpoints()
@@ -496,8 +496,58 @@ def test_a_later_run_of_the_same_bundle_takes_its_hash_from_the_shared_store(
     def no_hashing(_: object) -> str:
         raise AssertionError("the bundle was hashed again")
 
-    monkeypatch.setattr(pipeline_run, "hash_bundle", no_hashing)
+    monkeypatch.setattr(checkpoints, "hash_bundle", no_hashing)
     again = run_pipeline(tiny_bundle, tmp_path / "again", SHORT_FIT, shared=shared)
     assert all(t.cached for t in again.timings if t.name not in ("validate", "export"))
     assert again.instances == first.instances
     assert json.loads((tmp_path / "again" / "report.json").read_text())["input_sha256"] == shared.input_hash
+
+
+def test_the_stage_table_names_only_values_written_before_they_are_read() -> None:
+    """The run reads its stages, their order and their calls from the table: each value a stage reads is a run
+    argument or the value of an entry before it, the names are unique, and ``STAGES`` is the table's timed entries."""
+    from panogs_core.pipeline import stage_table as st
+
+    written = set(st.RUN_ARGUMENTS)
+    for spec in st.PIPELINE:
+        missing = [name for name in spec.reads if name not in written]
+        assert not missing, f"{spec.name} reads {missing} before any entry writes it"
+        written.add(spec.output)
+    assert len(st.BY_NAME) == len(st.PIPELINE)
+    assert STAGES == tuple(spec.name for spec in st.PIPELINE if spec.timed)
+    assert STAGES[0] == "validate"
+    assert STAGES[-1] == "appearance"
+    assert [spec.name for spec in st.PIPELINE if spec.after_results] == ["appearance"]
+
+
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run
+def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One entry adds a stage: here one that would bring the bundle's missing 2D maps (it has them, so it hands
+    the bundle on), placed before the first stage that reads maps; the run calls it there, reports it, and the
+    results are the same."""
+    from panogs_core.io.bundle import Bundle
+    from panogs_core.pipeline import stage_table as st
+
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+    called: list[str] = []
+
+    def maps_2d(bundle: Bundle, cfg: PipelineConfig, progress: object) -> Bundle:
+        called.append(bundle.name)
+        return bundle
+
+    entry = st.StageSpec("maps_2d", maps_2d, ("bundle",), writes="bundle")
+    at = [spec.name for spec in st.PIPELINE].index("fusion")
+    monkeypatch.setattr(st, "PIPELINE", (*st.PIPELINE[:at], entry, *st.PIPELINE[at:]))
+    seen: list[str] = []
+    result = run_pipeline(tiny_bundle, tmp_path, SHORT_FIT, on_progress=lambda s, d, t: seen.append(s))
+    assert called == [first.scene_name]
+    report = json.loads((tmp_path / "report.json").read_text())
+    names = [s["stage"] for s in report["stages"]]
+    assert names == [*STAGES[: STAGES.index("fusion")], "maps_2d", *STAGES[STAGES.index("fusion") :]]
+    assert "maps_2d" in seen
+    assert result.instances == first.instances
+    for name in ("labels.npz", "instances.json", "panoptic.ply"):
+        assert (tmp_path / name).read_bytes() == (out / name).read_bytes()

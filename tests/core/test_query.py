@@ -10,8 +10,7 @@ import pytest
 from panogs_core.errors import EncoderUnavailableError, InputError, ShapeError
 from panogs_core.language.label_sets import SPACE_TEMPERATURES, builtin_vocabulary
 from panogs_core.language.query import QueryHit, format_answer, query_instances, query_scores, rank_instances
-from panogs_core.stages.labeling import InstanceInfo
-from panogs_core.types import Vocabulary
+from panogs_core.types import InstanceInfo, Vocabulary
 
 CLIP = "clip-vit-b32"
 COS_SCALE = 0.3  # cosine of fused LSeg features to their CLIP class text (label_sets.SPACE_TEMPERATURES)
@@ -202,7 +201,6 @@ def test_minilm_free_text_synonyms(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_class_name_query_returns_every_instance_labelled_with_it() -> None:
     """An instance labelled 'b' whose mean feature is ambiguous still answers the query 'b', ranked first."""
-    from panogs_core.stages.labeling import InstanceInfo
     from panogs_core.types import Vocabulary
 
     emb = np.eye(3, dtype=np.float32)

@@ -15,7 +15,6 @@ from panogs_core.errors import ConfigError, InputError
 from panogs_core.io.bundle import open_bundle
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import run_pipeline
-from panogs_core.stages.labeling import InstanceInfo
 from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
 from panogs_core.synthetic import make_building, make_scene
 from panogs_core.tiling.choice import parse_tiles
@@ -23,7 +22,7 @@ from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
 from panogs_core.tiling.runner import run_tiled
 from panogs_core.tiling.view import tile_bundle
-from panogs_core.types import Vocabulary
+from panogs_core.types import InstanceInfo, Vocabulary
 
 SPACE = "clip-vit-b32"  # the label-set space needs no text encoder
 NO_FIT = PipelineConfig().with_overrides({"appearance": {"enabled": False}})

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panogs_core.io.bounded_json import JsonLimits
+from panogs_core.bounded_json import JsonLimits
 
 FORMAT_ID = "panogs-scene/1"
 

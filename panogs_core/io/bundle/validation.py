@@ -4,7 +4,7 @@ Validation reads each image's header first (size, channels, bit depth: ``panogs_
 compares it with the camera and the pixel limit; only an image that passes is read, to check the framing of its
 compressed data (PNG chunk lengths and CRC-32 up to IEND, a JPEG's end marker), one file at a time; no image is
 decoded here (the stages decode what they use). Feature maps are read by their headers only, and the JSON files
-through the bounded reader (``panogs_core.io.bounded_json``). Each check appends problem lines of the form
+through the bounded reader (``panogs_core.bounded_json``). Each check appends problem lines of the form
 ``<file>: <what was found>, expected <what>`` to one list, so that a broken bundle is reported in one go; every
 path in them is relative to the bundle root.
 """
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from panogs_core.bounded_json import JsonLimits, read_json_file
 from panogs_core.errors import BundleError, InputError
-from panogs_core.io.bounded_json import JsonLimits, read_json_file
 from panogs_core.io.bundle.format import (
     FEATURE_DTYPES,
     FORMAT_ID,

@@ -28,14 +28,13 @@ from panogs_core.errors import InputError, NumericalError, ShapeError
 from panogs_core.language.label_sets import default_temperature
 from panogs_core.stages.labeling.config import LabelingConfig, point_spacing, scaled_to_spacing
 from panogs_core.stages.labeling.instances import assemble, assemble_components, assemble_split, instance_infos
-from panogs_core.stages.labeling.output import InstanceInfo, PanopticLabels, instances_to_json
+from panogs_core.stages.labeling.output import PanopticLabels, instances_to_json
 from panogs_core.stages.labeling.unseen import label_unseen
 from panogs_core.stages.labeling.votes import FusedEvidence, primitive_classes, vote_in_segments, vote_islands
 from panogs_core.types import Vocabulary
 
 __all__ = [
     "FusedEvidence",
-    "InstanceInfo",
     "LabelingConfig",
     "PanopticLabels",
     "assign_panoptic",

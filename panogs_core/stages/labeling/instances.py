@@ -9,9 +9,8 @@ from scipy.sparse import csgraph
 
 from panogs_core.point_graphs import same_label_components
 from panogs_core.stages.labeling.config import LabelingConfig
-from panogs_core.stages.labeling.output import InstanceInfo
 from panogs_core.stages.labeling.votes import majority
-from panogs_core.types import Vocabulary
+from panogs_core.types import InstanceInfo, Vocabulary
 
 
 def assemble(

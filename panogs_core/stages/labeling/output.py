@@ -12,44 +12,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.npz import save_npz
-from panogs_core.types import Vocabulary
-
-
-@dataclass(frozen=True)
-class InstanceInfo:
-    """One panoptic segment: a thing instance, or all primitives of one stuff class.
-
-    ``score`` is the mean, over the instance's primitives, of the softmax probability (over the vocabulary, at
-    ``LabelingConfig.score_temperature``) of the instance's class; in ``[0, 1]``.
-    """
-
-    id: int
-    class_index: int
-    class_name: str
-    kind: str  # "thing" | "stuff"
-    score: float
-    num_points: int
-    centroid: np.ndarray  # (3,) float32, mean position
-    bbox_min: np.ndarray  # (3,) float32, axis-aligned box
-    bbox_max: np.ndarray  # (3,) float32
-    feature: np.ndarray  # (D,) float32, unit mean feature
-
-    def to_json(self, *, with_feature: bool = False) -> dict[str, Any]:
-        """Plain dict (ints, floats, lists); the ``(D,)`` feature only when asked."""
-        out: dict[str, Any] = {
-            "id": int(self.id),
-            "class_index": int(self.class_index),
-            "class_name": self.class_name,
-            "kind": self.kind,
-            "score": float(self.score),
-            "num_points": int(self.num_points),
-            "centroid": [float(v) for v in self.centroid],
-            "bbox_min": [float(v) for v in self.bbox_min],
-            "bbox_max": [float(v) for v in self.bbox_max],
-        }
-        if with_feature:
-            out["feature"] = [float(v) for v in self.feature]
-        return out
+from panogs_core.types import InstanceInfo, Vocabulary
 
 
 @dataclass(frozen=True)

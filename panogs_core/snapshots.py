@@ -1,10 +1,11 @@
 """Partial work of a long stage, kept so that a stopped run resumes in the middle of the stage, not at its start.
 
-Stage checkpoints (:mod:`panogs_core.pipeline.run`) are written when a stage ends. The appearance fit can run for
-minutes (7,000 iterations on a GPU), so it also writes a snapshot of its state (parameters, optimiser moments, the
-position in its frame order) every ``SNAPSHOT_EVERY_S`` seconds and when it is cancelled. A resumed run whose stage key
-matches continues from the snapshot and ends with the same result as an uninterrupted run; the runner deletes the
-snapshot once the stage's checkpoint is written.
+Stage checkpoints (:mod:`panogs_core.pipeline.checkpoints`) are written when a stage ends. The appearance fit can
+run for minutes (7,000 iterations on a GPU), so it also writes a snapshot of its state (parameters, optimiser
+moments, the position in its frame order) every ``SNAPSHOT_EVERY_S`` seconds and when it is cancelled. A resumed run
+whose stage key matches continues from the snapshot and ends with the same result as an uninterrupted run; the
+checkpoint store deletes the snapshot once the stage's checkpoint is written. It sits on the core's bottom floor:
+the fit (``gaussians/``) writes it and the pipeline, a floor above, places it.
 """
 
 from __future__ import annotations
