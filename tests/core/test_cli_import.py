@@ -146,27 +146,27 @@ def test_a_new_source_is_one_entry(
     calls: list[tuple[argparse.Namespace, object]] = []
 
     def add_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--depth-unit", type=float, default=0.001)
+        p.add_argument("--frame-rate", type=float, default=0.001)
 
     def run(args: argparse.Namespace, vocabulary: object) -> ImportReport:
         calls.append((args, vocabulary))
         return ImportReport(bundle=Path(args.dst), frames_written=7)
 
-    example = "panogs import madeup capture bundle --depth-unit 0.0002"
+    example = "panogs import madeup capture bundle --frame-rate 0.0002"
     madeup = ImportSource(name="madeup", help="a made-up layout", example=example, add_options=add_options, run=run)
     monkeypatch.setattr(import_, "IMPORT_SOURCES", (*IMPORT_SOURCES, madeup))
     assert "madeup" in _source_parsers()
     dst = tmp_path / "bundle"
     assert (
-        cli_main(["import", "madeup", "capture", str(dst), "--depth-unit", "0.0002", "--vocabulary", "scannet20"]) == 0
+        cli_main(["import", "madeup", "capture", str(dst), "--frame-rate", "0.0002", "--vocabulary", "scannet20"]) == 0
     )
     assert capsys.readouterr().out.startswith(f"wrote 7 frames to {dst}")
     ((args, vocabulary),) = calls
-    assert (args.src, args.depth_unit, args.stride, args.feature_space) == ("capture", 0.0002, 1, "clip-vit-b32")
+    assert (args.src, args.frame_rate, args.stride, args.feature_space) == ("capture", 0.0002, 1, "clip-vit-b32")
     assert vocabulary.names[:2] == ("wall", "floor")  # type: ignore[attr-defined]
     with pytest.raises(SystemExit):
-        cli_main(["import", "scannet", "a", "b", "--depth-unit", "1"])
-    assert "--depth-unit is an option of `panogs import madeup`" in capsys.readouterr().err
+        cli_main(["import", "scannet", "a", "b", "--frame-rate", "1"])
+    assert "--frame-rate is an option of `panogs import madeup`" in capsys.readouterr().err
 
 
 def test_the_readme_shows_every_source_in_its_spelling() -> None:

@@ -103,3 +103,15 @@ def test_a_vocabulary_is_refused_with_placeholder_maps(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="vocabulary cannot be used with placeholder maps"):
         import_sevenscenes(src, tmp_path / "b", placeholder_maps=True, vocabulary=vocabulary)
     assert not (tmp_path / "b" / "scene.json").exists()
+
+
+def test_a_failure_part_way_leaves_nothing_at_dst(tmp_path: Path) -> None:
+    """Frame 2's depth is the wrong size: found only after two frames were written, in a staging folder."""
+    src = _sequence(tmp_path / "seq")
+    cv2.imwrite(str(src / "frame-000002.depth.png"), np.full((H, W + 1), 1500, np.uint16))
+    dst = tmp_path / "out"
+    dst.mkdir()  # an empty DST is allowed, and stays empty
+    with pytest.raises(InputError, match=r"frame-000002\.depth\.png"):
+        import_sevenscenes(src, dst, placeholder_maps=True)
+    assert list(dst.iterdir()) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "seq"]

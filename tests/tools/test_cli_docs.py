@@ -62,10 +62,10 @@ def test_every_command_and_option_has_its_place(parser: argparse.ArgumentParser)
 
 def test_an_option_added_in_the_code_changes_the_page(parser: argparse.ArgumentParser) -> None:
     before = tool.page(build_parser())
-    _source_parser(parser, "import", "scannet").add_argument("--depth-unit", type=float, default=0.001, help="m")
+    _source_parser(parser, "import", "scannet").add_argument("--frame-rate", type=float, default=0.001, help="m")
     after = tool.page(parser)
-    assert "| `--depth-unit DEPTH_UNIT` | `0.001` | m |" in after
-    assert "--depth-unit" not in before
+    assert "| `--frame-rate FRAME_RATE` | `0.001` | m |" in after
+    assert "--frame-rate" not in before
 
 
 def test_a_stale_page_is_found_and_written_back(parser: argparse.ArgumentParser, tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from functools import partial
 from typing import Any
 
 from panogs_core.cli.arguments import VOCABULARY_HELP
-from panogs_core.cli.commands.import_sources import IMPORT_SOURCES
+from panogs_core.cli.commands.import_sources import IMPORT_SOURCES, ImportSource
 
 HELP_FLAGS = ("-h", "--help")
 HELP_WIDTH = 78  # the description is kept as written (the example must stay one line to copy): wrapped here
@@ -37,7 +37,7 @@ def add_command(sub: Any) -> None:
         s = sources.add_parser(
             source.name,
             help=source.help,
-            description=textwrap.fill(source.help, HELP_WIDTH),
+            description=_description(source),
             epilog=f"example:\n  {source.example}",
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
@@ -56,6 +56,11 @@ def add_command(sub: Any) -> None:
         parsers[source.name] = s
     for name, s in parsers.items():
         s.set_defaults(on_unknown=partial(refuse_foreign_options, s, name, _owners(parsers)))
+
+
+def _description(source: ImportSource) -> str:
+    """The subcommand's help: its line, then its description (when it has one), each wrapped."""
+    return "\n\n".join(textwrap.fill(text, HELP_WIDTH) for text in (source.help, source.description) if text)
 
 
 def run_import(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.io.importers.common import ImportReport, is_rigid, read_matrix, require_empty
+from panogs_core.io.importers.common import ImportReport, is_rigid, read_matrix, require_empty, staged
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Camera, Vocabulary
 
@@ -114,47 +114,50 @@ def import_sevenscenes(
             "pass features, or placeholder maps for a photometric-only bundle"
         )
     label = name or src.name
-    writer = BundleWriter(
-        dst,
-        name=f"{label} (placeholder maps)" if not present else label,
-        camera=cam,
-        depth_scale=SEVENSCENES_DEPTH_SCALE,
-        feature_dim=dim,
-        feature_space=feature_space,
-    )
-    if vocabulary is not None:
-        writer.write_vocabulary(vocabulary)
-    invalid, missing = [], []
-    without_features = without_masks = 0
-    for done, (index, depth_path) in enumerate(picked, start=1):
-        fid = f"{index:06d}"
-        pose = read_matrix(src / f"frame-{index:06d}.pose.txt")
-        if pose is None:
-            missing.append(fid)
-        elif pose.shape != (4, 4) or not is_rigid(pose):
-            invalid.append(fid)
-        else:
-            raw = _read_image(depth_path)
-            if raw.ndim != 2 or raw.dtype != np.uint16 or raw.shape != (cam.height, cam.width):
-                raise InputError(f"import_sevenscenes: {depth_path}: expected a {cam.width}x{cam.height} 16-bit PNG")
-            raw = np.where(raw == _NO_DEPTH, 0, raw)
-            color = _first_file(src, (f"frame-{index:06d}.color",), (".jpg", ".png"))
-            feat_path, mask_path = feature_files[index], optional(mask_dir, index, (".png",))
-            feat = None if feat_path is None else np.load(feat_path, allow_pickle=False).astype(np.float32)
-            mask = None if mask_path is None else _read_image(mask_path).astype(np.int64)
-            if not present and placeholder_maps and writer.num_frames == 0:
-                feat = np.full((1, 1, dim), 1.0 / np.sqrt(dim), np.float32)
-                mask = np.ones((cam.height, cam.width), np.int64)
-            writer.add_frame(
-                fid, pose, raw.astype(np.float64) / SEVENSCENES_DEPTH_SCALE, color=color, features=feat, masks=mask
-            )
-            without_features += feat is None
-            without_masks += mask is None
-        report(on_progress, done, len(picked))
-    if writer.num_frames == 0:
-        raise InputError(f"import_sevenscenes: no usable frame among {len(picked)} (all lack a valid pose)")
+    with staged(dst) as stage:  # a failure part way leaves nothing at dst
+        writer = BundleWriter(
+            stage,
+            name=f"{label} (placeholder maps)" if not present else label,
+            camera=cam,
+            depth_scale=SEVENSCENES_DEPTH_SCALE,
+            feature_dim=dim,
+            feature_space=feature_space,
+        )
+        if vocabulary is not None:
+            writer.write_vocabulary(vocabulary)
+        invalid, missing = [], []
+        without_features = without_masks = 0
+        for done, (index, depth_path) in enumerate(picked, start=1):
+            fid = f"{index:06d}"
+            pose = read_matrix(src / f"frame-{index:06d}.pose.txt")
+            if pose is None:
+                missing.append(fid)
+            elif pose.shape != (4, 4) or not is_rigid(pose):
+                invalid.append(fid)
+            else:
+                raw = _read_image(depth_path)
+                if raw.ndim != 2 or raw.dtype != np.uint16 or raw.shape != (cam.height, cam.width):
+                    size = f"{cam.width}x{cam.height}"
+                    raise InputError(f"import_sevenscenes: {depth_path}: expected a {size} 16-bit PNG")
+                raw = np.where(raw == _NO_DEPTH, 0, raw)
+                color = _first_file(src, (f"frame-{index:06d}.color",), (".jpg", ".png"))
+                feat_path, mask_path = feature_files[index], optional(mask_dir, index, (".png",))
+                feat = None if feat_path is None else np.load(feat_path, allow_pickle=False).astype(np.float32)
+                mask = None if mask_path is None else _read_image(mask_path).astype(np.int64)
+                if not present and placeholder_maps and writer.num_frames == 0:
+                    feat = np.full((1, 1, dim), 1.0 / np.sqrt(dim), np.float32)
+                    mask = np.ones((cam.height, cam.width), np.int64)
+                writer.add_frame(
+                    fid, pose, raw.astype(np.float64) / SEVENSCENES_DEPTH_SCALE, color=color, features=feat, masks=mask
+                )
+                without_features += feat is None
+                without_masks += mask is None
+            report(on_progress, done, len(picked))
+        if writer.num_frames == 0:
+            raise InputError(f"import_sevenscenes: no usable frame among {len(picked)} (all lack a valid pose)")
+        writer.close()
     result = ImportReport(
-        bundle=writer.close(),
+        bundle=dst,
         frames_written=writer.num_frames,
         frames_skipped_invalid_pose=tuple(invalid),
         frames_skipped_missing=tuple(missing),
