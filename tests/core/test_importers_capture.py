@@ -40,6 +40,18 @@ class TestKeyframesByMotion:
         assert keyframes_by_motion(turns, 1.0, 10.0) == [0, 3, 6]
         assert keyframes_by_motion([], 0.1, 1.0) == []
 
+    def test_a_threshold_of_zero_leaves_its_test_out(self) -> None:
+        # A hand-held camera always turns a little: with only a translation threshold, that must keep nothing.
+        jitter = []
+        for i in range(6):
+            angle = np.radians(0.01 * (i % 2))
+            pose = np.eye(4)
+            pose[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+            pose[0, 3] = 0.04 * i
+            jitter.append(pose)
+        assert keyframes_by_motion(jitter, 0.1, 0.0) == [0, 3]
+        assert keyframes_by_motion(jitter, 0.0, 5.0) == [0]
+
     def test_exception(self) -> None:
         with pytest.raises(InputError, match="stride"):
             FrameSelection(stride=0)

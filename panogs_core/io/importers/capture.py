@@ -187,8 +187,8 @@ def keyframes_by_motion(poses: list[np.ndarray], min_translation: float, min_rot
 
     Args:
         poses: Camera-to-world ``(4, 4)`` poses in order.
-        min_translation: Metres.
-        min_rotation: Degrees.
+        min_translation: Metres; 0 leaves translation out of the rule.
+        min_rotation: Degrees; 0 leaves rotation out of the rule.
 
     Example:
         >>> step = [np.eye(4) for _ in range(5)]
@@ -206,7 +206,9 @@ def keyframes_by_motion(poses: list[np.ndarray], min_translation: float, min_rot
         moved = float(np.linalg.norm(now[:3, 3] - last[:3, 3]))
         cos = (np.trace(last[:3, :3].T @ now[:3, :3]) - 1.0) / 2.0
         turned = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-        if moved > min_translation or turned > min_rotation:
+        # A threshold of 0 is that test switched off, not "any motion": with --min-translation alone, every frame
+        # of a hand-held capture turned by some hundredths of a degree and was kept.
+        if (min_translation > 0 and moved > min_translation) or (min_rotation > 0 and turned > min_rotation):
             kept.append(i)
     return kept
 

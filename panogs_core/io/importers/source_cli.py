@@ -46,9 +46,15 @@ SHARED_OPTIONS = (
         "float",
         0.0,
         "metres: keep a frame only when it moved more than this (or turned more than --min-rotation) since the "
-        "last kept one; 0 and 0 keep every frame",
+        "last kept one; 0 leaves translation out of the rule, and both 0 keep every frame",
     ),
-    CliOption("--min-rotation", "selection.min_rotation", "float", 0.0, "degrees: see --min-translation"),
+    CliOption(
+        "--min-rotation",
+        "selection.min_rotation",
+        "float",
+        0.0,
+        "degrees: see --min-translation; 0 leaves rotation out of the rule",
+    ),
     CliOption("--max-frames", "selection.max_frames", "int", None, "at most this many frames, spread evenly"),
     CliOption("--features", "maps.features", "path", None, "folder of <frame>.npy (Hf, Wf, D) feature maps"),
     CliOption("--masks", "maps.masks", "path", None, "folder of <frame>.png instance-id masks"),
