@@ -82,9 +82,10 @@ def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str
     An object storage (S3) has no free space to ask: only the local backend is checked (an extraction's scratch
     folder is, through :func:`extraction_limit`).
     """
-    if not storage.is_local:
+    free = storage.volume_free_bytes()
+    if free is None:
         return
-    room = disk_room(settings, storage)
+    room = max(0, free - settings.min_free_disk_bytes)
     if needed > room:
         raise InsufficientStorage(
             f"not enough free disk: {what} needs {needed:,} more bytes, the storage volume can take {room:,} "
