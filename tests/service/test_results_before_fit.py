@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from svc_helpers import make_scene, mark_results_ready, mark_succeeded
 from test_renders import write_scene_result
 
-from service.db.models import FitState, JobState
+from service.db.models import FitState, Job, JobState
 from service.settings import Settings
 from service.storage import Storage
 
@@ -134,7 +134,7 @@ def test_a_cancel_during_the_fit_keeps_the_results(
     assert r.status_code == 202, r.text
     assert r.json()["cancel_requested"] is True
     with session_scope(get_session_factory(settings.database)) as session:
-        job = session.get(crud.Job, fitting_job)
+        job = session.get(Job, fitting_job)
         assert job is not None
         job.lease = "task"
         session.commit()
