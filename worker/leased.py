@@ -33,14 +33,13 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from panogs_core.errors import Cancelled, PanoGSError
-from panogs_core.io.run_folder import DOWNLOADABLE
 from panogs_core.types import Vocabulary
 from service.db import crud
 from service.db.faults import DatabaseFault, classify
-from service.db.models import Artifact, Job, Scene
+from service.db.models import Scene
 from service.db.session import session_scope
 from service.settings import Settings
-from service.storage import Storage, sha256_file
+from service.storage import Storage
 from service.storage.objects import StorageError, StorageUnavailable
 from service.storage.workspace import Pusher, WorkPlan, Workspace
 from worker.bundle_cache import BundleCache
@@ -51,8 +50,6 @@ T = TypeVar("T")
 R = TypeVar("R")
 R_co = TypeVar("R_co", covariant=True)
 
-# The pipeline's outputs that become downloadable artifacts, with their media types (the run folder's declaration).
-ARTIFACTS = {name: spec.media_type for name, spec in DOWNLOADABLE.items()}
 # The stage that runs after the results are written (its progress is the job's fit progress).
 FIT_STAGE = "appearance"
 
@@ -160,6 +157,18 @@ def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:
             logger.warning("database unavailable (%s); retrying in %.1f s", what, delay)
             time.sleep(delay)
             delay = min(delay * 2, 5.0)
+
+
+def claim_retried(env: JobEnv, what: str, claim: Callable[[], T | None]) -> T | None:
+    """The row ``claim`` takes for this task, or None when it is not ours; database outages waited out."""
+    return with_db_retry(claim, deadline_s=env.settings.transient_retry_s, what=f"claim {what}")
+
+
+def lost_too_often(env: JobEnv, attempts: int, what: str) -> str | None:
+    """Why a row claimed for the ``attempts``-th time is not run again (its workers kept dying), or None."""
+    if attempts <= env.settings.max_attempts:
+        return None
+    return f"{what} was started {attempts - 1} times and its worker was lost each time"
 
 
 def write_retried(env: JobEnv, what: str, write: Callable[[Session], T]) -> T:
@@ -445,9 +454,6 @@ def run_leased(tracker: Tracker, ending: Ending[R], work: Workspace, body: Calla
         return ending.failed(type(exc).__name__, message, in_run=True)
 
 
-# What a job's tasks share ----------------------------------------------------------------------------------------
-
-
 def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
     """``message`` as the job's owner may read it: a path inside one of ``folders`` (the job's bundle, its output
     folder) is named relative to that folder, anything else under the storage or data folder relative to it,
@@ -457,43 +463,3 @@ def without_host_paths(message: str, env: JobEnv, *folders: Path) -> str:
         for form in dict.fromkeys((str(root), str(root.resolve()))):  # as given and resolved (symlinked mounts)
             message = message.replace(form + "/", "").replace(form, ".")
     return message
-
-
-def job_vocabulary(session: Session, job: Job) -> str | Vocabulary | None:
-    """What the pipeline gets as the job's label set: a built-in name (the pipeline resolves names only), the
-    job's inline classes and embeddings as a :class:`Vocabulary`, or None for the bundle's own; never a string that
-    could name a file (docs/service.md "Which request fields reach the host").
-
-    Raises:
-        InputError: the stored value is not a built-in name (a row from before inline vocabularies that named a
-            file: refused without repeating it), or the inline classes do not parse.
-    """
-    from panogs_core.language.label_sets import builtin_vocabulary, inline_vocabulary, is_builtin_name
-
-    if job.vocabulary_classes is not None:
-        embeddings = session.scalar(select(Job.vocabulary_embeddings).where(Job.id == job.id))
-        return inline_vocabulary(job.vocabulary_classes, embeddings, source=f"job {job.id} vocabulary")
-    if job.vocabulary is not None and not is_builtin_name(job.vocabulary):
-        builtin_vocabulary(job.vocabulary)  # raises, with a message that names no path
-    return job.vocabulary
-
-
-def collect_artifacts(
-    job_id: uuid.UUID, out_dir: Path, storage: Storage, *, exclude: frozenset[str] = frozenset()
-) -> list[Artifact]:
-    """Artifact rows for the pipeline outputs present in ``out_dir``, but those named in ``exclude``."""
-    rows = []
-    for name, media_type in ARTIFACTS.items():
-        path = out_dir / name
-        if path.is_file() and name not in exclude:
-            rows.append(
-                Artifact(
-                    job_id=job_id,
-                    name=name,
-                    path=storage.job_prefix(job_id) + name,
-                    size_bytes=path.stat().st_size,
-                    sha256=sha256_file(path).hexdigest(),
-                    media_type=media_type,
-                )
-            )
-    return rows

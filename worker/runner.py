@@ -39,6 +39,7 @@ from service.db.models import FitState, Job, JobState, Scene
 from service.db.session import session_scope
 from service.storage.workspace import Workspace
 from worker import tiles
+from worker.job_io import collect_artifacts, job_vocabulary
 from worker.leased import (
     CancelRequested,
     JobEnv,
@@ -46,13 +47,12 @@ from worker.leased import (
     PipelineFn,
     Tracker,
     bundle_cache,
-    collect_artifacts,
+    claim_retried,
     in_workspace,
-    job_vocabulary,
+    lost_too_often,
     run_leased,
     stage_fraction,
     stopping_on_storage_errors,
-    with_db_retry,
     without_host_paths,
     workspace_plan,
     write_retried,
@@ -86,17 +86,14 @@ def load_pipeline() -> tuple[PipelineFn, tuple[str, ...], Callable[[dict[str, An
     return run_pipeline, tuple(STAGES), jobs.pipeline_config
 
 
-@dataclass(frozen=True)
 class JobRow:
     """A job's own row, as its tracker writes it: every progress column."""
 
-    job_id: uuid.UUID
-
-    @property
-    def label(self) -> str:
-        return f"job {self.job_id}"
-
     ended = "it was finished"
+
+    def __init__(self, job_id: uuid.UUID) -> None:
+        self.job_id = job_id
+        self.label = f"job {job_id}"
 
     def fraction(self, stages: tuple[str, ...], stage: str, done: int, total: int) -> float:
         return stage_fraction(stages, stage, done, total)
@@ -150,12 +147,11 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
     Raises:
         TransientError: the database or the object storage stayed away; retry the task later.
     """
-    deadline = env.settings.transient_retry_s
-    job = with_db_retry(lambda: _claim(job_id, lease, worker, env), deadline_s=deadline, what="claim the job")
+    job = claim_retried(env, "the job", lambda: _claim(job_id, lease, worker, env))
     if job is None:
         return None
-    if job.attempts > env.settings.max_attempts:
-        message = f"the job was started {job.attempts - 1} times and its worker was lost each time"
+    message = lost_too_often(env, job.attempts, "the job")
+    if message is not None:
         _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)

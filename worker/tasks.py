@@ -30,6 +30,18 @@ from worker.leased import JobEnv, TransientError
 logger = logging.getLogger(__name__)
 
 
+# Every task: acknowledged after it ran (a worker lost mid-task leaves its message to another), and retried with
+# backoff when the database or the object storage stayed away (TransientError).
+TASK_OPTIONS: dict[str, Any] = {
+    "bind": True,
+    "acks_late": True,
+    "autoretry_for": (TransientError,),
+    "retry_backoff": 5,
+    "retry_backoff_max": 120,
+    "max_retries": 10,
+}
+
+
 class LazyJobEnv:
     """The worker process's job environment, built by the first task that asks (after any fork)."""
 
@@ -102,15 +114,7 @@ def register_tasks(app: Celery, settings: Settings) -> None:
 
     worker_shutting_down.connect(on_shutdown, weak=False)
 
-    @app.task(  # type: ignore[untyped-decorator]
-        name=TaskName.RUN_JOB.value,
-        bind=True,
-        acks_late=True,
-        autoretry_for=(TransientError,),
-        retry_backoff=5,
-        retry_backoff_max=120,
-        max_retries=10,
-    )
+    @app.task(name=TaskName.RUN_JOB.value, **TASK_OPTIONS)  # type: ignore[untyped-decorator]
     def run_job_task(self: Task[Any, Any], job_id: str) -> str | None:
         worker = f"{self.request.hostname}/{os.getpid()}"
         return run_job(envs.get(), job_id, lease=str(self.request.id), worker=worker)
@@ -120,12 +124,4 @@ def register_tasks(app: Celery, settings: Settings) -> None:
         return run_part(envs.get(), tile_id, lease=str(self.request.id), worker=worker)
 
     for name in (TaskName.RUN_TILE, TaskName.MERGE_TILES):  # one body: the row's kind says which it runs
-        app.task(  # type: ignore[untyped-decorator]
-            name=name.value,
-            bind=True,
-            acks_late=True,
-            autoretry_for=(TransientError,),
-            retry_backoff=5,
-            retry_backoff_max=120,
-            max_retries=10,
-        )(run_part_task)
+        app.task(name=name.value, **TASK_OPTIONS)(run_part_task)  # type: ignore[untyped-decorator]

@@ -34,18 +34,18 @@ from service.db.models import FitState, Job, JobState, JobTile, TileKind, TileSt
 from service.db.session import session_scope
 from service.queue import Sender, celery_sender, dispatch_tile
 from service.storage.workspace import Workspace
+from worker.job_io import collect_artifacts, job_vocabulary
 from worker.leased import (
     CancelRequested,
     JobEnv,
     LeaseLost,
     Tracker,
-    collect_artifacts,
+    claim_retried,
     in_workspace,
-    job_vocabulary,
+    lost_too_often,
     run_leased,
     stage_fraction,
     stopping_on_storage_errors,
-    with_db_retry,
     within,
     without_host_paths,
     workspace_plan,
@@ -151,18 +151,14 @@ def plan_and_fan_out(job: Job, tracker: Tracker, work: Workspace, config: Any) -
     return True
 
 
-@dataclass(frozen=True)
 class TileRow:
     """A tile's (or merge's) row, as its tracker writes it: its stage and progress, and the job's progress with them."""
 
-    tile_id: uuid.UUID
-    job_id: uuid.UUID
-
-    @property
-    def label(self) -> str:
-        return f"tile {self.tile_id}"
-
     ended = "its job ended"
+
+    def __init__(self, tile_id: uuid.UUID, job_id: uuid.UUID) -> None:
+        self.tile_id, self.job_id = tile_id, job_id
+        self.label = f"tile {tile_id}"
 
     def fraction(self, stages: tuple[str, ...], stage: str, done: int, total: int) -> float:
         base = stage.rsplit(" ", 1)[-1]  # run_tile names its stages "tile <k>/<K> <stage>"
@@ -205,13 +201,12 @@ def execute_part(tile_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) ->
     Raises:
         TransientError: the database or the object storage stayed away; retry the task later.
     """
-    deadline = env.settings.transient_retry_s
-    row = with_db_retry(lambda: _claim(tile_id, lease, worker, env), deadline_s=deadline, what="claim the tile")
+    row = claim_retried(env, "the tile", lambda: _claim(tile_id, lease, worker, env))
     if row is None:
         return None
     ending = TileEnding(row, lease, env)
-    if row.attempts > env.settings.max_attempts:
-        message = f"{row.kind} {row.name} was started {row.attempts - 1} times and its worker was lost each time"
+    message = lost_too_often(env, row.attempts, f"{row.kind} {row.name}")
+    if message is not None:
         return ending.failed("WorkerLost", message, in_run=False)
     with session_scope(env.session_factory) as session:
         job = session.get(Job, row.job_id)

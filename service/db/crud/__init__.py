@@ -6,8 +6,8 @@
 
 Every write a worker makes to a running job or tile is guarded by its ``lease`` (the claiming task's id), so a
 worker that lost its row (presumed dead and replaced) can no longer change it; those queries are written once for
-both kinds of row in :mod:`service.db.leases`. The names below are the package's whole surface: callers write
-``crud.<name>``.
+both kinds of row in :mod:`service.db.leases` (which the reaper and the outbox call directly). The names below
+are the package's whole surface: callers write ``crud.<name>``.
 """
 
 from service.db.crud.jobs import (
@@ -18,14 +18,10 @@ from service.db.crud.jobs import (
     fail_unclaimed,
     find_idempotent_job,
     finish_job,
-    lost_jobs,
-    mark_enqueued,
     read_job_row,
     record_results,
     release_job,
     request_cancel,
-    requeue_lost,
-    requeue_worker_jobs,
     undispatched_jobs,
     update_running,
 )
@@ -38,11 +34,7 @@ from service.db.crud.tiles import (
     finish_merge,
     finish_tile,
     job_queue,
-    lost_tiles,
-    mark_tile_enqueued,
     release_tile,
-    requeue_lost_tile,
-    requeue_worker_tiles,
     tile_rows,
     undispatched_tiles,
     update_tile_running,
@@ -70,19 +62,11 @@ __all__ = [
     "job_queue",
     "list_owned",
     "live_jobs",
-    "lost_jobs",
-    "lost_tiles",
-    "mark_enqueued",
-    "mark_tile_enqueued",
     "read_job_row",
     "record_results",
     "release_job",
     "release_tile",
     "request_cancel",
-    "requeue_lost",
-    "requeue_lost_tile",
-    "requeue_worker_jobs",
-    "requeue_worker_tiles",
     "set_upload_state",
     "stale_cutoff",
     "stale_uploads",

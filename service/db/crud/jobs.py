@@ -31,11 +31,6 @@ def find_idempotent_job(session: Session, tenant_id: uuid.UUID, key: str) -> Job
     return session.scalar(select(Job).where(Job.api_key_id == tenant_id, Job.idempotency_key == key))
 
 
-def mark_enqueued(session: Session, job_id: uuid.UUID) -> bool:
-    """Record that the job's message reached the broker; False if another process already did."""
-    return JOBS.mark_enqueued(session, job_id)
-
-
 def request_cancel(session: Session, job: Job) -> Job:
     """Cancel a queued job at once; ask a running one to stop (the worker checks between progress steps)."""
     now = utcnow()
@@ -61,21 +56,6 @@ def request_cancel(session: Session, job: Job) -> Job:
 def undispatched_jobs(session: Session, older_than: datetime) -> list[Job]:
     """Queued jobs whose message never reached the broker (it was away when they were created)."""
     return list(session.scalars(select(Job).where(*undispatched(JOBS, older_than)).limit(100)))
-
-
-def lost_jobs(session: Session, silent_since: datetime) -> list[Job]:
-    """Running jobs whose worker has not sent a heartbeat since ``silent_since`` (a tiled job's tiles have it)."""
-    return JOBS.silent(session, silent_since)
-
-
-def requeue_lost(session: Session, job: Job, silent_since: datetime) -> bool:
-    """Put a lost running job back in the queue (to be resumed); False if it moved meanwhile."""
-    return JOBS.requeue_silent(session, job.id, silent_since)
-
-
-def requeue_worker_jobs(session: Session, worker_prefix: str) -> int:
-    """Re-queue the running jobs of a worker known to be dead (``worker`` column starting with the prefix)."""
-    return JOBS.requeue_worker(session, worker_prefix)
 
 
 def fail_lost(session: Session, job: Job, silent_since: datetime, error_type: str, message: str) -> bool:

@@ -55,11 +55,6 @@ def tile_rows(conn: Connection | Session, job_ids: Sequence[uuid.UUID]) -> dict[
     return out
 
 
-def mark_tile_enqueued(session: Session, tile_id: uuid.UUID) -> bool:
-    """Record that a tile's (or merge's) message reached the broker."""
-    return TILES.mark_enqueued(session, tile_id)
-
-
 def undispatched_tiles(session: Session, older_than: datetime) -> list[tuple[uuid.UUID, TileKind, str]]:
     """Queued tiles and merges whose message never reached the broker (or was lost with their worker): id, kind and
     the job's queue."""
@@ -74,21 +69,6 @@ def undispatched_tiles(session: Session, older_than: datetime) -> list[tuple[uui
 def job_queue(session: Session, job_id: uuid.UUID) -> str:
     """The queue a job's tasks go to."""
     return str(session.scalar(select(Job.queue).where(Job.id == job_id)))
-
-
-def lost_tiles(session: Session, silent_since: datetime) -> list[JobTile]:
-    """Running tiles and merges whose worker has not sent a heartbeat since ``silent_since``."""
-    return TILES.silent(session, silent_since)
-
-
-def requeue_lost_tile(session: Session, tile: JobTile, silent_since: datetime) -> bool:
-    """Put a lost running tile back in the queue (its next task resumes from its checkpoints); False if it moved."""
-    return TILES.requeue_silent(session, tile.id, silent_since)
-
-
-def requeue_worker_tiles(session: Session, worker_prefix: str) -> int:
-    """Re-queue the running tiles of a worker known to be dead."""
-    return TILES.requeue_worker(session, worker_prefix)
 
 
 def claim_tile(session: Session, tile_id: uuid.UUID, lease: str, worker: str, stale_before: datetime) -> JobTile | None:
