@@ -24,28 +24,45 @@ Nothing is read or written whole in memory: writes go through a small buffer, ha
 from __future__ import annotations
 
 import hashlib
-import os
 import shutil
 import threading
 import uuid
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from service.storage.extraction import Extraction, open_extraction
+from service.storage.files import (
+    BLOCK,
+    archive_suffix,
+    detect_archive,
+    dir_size,
+    sha256_file,
+    sha256_object,
+    upload_folder,
+)
 from service.storage.local import LocalStorage
 from service.storage.objects import ObjectInfo, ObjectStorage
+from service.storage.workspace import InPlace, WorkPlan, Workspace
 
 if TYPE_CHECKING:
-    from contextlib import AbstractContextManager
-
     from service.storage.chunks import UploadWriter
-    from service.storage.extraction import Extraction
-    from service.storage.workspace import WorkPlan, Workspace
 
-BLOCK = 1 << 20  # read/write block, bytes
-ARCHIVE_SUFFIXES = {"zip": ".zip", "tar": ".tar", "gzip": ".tar.gz"}
+__all__ = [
+    "BLOCK",
+    "HashStates",
+    "Storage",
+    "TreePush",
+    "archive_suffix",
+    "detect_archive",
+    "dir_size",
+    "sha256_file",
+    "sha256_object",
+    "upload_folder",
+]
+
 STAGES_PREFIX = "stages/"  # a job's checkpoints: never in the API's cache of result files
 
 
@@ -240,16 +257,40 @@ class Storage:
             return self.objects.link_in(key, path)
         return self.objects.put_file(key, path)
 
-    def workspace(self, job_id: uuid.UUID, plan: WorkPlan) -> AbstractContextManager[Workspace]:
-        """The folders of one leased task of job ``job_id`` (:func:`service.storage.workspace.open_workspace`)."""
-        from service.storage.workspace import open_workspace
-
-        return open_workspace(self, self._in_place, job_id, plan)
+    @contextmanager
+    def workspace(self, job_id: uuid.UUID, plan: WorkPlan) -> Iterator[Workspace]:
+        """The folders of one leased task of job ``job_id`` (:mod:`service.storage.workspace`): in place with the
+        local backend; else a scratch folder of the task, removed when it ends, with the scene's bundle (the
+        worker's cached one, or fetched), what the task reads of the job's folder fetched, and a push of what it
+        writes."""
+        if self._in_place:
+            out = self.job_dir(job_id)
+            out.mkdir(parents=True, exist_ok=True)
+            yield Workspace(self.path(plan.bundle_path), out, InPlace())
+            return
+        prefix = self.job_prefix(job_id)
+        with ExitStack() as stack:
+            scratch = stack.enter_context(self.scratch(f"{plan.name}-{job_id}"))
+            out = scratch / "out"
+            out.mkdir()
+            if plan.cached_bundle is not None:
+                bundle = stack.enter_context(plan.cached_bundle())
+            else:
+                bundle = scratch / "bundle"
+                self.fetch_tree(plan.bundle_path.rstrip("/") + "/", bundle)
+            for rel in plan.fetch:
+                if rel == "" or rel.endswith("/"):
+                    self.fetch_tree(prefix + rel, out / rel)
+                else:
+                    self.objects.get_file(prefix + rel, out / rel)
+            own = out / plan.push
+            own.mkdir(parents=True, exist_ok=True)
+            push = TreePush(self, own, prefix + plan.push)
+            push.mark_present()
+            yield Workspace(bundle, out, push)
 
     def extraction(self, upload_key: str, scene_id: uuid.UUID) -> AbstractContextManager[Extraction | None]:
         """An archive's way into scene ``scene_id`` (:func:`service.storage.extraction.open_extraction`)."""
-        from service.storage.extraction import open_extraction
-
         return open_extraction(self, self._in_place, upload_key, scene_id)
 
 
@@ -298,61 +339,6 @@ class TreePush:
                 self.storage.objects.delete(self.prefix + rel)
             del self._seen[rel]
         return total
-
-
-def sha256_file(path: Path, length: int | None = None) -> hashlib._Hash:
-    """SHA-256 of the first ``length`` bytes of ``path`` (all of it by default), read in blocks."""
-    digest = hashlib.sha256()
-    remaining = path.stat().st_size if length is None else length
-    with path.open("rb") as f:
-        while remaining > 0:
-            block = f.read(min(BLOCK, remaining))
-            if not block:
-                break
-            digest.update(block)
-            remaining -= len(block)
-    return digest
-
-
-def upload_folder(key: str) -> str:
-    """The prefix of an upload's objects (``uploads/<id>/``), from the key of its bytes."""
-    return key.rsplit("/", 1)[0] + "/"
-
-
-def sha256_object(objects: ObjectStorage, key: str) -> hashlib._Hash:
-    """SHA-256 of a stored object, read in blocks."""
-    digest = hashlib.sha256()
-    for block in objects.read_range(key, 0, None, block=BLOCK):
-        digest.update(block)
-    return digest
-
-
-def detect_archive(path: Path) -> str | None:
-    """``.zip``, ``.tar`` or ``.tar.gz`` from the file's first bytes (not its name), or None."""
-    with path.open("rb") as f:
-        return archive_suffix(f.read(512))
-
-
-def archive_suffix(head: bytes) -> str | None:
-    """:func:`detect_archive` from a file's first 512 bytes."""
-    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
-        return ARCHIVE_SUFFIXES["zip"]
-    if head.startswith(b"\x1f\x8b"):
-        return ARCHIVE_SUFFIXES["gzip"]
-    if len(head) >= 262 and head[257:262] == b"ustar":
-        return ARCHIVE_SUFFIXES["tar"]
-    return None
-
-
-def dir_size(path: Path) -> int:
-    """Total bytes of the regular files under ``path`` (links are not followed)."""
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for name in files:
-            p = Path(dirpath) / name
-            if not p.is_symlink():
-                total += p.stat().st_size
-    return total
 
 
 class HashStates:

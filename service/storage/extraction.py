@@ -15,18 +15,41 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from service.storage import Storage
+from service.storage.files import archive_suffix, detect_archive, upload_folder
+from service.storage.objects import ObjectStorage
+
+
+class ExtractionStore(Protocol):
+    """What an extraction needs of ``service.storage.Storage`` (named here so that this module imports none of it)."""
+
+    @property
+    def objects(self) -> ObjectStorage: ...
+
+    def path(self, rel: str) -> Path: ...
+
+    def rel(self, path: Path) -> str: ...
+
+    def scene_dir(self, scene_id: uuid.UUID) -> Path: ...
+
+    def scene_prefix(self, scene_id: uuid.UUID) -> str: ...
+
+    def remove_tree(self, path: Path) -> None: ...
+
+    def store_tree(self, folder: Path, prefix: str) -> int: ...
+
+    def delete_prefix(self, prefix: str) -> int: ...
+
+    def scratch(self, what: str) -> AbstractContextManager[Path]: ...
 
 
 class Extraction:
     """The local backend's: the archive and the bundle's folder are the stored files themselves."""
 
-    def __init__(self, storage: Storage, archive: Path, workdir: Path, source: Path) -> None:
+    def __init__(self, storage: ExtractionStore, archive: Path, workdir: Path, source: Path) -> None:
         self.storage = storage
         self.archive = archive
         self.workdir = workdir
@@ -56,7 +79,7 @@ class Extraction:
 class FetchedExtraction(Extraction):
     """Object storage's: the archive and the extraction live in a scratch folder; the bundle is stored after."""
 
-    def __init__(self, storage: Storage, archive: Path, workdir: Path, upload_key: str, prefix: str) -> None:
+    def __init__(self, storage: ExtractionStore, archive: Path, workdir: Path, upload_key: str, prefix: str) -> None:
         super().__init__(storage, archive, workdir, archive)
         self._upload_key = upload_key
         self._prefix = prefix
@@ -75,19 +98,15 @@ class FetchedExtraction(Extraction):
         self.storage.delete_prefix(self._prefix)
 
     def done(self) -> None:
-        from service.storage import upload_folder
-
         self.storage.delete_prefix(upload_folder(self._upload_key))
 
 
 @contextmanager
 def open_extraction(
-    storage: Storage, in_place: bool, upload_key: str, scene_id: uuid.UUID
+    storage: ExtractionStore, in_place: bool, upload_key: str, scene_id: uuid.UUID
 ) -> Iterator[Extraction | None]:
     """The extraction of the upload at ``upload_key`` into scene ``scene_id``; None when the upload is not an archive
     (by its first bytes)."""
-    from service.storage import archive_suffix, detect_archive
-
     if in_place:
         source = storage.path(upload_key)
         suffix = detect_archive(source)

@@ -29,6 +29,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
+from service.storage.files import sha256_object
 from service.storage.objects import MIN_PART_BYTES, ObjectNotFound, ObjectStorage, Part, StorageError
 
 logger = logging.getLogger(__name__)
@@ -248,8 +249,6 @@ class PartWriter:
         upload's, made from the joined object when none was kept) and the state for the upload's row."""
         running = self.running
         if self.offset == length:
-            from service.storage import sha256_object
-
             digest = self.finish()
             running = _Digest(digest or sha256_object(self.objects, self.key).hexdigest())
         return running, self.record()

@@ -7,20 +7,17 @@
   reads fetched into it, and a :class:`service.storage.TreePush` that stores back what it writes under one
   sub-folder.
 
-The task says what it reads and writes (:class:`WorkPlan`); which backend it runs on is this module's business.
+The task says what it reads and writes (:class:`WorkPlan`); ``Storage.workspace`` makes the folders, and which
+backend it runs on is the storage's business. This module holds the types only (it imports nothing of the package).
 """
 
 from __future__ import annotations
 
-import uuid
-from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, ExitStack, contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
-
-if TYPE_CHECKING:
-    from service.storage import Storage
+from typing import Protocol
 
 
 class Pusher(Protocol):
@@ -65,35 +62,3 @@ class Workspace:
     bundle: Path
     out: Path
     push: Pusher
-
-
-@contextmanager
-def open_workspace(storage: Storage, in_place: bool, job_id: uuid.UUID, plan: WorkPlan) -> Iterator[Workspace]:
-    """The task's :class:`Workspace`; with object storage its scratch folder is removed when the task ends."""
-    if in_place:
-        out = storage.job_dir(job_id)
-        out.mkdir(parents=True, exist_ok=True)
-        yield Workspace(storage.path(plan.bundle_path), out, InPlace())
-        return
-    from service.storage import TreePush
-
-    prefix = storage.job_prefix(job_id)
-    with ExitStack() as stack:
-        scratch = stack.enter_context(storage.scratch(f"{plan.name}-{job_id}"))
-        out = scratch / "out"
-        out.mkdir()
-        if plan.cached_bundle is not None:
-            bundle = stack.enter_context(plan.cached_bundle())
-        else:
-            bundle = scratch / "bundle"
-            storage.fetch_tree(plan.bundle_path.rstrip("/") + "/", bundle)
-        for rel in plan.fetch:
-            if rel == "" or rel.endswith("/"):
-                storage.fetch_tree(prefix + rel, out / rel)
-            else:
-                storage.objects.get_file(prefix + rel, out / rel)
-        own = out / plan.push
-        own.mkdir(parents=True, exist_ok=True)
-        push = TreePush(storage, own, prefix + plan.push)
-        push.mark_present()
-        yield Workspace(bundle, out, push)

@@ -145,3 +145,11 @@ def test_a_cancel_during_the_fit_keeps_the_results(
     assert client.get(f"/v1/jobs/{fitting_job}/instances", headers=auth).status_code == 200
     names = {a["name"] for a in client.get(f"/v1/jobs/{fitting_job}/artifacts", headers=auth).json()["data"]}
     assert "instances.json" in names, "the results' artifacts stay"
+
+
+def test_the_fit_states_the_service_records_are_the_pipelines() -> None:
+    """``job.fit_state`` stores what ``report.json``'s ``appearance.state`` says: the one list, in both layers (the
+    worker parses the pipeline's word into the enum; a state only one side knew would be read as another)."""
+    from panogs_core.pipeline.run import FIT_STATES
+
+    assert [state.value for state in FitState] == list(FIT_STATES)
