@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from sqlalchemy import select
 from sqlalchemy.exc import DBAPIError
@@ -159,16 +159,26 @@ def with_db_retry(fn: Callable[[], T], *, deadline_s: float, what: str) -> T:
             delay = min(delay * 2, 5.0)
 
 
-def claim_retried(env: JobEnv, what: str, claim: Callable[[], T | None]) -> T | None:
-    """The row ``claim`` takes for this task, or None when it is not ours; database outages waited out."""
-    return with_db_retry(claim, deadline_s=env.settings.transient_retry_s, what=f"claim {what}")
+def claim_retried(
+    env: JobEnv, what: str, claim: Callable[[], T | None], attempts: Callable[[T], tuple[int, str]]
+) -> Claim[T]:
+    """The row ``claim`` takes for this task (database outages waited out), and why it is not run again when its
+    workers kept dying: claimed more than ``max_attempts`` times (``attempts``: the count and the row's name)."""
+    row = with_db_retry(claim, deadline_s=env.settings.transient_retry_s, what=f"claim {what}")
+    if row is None:
+        return Claim(None, None)
+    count, name = attempts(row)
+    if count <= env.settings.max_attempts:
+        return Claim(row, None)
+    return Claim(row, f"{name} was started {count - 1} times and its worker was lost each time")
 
 
-def lost_too_often(env: JobEnv, attempts: int, what: str) -> str | None:
-    """Why a row claimed for the ``attempts``-th time is not run again (its workers kept dying), or None."""
-    if attempts <= env.settings.max_attempts:
-        return None
-    return f"{what} was started {attempts - 1} times and its worker was lost each time"
+@dataclass(frozen=True)
+class Claim(Generic[T]):
+    """A claimed row (None: not ours to run) and, when it has been lost too often, why it ends now."""
+
+    row: T | None
+    worn_out: str | None
 
 
 def write_retried(env: JobEnv, what: str, write: Callable[[Session], T]) -> T:

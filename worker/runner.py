@@ -49,7 +49,6 @@ from worker.leased import (
     bundle_cache,
     claim_retried,
     in_workspace,
-    lost_too_often,
     run_leased,
     stage_fraction,
     stopping_on_storage_errors,
@@ -147,12 +146,14 @@ def execute_job(job_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) -> J
     Raises:
         TransientError: the database or the object storage stayed away; retry the task later.
     """
-    job = claim_retried(env, "the job", lambda: _claim(job_id, lease, worker, env))
+    claim = claim_retried(
+        env, "the job", lambda: _claim(job_id, lease, worker, env), lambda job: (job.attempts, "the job")
+    )
+    job = claim.row
     if job is None:
         return None
-    message = lost_too_often(env, job.attempts, "the job")
-    if message is not None:
-        _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=message)
+    if claim.worn_out is not None:
+        _finish(job_id, lease, env, JobState.FAILED, error_type="WorkerLost", error_message=claim.worn_out)
         return JobState.FAILED
     logger.info("job %s: running (attempt %d, worker %s)", job_id, job.attempts, worker)
     timings, cached = dict(job.stage_timings or {}), list(job.cached_stages or [])

@@ -42,7 +42,6 @@ from worker.leased import (
     Tracker,
     claim_retried,
     in_workspace,
-    lost_too_often,
     run_leased,
     stage_fraction,
     stopping_on_storage_errors,
@@ -201,13 +200,18 @@ def execute_part(tile_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) ->
     Raises:
         TransientError: the database or the object storage stayed away; retry the task later.
     """
-    row = claim_retried(env, "the tile", lambda: _claim(tile_id, lease, worker, env))
+    claim = claim_retried(
+        env,
+        "the tile",
+        lambda: _claim(tile_id, lease, worker, env),
+        lambda tile: (tile.attempts, f"{tile.kind} {tile.name}"),
+    )
+    row = claim.row
     if row is None:
         return None
     ending = TileEnding(row, lease, env)
-    message = lost_too_often(env, row.attempts, f"{row.kind} {row.name}")
-    if message is not None:
-        return ending.failed("WorkerLost", message, in_run=False)
+    if claim.worn_out is not None:
+        return ending.failed("WorkerLost", claim.worn_out, in_run=False)
     with session_scope(env.session_factory) as session:
         job = session.get(Job, row.job_id)
         scene = crud.get_scene(session, job.scene_id) if job is not None else None
