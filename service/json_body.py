@@ -3,7 +3,7 @@
 FastAPI parses a JSON body with ``json.loads`` and validates it with pydantic, neither of which has limits: a
 ``config`` nested 300 levels deep in a 2 KB body passed both and broke pydantic's serializer (a 500), and
 1,000 levels break the parser itself. This middleware checks every request body with
-:func:`panogs_core.io.bounded_json.loads` and answers a broken limit with 422 ``invalid_input`` naming the field,
+:func:`panogs_core.bounded_json.loads` and answers a broken limit with 422 ``invalid_input`` naming the field,
 the limit and its setting. Bodies within the limits go on unchanged; a syntax error (a body that is not JSON at
 all) is left to the route, and FastAPI's own 422 says where.
 
@@ -21,7 +21,7 @@ import json
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from panogs_core.io.bounded_json import JsonLimitError, JsonLimits, JsonSyntaxError, loads
+from panogs_core.bounded_json import JsonLimitError, JsonLimits, JsonSyntaxError, loads
 from service.body_limit import UNCAPPED_PREFIX
 from service.settings import Settings
 

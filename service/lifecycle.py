@@ -5,8 +5,9 @@
   retry). A running job is asked to cancel first; its worker finds the row gone at its next progress step (a lost
   lease) and stops, and any file it wrote after the delete is an orphan for the sweep.
 - **Quotas** per tenant: stored bytes (unconsumed uploads + scenes + job results) and concurrent jobs (queued or
-  running). A request that would pass one is refused with 413 / 429 and a message naming the limit and its setting.
-  Each stored byte counts once: an upload being made into a scene stops counting as its scene is measured.
+  running), as ``service.db.crud.keys`` counts them. A request that would pass one is refused with 413 / 429 and
+  a message naming the limit and its setting. Each stored byte counts once: an upload being made into a scene
+  stops counting as its scene is measured.
 - **Free disk**: an upload is created, and each PATCH accepted, only when the bytes it still needs fit on the
   storage volume with ``min_free_disk_bytes`` left free (507 otherwise); an extraction is bounded the same way.
 - **Retention**: finished jobs older than ``retention_days`` are deleted with their results.
@@ -19,12 +20,12 @@ import shutil
 import uuid
 from datetime import timedelta
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from service.db import crud
 from service.db.base import utcnow
-from service.db.models import Artifact, Job, JobState, Scene, Upload, UploadState
+from service.db.models import Artifact, Job, JobState, Scene
 from service.errors import InsufficientStorage, QuotaExceeded
 from service.settings import Settings
 from service.storage import Storage
@@ -34,27 +35,11 @@ ORPHAN_GRACE = timedelta(minutes=10)  # a folder younger than this may belong to
 LIVE_STATES = (JobState.QUEUED, JobState.RUNNING)
 
 
-def stored_bytes(session: Session, tenant_id: uuid.UUID) -> int:
-    """What the tenant holds in storage: uploads not yet made into scenes, scenes, and job results."""
-    uploads = session.scalar(
-        select(func.coalesce(func.sum(Upload.length), 0)).where(
-            Upload.api_key_id == tenant_id, Upload.state != UploadState.CONSUMED
-        )
-    )
-    scenes = session.scalar(select(func.coalesce(func.sum(Scene.size_bytes), 0)).where(Scene.api_key_id == tenant_id))
-    results = session.scalar(
-        select(func.coalesce(func.sum(Artifact.size_bytes), 0))
-        .join(Job, Job.id == Artifact.job_id)
-        .where(Job.api_key_id == tenant_id)
-    )
-    return int(uploads or 0) + int(scenes or 0) + int(results or 0)
-
-
 def check_storage_quota(session: Session, settings: Settings, tenant_id: uuid.UUID, more: int) -> None:
     """Refuse (413) when ``more`` bytes would take the tenant past ``quota_bytes``."""
     if settings.quota_bytes is None:
         return
-    used = stored_bytes(session, tenant_id)
+    used = crud.stored_bytes(session, tenant_id)
     if used + more > settings.quota_bytes:
         needs = f"this needs {more:,} more" if more else "its uploads are counted at their Upload-Length"
         raise QuotaExceeded(
@@ -68,7 +53,7 @@ def room_left(session: Session, settings: Settings, tenant_id: uuid.UUID, releas
     """Bytes the tenant may still store, once ``releasing`` stored bytes are gone; None when there is no quota."""
     if settings.quota_bytes is None:
         return None
-    return max(0, settings.quota_bytes - stored_bytes(session, tenant_id) + releasing)
+    return max(0, settings.quota_bytes - crud.stored_bytes(session, tenant_id) + releasing)
 
 
 def disk_room(settings: Settings, storage: Storage) -> int:
@@ -82,9 +67,10 @@ def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str
     An object storage (S3) has no free space to ask: only the local backend is checked (an extraction's scratch
     folder is, through :func:`extraction_limit`).
     """
-    if not storage.is_local:
+    free = storage.volume_free_bytes()
+    if free is None:
         return
-    room = disk_room(settings, storage)
+    room = max(0, free - settings.min_free_disk_bytes)
     if needed > room:
         raise InsufficientStorage(
             f"not enough free disk: {what} needs {needed:,} more bytes, the storage volume can take {room:,} "
@@ -117,10 +103,8 @@ def check_job_quota(session: Session, settings: Settings, tenant_id: uuid.UUID) 
     limit = settings.quota_concurrent_jobs
     if limit is None:
         return
-    live = session.scalar(
-        select(func.count()).select_from(Job).where(Job.api_key_id == tenant_id, Job.state.in_(LIVE_STATES))
-    )
-    if int(live or 0) >= limit:
+    live = crud.live_jobs(session, tenant_id)
+    if live >= limit:
         raise QuotaExceeded(
             f"concurrent job quota reached: {live} job(s) queued or running; the limit is {limit} "
             "(PANOGS_QUOTA_CONCURRENT_JOBS); wait for one to finish or cancel one",

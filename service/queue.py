@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import logging
 import uuid
-from typing import Protocol, cast
+from typing import Any, Protocol, cast
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.broker import TaskName, create_celery_app
-from service.db import crud
+from service.db.leases import JOBS, TILES, LeasedTable
 from service.db.models import TileKind
 from service.db.session import session_scope
 from service.settings import Settings
@@ -39,14 +39,7 @@ def dispatch(factory: sessionmaker[Session], sender: Sender, job_id: uuid.UUID, 
     A job whose message could not be published stays ``queued`` with ``enqueued_at`` empty and the reaper
     publishes it again. A message published twice is harmless: only one task can claim the job.
     """
-    try:
-        sender.send_task(TaskName.RUN_JOB.value, args=[str(job_id)], queue=queue)
-    except Exception as exc:  # any broker failure: the job stays queued and undispatched
-        logger.warning("job %s: broker refused the message (%s); the reaper will retry", job_id, exc)
-        return False
-    with session_scope(factory) as session:
-        crud.mark_enqueued(session, job_id)
-    return True
+    return _publish(factory, sender, TaskName.RUN_JOB, JOBS, job_id, queue, f"job {job_id}")
 
 
 TILE_TASKS = {TileKind.TILE: TaskName.RUN_TILE, TileKind.MERGE: TaskName.MERGE_TILES}
@@ -56,11 +49,23 @@ def dispatch_tile(
     factory: sessionmaker[Session], sender: Sender, tile_id: uuid.UUID, kind: TileKind, queue: str
 ) -> bool:
     """Publish a committed tile's (or merge's) message, then record it, as :func:`dispatch` does for a job."""
+    return _publish(factory, sender, TILE_TASKS[kind], TILES, tile_id, queue, f"{kind} {tile_id}")
+
+
+def _publish(
+    factory: sessionmaker[Session],
+    sender: Sender,
+    task: TaskName,
+    table: LeasedTable[Any],
+    ident: uuid.UUID,
+    queue: str,
+    label: str,
+) -> bool:
     try:
-        sender.send_task(TILE_TASKS[kind].value, args=[str(tile_id)], queue=queue)
+        sender.send_task(task.value, args=[str(ident)], queue=queue)
     except Exception as exc:  # any broker failure: the row stays queued and undispatched; the reaper retries
-        logger.warning("%s %s: broker refused the message (%s); the reaper will retry", kind, tile_id, exc)
+        logger.warning("%s: broker refused the message (%s); the reaper will retry", label, exc)
         return False
     with session_scope(factory) as session:
-        crud.mark_tile_enqueued(session, tile_id)
+        table.mark_enqueued(session, ident)
     return True

@@ -26,6 +26,7 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import crud
+from service.db.leases import JOBS, TILES
 from service.db.models import JobState, TileKind
 from service.db.session import session_scope
 from service.lifecycle import sweep_orphans, sweep_retention
@@ -49,14 +50,14 @@ def sweep(
     counts = {"requeued": 0, "failed": 0, "published": 0, "uploads_deleted": 0, "expired": 0, "orphans": 0}
     silent_since = crud.stale_cutoff(settings.heartbeat_timeout_s)
     with session_scope(factory) as session:
-        for job in crud.lost_jobs(session, silent_since):
+        for job in JOBS.silent(session, silent_since):
             if job.attempts >= settings.max_attempts:
                 message = (
                     f"the worker running this job stopped responding (no heartbeat for "
                     f"{settings.heartbeat_timeout_s:g} s), {job.attempts} time(s); giving up"
                 )
                 counts["failed"] += crud.fail_lost(session, job, silent_since, "WorkerLost", message)
-            elif crud.requeue_lost(session, job, silent_since):
+            elif JOBS.requeue_silent(session, job.id, silent_since):
                 logger.warning("job %s: worker %s lost (attempt %d); re-queued", job.id, job.worker, job.attempts)
                 counts["requeued"] += 1
         requeued_tiles = _reap_tiles(session, settings, silent_since, counts)
@@ -85,7 +86,7 @@ def _reap_tiles(
     """Lost tiles and merges: re-queued, or their job failed for good. Returns the re-queued ones (id, kind, queue),
     which this pass publishes at once (nothing else will; the outbox's grace is for the fan-out's own publish)."""
     requeued = []
-    for tile in crud.lost_tiles(session, silent_since):
+    for tile in TILES.silent(session, silent_since):
         if tile.attempts >= settings.max_attempts:
             message = (
                 f"the worker running {tile.kind} {tile.name} stopped responding (no heartbeat for "
@@ -95,7 +96,7 @@ def _reap_tiles(
                 session, tile.job_id, JobState.FAILED, tile_id=tile.id, error_type="WorkerLost", message=message
             )
             counts["failed"] += failed
-        elif crud.requeue_lost_tile(session, tile, silent_since):
+        elif TILES.requeue_silent(session, tile.id, silent_since):
             logger.warning("job %s: %s %s lost (worker %s, attempt %d); re-queued", tile.job_id, tile.kind,
                            tile.name, tile.worker, tile.attempts)  # fmt: skip
             counts["requeued"] += 1
@@ -114,8 +115,8 @@ def requeue_dead_worker(factory: sessionmaker[Session], pid: int) -> int:
     supervisor saw it exit), instead of waiting out the heartbeat timeout; the sweep publishes them.
     Returns how many."""
     with session_scope(factory) as session:
-        count = crud.requeue_worker_jobs(session, embedded_worker_name(pid))
-        count += crud.requeue_worker_tiles(session, embedded_worker_name(pid))
+        count = JOBS.requeue_worker(session, embedded_worker_name(pid))
+        count += TILES.requeue_worker(session, embedded_worker_name(pid))
     if count:
         logger.warning("worker %d died; re-queued its %d running job(s) at once", pid, count)
     return count

@@ -21,14 +21,15 @@ from service.db import crud
 from service.db.models import Scene, Upload, UploadState
 from service.errors import Conflict, InvalidBundle
 from service.settings import Settings
-from service.storage import Storage, archive_suffix, detect_archive, dir_size, upload_folder
+from service.storage import Storage, dir_size
+from service.storage.extraction import Extraction
 from service.stored_text import printable_text
 from service.uploads import discard_upload
 
 if TYPE_CHECKING:
     from panogs_core.io.bundle import BundleLimits
 
-# The words each limit's problem line uses (panogs_core.io.bounded_json, panogs_core.io.bundle.reader), and its setting.
+# The words each limit's problem line uses (panogs_core.bounded_json, panogs_core.io.bundle.reader), and its setting.
 LIMIT_SETTINGS = {
     "JSON depth limit": "PANOGS_MAX_JSON_DEPTH",
     "JSON size limit": "PANOGS_BUNDLE_MAX_JSON_BYTES",
@@ -39,7 +40,7 @@ LIMIT_SETTINGS = {
 
 def bundle_limits(settings: Settings) -> BundleLimits:
     """What a bundle's files may declare, from the settings."""
-    from panogs_core.io.bounded_json import JsonLimits
+    from panogs_core.bounded_json import JsonLimits
     from panogs_core.io.bundle import BundleLimits
 
     json_limits = JsonLimits(
@@ -86,34 +87,27 @@ def create_scene(
             f"upload {upload.id} is {upload.state.value} ({upload.offset} of {upload.length} bytes); "
             "a scene needs a complete upload that no scene was made from"
         )
-    if not storage.is_local:
-        return _create_from_objects(session, storage, upload, name, settings=settings, **_limits(max_bytes, max_files))
-    source = storage.path(upload.path)
-    suffix = detect_archive(source)
-    if suffix is None:
-        _refuse_not_an_archive(session, storage, upload)
-    archive = source.with_name("bundle" + suffix)  # open_bundle tells archive kinds by their suffix
-    source.rename(archive)
     scene_id = uuid.uuid4()
-    scene_dir = storage.scene_dir(scene_id)
-    try:
-        scene = _validated(session, upload, name, archive, scene_dir, scene_id, settings, _limits(max_bytes, max_files))
-        scene.bundle_path = storage.rel(Path(scene.bundle_path))
-        session.add(scene)
-        session.commit()
-    except BundleError as exc:
-        session.rollback()
-        storage.remove_tree(scene_dir)
-        discard_upload(session, storage, upload)
-        raise _invalid(exc) from exc
-    except BaseException:
-        # Not the bundle's fault (disk, database): undo, so that the same upload can be tried again.
-        session.rollback()
-        storage.remove_tree(scene_dir)
-        archive.rename(source)
-        crud.set_upload_state(session, upload.id, UploadState.CONSUMED, UploadState.COMPLETE)
-        raise
-    storage.remove_tree(archive.parent)  # the archive is extracted; its bytes are no longer needed
+    with storage.extraction(upload.path, scene_id) as extraction:
+        if extraction is None:
+            _refuse_not_an_archive(session, storage, upload)
+        try:
+            scene = _validated(session, upload, name, extraction, scene_id, settings, _limits(max_bytes, max_files))
+            extraction.keep()
+            session.add(scene)
+            session.commit()
+        except BundleError as exc:
+            session.rollback()
+            extraction.refuse()
+            discard_upload(session, storage, upload)
+            raise _invalid(exc) from exc
+        except BaseException:
+            # Not the bundle's fault (disk, database): undo, so that the same upload can be tried again.
+            session.rollback()
+            extraction.undo()
+            crud.set_upload_state(session, upload.id, UploadState.CONSUMED, UploadState.COMPLETE)
+            raise
+        extraction.done()  # extracted and stored: the archive's bytes are done with
     return scene
 
 
@@ -140,17 +134,18 @@ def _validated(
     session: Session,
     upload: Upload,
     name: str | None,
-    archive: Path,
-    workdir: Path,
+    extraction: Extraction,
     scene_id: uuid.UUID,
     settings: Settings | None,
     limits: dict[str, int],
 ) -> Scene:
-    """Extract and check ``archive`` into ``workdir``; the scene's row (``bundle_path``: the bundle's folder)."""
+    """Extract and check the archive into the extraction's folder; the scene's row (``bundle_path``: the bundle's
+    folder, as stored)."""
     from panogs_core.io.bundle import open_bundle
 
     checks = bundle_limits(settings) if settings is not None else None
-    bundle = open_bundle(archive, workdir=workdir, limits=checks, **limits)
+    workdir = extraction.workdir
+    bundle = open_bundle(extraction.archive, workdir=workdir, limits=checks, **limits)
     if name is None:  # the bundle's own name; a refusal keeps the upload, to retry with a "name"
         printable_text(bundle.name, 'scene.json: name (give a printable "name" in the request instead)')
     return Scene(
@@ -162,48 +157,7 @@ def _validated(
         num_frames=len(bundle.frames),
         has_vocabulary=bundle.vocabulary is not None,
         has_ground_truth=bundle.has_ground_truth,
-        bundle_path=str(bundle.root),
+        bundle_path=extraction.bundle_key(Path(bundle.root)),
         bundle_sha256=upload.sha256,
         size_bytes=dir_size(workdir),
     )
-
-
-def _create_from_objects(
-    session: Session,
-    storage: Storage,
-    upload: Upload,
-    name: str | None,
-    *,
-    settings: Settings | None,
-    **limits: int,
-) -> Scene:
-    """:func:`create_scene` with an object storage: the archive is fetched into a scratch folder, extracted and
-    checked there, and the bundle's files are stored under ``scenes/<id>/``; the scratch folder goes after."""
-    head = b"".join(storage.objects.read_range(upload.path, 0, 512))
-    suffix = archive_suffix(head)
-    if suffix is None:
-        _refuse_not_an_archive(session, storage, upload)
-    scene_id = uuid.uuid4()
-    prefix = storage.scene_prefix(scene_id)
-    with storage.scratch("scene") as scratch:
-        archive = scratch / ("bundle" + suffix)
-        storage.objects.get_file(upload.path, archive)
-        workdir = scratch / "scene"
-        try:
-            scene = _validated(session, upload, name, archive, workdir, scene_id, settings, limits)
-            inside = Path(scene.bundle_path).relative_to(workdir).as_posix()
-            scene.bundle_path = prefix + ("" if inside == "." else inside)
-            storage.store_tree(workdir, prefix)
-            session.add(scene)
-            session.commit()
-        except BundleError as exc:
-            session.rollback()
-            discard_upload(session, storage, upload)
-            raise _invalid(exc) from exc
-        except BaseException:
-            session.rollback()
-            storage.delete_prefix(prefix)
-            crud.set_upload_state(session, upload.id, UploadState.CONSUMED, UploadState.COMPLETE)
-            raise
-    storage.delete_prefix(upload_folder(upload.path))  # extracted and stored: the archive's bytes are done with
-    return scene

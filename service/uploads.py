@@ -34,8 +34,8 @@ from service.errors import (
     ServiceError,
     UnsupportedMediaType,
 )
-from service.storage import BLOCK, ChunkWriter, HashStates, Storage, sha256_object, upload_folder
-from service.storage import parts as object_parts
+from service.storage import BLOCK, HashStates, Storage, upload_folder
+from service.storage.chunks import UploadWriter
 from service.storage.objects import StorageError
 from service.stored_text import printable_text
 
@@ -111,13 +111,7 @@ def create_upload(
         printable_text(filename, "Upload-Metadata: filename")
     upload_id = uuid.uuid4()
     key = storage.upload_key(upload_id)
-    multipart = None
-    if storage.is_local:
-        path = storage.upload_file(upload_id)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.touch()
-    else:
-        multipart = object_parts.begin(storage.objects, key)
+    multipart = storage.begin_upload(upload_id)
     upload = Upload(
         id=upload_id,
         api_key_id=tenant_id,
@@ -185,18 +179,10 @@ async def receive_body(
         raise PayloadTooLarge(
             f"the body ({declared} bytes at offset {upload.offset}) goes past Upload-Length {upload.length}"
         )
-    writer: ChunkWriter | object_parts.PartWriter
-    algo = checksum and checksum[0]
-    if storage.is_local:
-        path = storage.path(upload.path)
-        running = await anyio.to_thread.run_sync(hashes.take, upload.id, path, upload.offset)
-        assert running is not None  # rebuilt from the file when not kept
-        writer = await anyio.to_thread.run_sync(ChunkWriter, path, upload.offset, running, algo)
-    else:  # S3: parts of a multipart upload; a hash not kept here is made from the joined object at the end
-        cached = hashes.take(upload.id, None, upload.offset)
-        writer = await anyio.to_thread.run_sync(
-            object_parts.PartWriter, storage.objects, upload.path, upload.offset, upload.multipart, cached, algo
-        )
+    algo = checksum[0] if checksum else None
+    writer = await anyio.to_thread.run_sync(
+        storage.upload_writer, upload.path, upload.id, upload.offset, upload.multipart, hashes, algo
+    )
     buffer = bytearray()
     try:
         async for chunk in request.stream():
@@ -221,34 +207,13 @@ async def receive_body(
         await anyio.to_thread.run_sync(_discard, writer, hashes, upload.id)
         raise ChecksumMismatch("Upload-Checksum does not match the bytes received; the chunk was discarded")
     offset = await anyio.to_thread.run_sync(writer.close)
-    running = writer.running
-    multipart = None
-    if isinstance(writer, object_parts.PartWriter):
-        if offset == upload.length:
-            running = await anyio.to_thread.run_sync(_join, storage, writer)
-        multipart = writer.record()
+    running, multipart = await anyio.to_thread.run_sync(writer.settle, upload.length)
     if running is not None:
         hashes.put(upload.id, offset, running)
     return offset, running, multipart
 
 
-def _join(storage: Storage, writer: object_parts.PartWriter) -> Any:
-    """The last byte is in: join the parts; the upload's SHA-256 (from the object when no running one was kept)."""
-    digest = writer.finish()
-    return _Digest(digest or sha256_object(storage.objects, writer.key).hexdigest())
-
-
-class _Digest:
-    """A finished hash, as ``record_bytes`` reads one."""
-
-    def __init__(self, hexdigest: str) -> None:
-        self._hex = hexdigest
-
-    def hexdigest(self) -> str:
-        return self._hex
-
-
-def _discard(writer: ChunkWriter | object_parts.PartWriter, hashes: HashStates, upload_id: uuid.UUID) -> None:
+def _discard(writer: UploadWriter, hashes: HashStates, upload_id: uuid.UUID) -> None:
     writer.rollback()
     hashes.drop(upload_id)
 
@@ -281,8 +246,7 @@ def record_bytes(
     upload.state = UploadState.COMPLETE
     upload.completed_at = utcnow()
     session.commit()
-    if not storage.is_local:  # the joined object stands: the states of the parts are done with
-        object_parts.forget_other_states(storage.objects, upload.path, -1)
+    storage.upload_complete(upload.path)
     return upload
 
 

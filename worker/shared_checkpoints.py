@@ -41,7 +41,6 @@ from pathlib import Path
 
 from panogs_core.pipeline.input_hash import HASH_RULE
 from service.storage import Storage
-from service.storage.local import LocalStorage
 from service.storage.objects import AlreadyExists, ObjectNotFound, StorageError
 
 logger = logging.getLogger(__name__)
@@ -70,7 +69,7 @@ class SceneCheckpoints:
         self.on_wait = on_wait
         self.on_stored = on_stored
         # The worker's copies of this scene's checkpoints (object storage with a bundle cache), else None.
-        self.local_copies = None if isinstance(storage.objects, LocalStorage) else local_copies
+        self.local_copies = local_copies
         self.reused: list[str] = []  # the stages fetched from another job's checkpoint
         self.kept: set[Path] = set()  # the run folder's files that are checkpoints of this store (fetched, stored)
         self._held: set[tuple[str, str]] = set()
@@ -97,10 +96,7 @@ class SceneCheckpoints:
         while True:
             if objects.stat(self._object(stage, key)) is not None:
                 try:
-                    if isinstance(objects, LocalStorage):
-                        objects.link_out(self._object(stage, key), dest)
-                    else:
-                        objects.get_file(self._object(stage, key), dest)
+                    self.storage.get_linked(self._object(stage, key), dest)
                 except ObjectNotFound:  # deleted between the two calls (the scene is going): compute it
                     return False
                 if copy is not None:
@@ -164,14 +160,10 @@ class SceneCheckpoints:
         return bool(time.time() - float(holder.get("at", 0)) > self.lease_s)
 
     def store(self, stage: str, key: str, path: Path) -> None:
-        objects = self.storage.objects
-        if isinstance(objects, LocalStorage):
-            info = objects.link_in(self._object(stage, key), path)
-        else:
-            info = objects.put_file(self._object(stage, key), path)
-            copy = self._copy(stage, key)
-            if copy is not None:
-                _keep_copy(path, copy)
+        info = self.storage.put_linked(self._object(stage, key), path)
+        copy = self._copy(stage, key)
+        if copy is not None:
+            _keep_copy(path, copy)
         self.kept.add(path)
         if self.on_stored is not None:
             self.on_stored(info.size)

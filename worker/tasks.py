@@ -25,8 +25,21 @@ from service.settings import Settings
 from service.storage.backends import open_storage
 from worker import runner, tiles
 from worker.device import cuda_available, device_config_factory
+from worker.leased import JobEnv, TransientError
 
 logger = logging.getLogger(__name__)
+
+
+# Every task: acknowledged after it ran (a worker lost mid-task leaves its message to another), and retried with
+# backoff when the database or the object storage stayed away (TransientError).
+TASK_OPTIONS: dict[str, Any] = {
+    "bind": True,
+    "acks_late": True,
+    "autoretry_for": (TransientError,),
+    "retry_backoff": 5,
+    "retry_backoff_max": 120,
+    "max_retries": 10,
+}
 
 
 class LazyJobEnv:
@@ -35,10 +48,10 @@ class LazyJobEnv:
     def __init__(self, settings: Settings, shutdown: threading.Event) -> None:
         self._settings = settings
         self._shutdown = shutdown
-        self._env: runner.JobEnv | None = None
+        self._env: JobEnv | None = None
         self._lock = threading.Lock()
 
-    def get(self) -> runner.JobEnv:
+    def get(self) -> JobEnv:
         """The environment, built once."""
         with self._lock:
             if self._env is None:
@@ -46,7 +59,7 @@ class LazyJobEnv:
             return self._env
 
 
-def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEnv:
+def build_job_env(settings: Settings, shutdown: threading.Event) -> JobEnv:
     """Settings, database, storage and the pipeline, with configs placed on this process's device."""
     threads = settings.worker_thread_count
     set_torch_threads(threads)  # here, not in the worker's parent: a torch call there deadlocks forked children
@@ -54,7 +67,7 @@ def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEn
     pipeline, stages, make_config = runner.load_pipeline()
     has_cuda = cuda_available()
     logger.info("jobs train on %s unless they name a device", "cuda" if has_cuda else "cpu")
-    return runner.JobEnv(
+    return JobEnv(
         settings=settings,
         session_factory=get_session_factory(settings.database),
         storage=open_storage(settings),
@@ -65,12 +78,12 @@ def build_job_env(settings: Settings, shutdown: threading.Event) -> runner.JobEn
     )
 
 
-def run_job(env: runner.JobEnv, job_id: str, *, lease: str, worker: str) -> str | None:
+def run_job(env: JobEnv, job_id: str, *, lease: str, worker: str) -> str | None:
     """Run job ``job_id``; the job's row records everything, the return value is for the worker log only."""
     ident = uuid.UUID(job_id)
     try:
         state = runner.execute_job(ident, lease=lease, worker=worker, env=env)
-    except runner.TransientError:
+    except TransientError:
         raise
     except Exception as exc:  # the task boundary: record the failure on the job, then let Celery log it
         runner.record_crash(ident, lease, exc, env)
@@ -78,11 +91,11 @@ def run_job(env: runner.JobEnv, job_id: str, *, lease: str, worker: str) -> str 
     return None if state is None else state.value
 
 
-def run_part(env: runner.JobEnv, tile_id: str, *, lease: str, worker: str) -> str | None:
+def run_part(env: JobEnv, tile_id: str, *, lease: str, worker: str) -> str | None:
     """Run the tile or merge ``tile_id`` of a tiled job; its row records everything (worker/tiles.py)."""
     try:
         state = tiles.execute_part(uuid.UUID(tile_id), lease=lease, worker=worker, env=env)
-    except runner.TransientError:
+    except TransientError:
         raise
     except Exception as exc:  # the task boundary: fail the job with the error, then let Celery log it
         tiles.record_crash(uuid.UUID(tile_id), lease, exc, env)
@@ -101,15 +114,7 @@ def register_tasks(app: Celery, settings: Settings) -> None:
 
     worker_shutting_down.connect(on_shutdown, weak=False)
 
-    @app.task(  # type: ignore[untyped-decorator]
-        name=TaskName.RUN_JOB.value,
-        bind=True,
-        acks_late=True,
-        autoretry_for=(runner.TransientError,),
-        retry_backoff=5,
-        retry_backoff_max=120,
-        max_retries=10,
-    )
+    @app.task(name=TaskName.RUN_JOB.value, **TASK_OPTIONS)  # type: ignore[untyped-decorator]
     def run_job_task(self: Task[Any, Any], job_id: str) -> str | None:
         worker = f"{self.request.hostname}/{os.getpid()}"
         return run_job(envs.get(), job_id, lease=str(self.request.id), worker=worker)
@@ -119,12 +124,4 @@ def register_tasks(app: Celery, settings: Settings) -> None:
         return run_part(envs.get(), tile_id, lease=str(self.request.id), worker=worker)
 
     for name in (TaskName.RUN_TILE, TaskName.MERGE_TILES):  # one body: the row's kind says which it runs
-        app.task(  # type: ignore[untyped-decorator]
-            name=name.value,
-            bind=True,
-            acks_late=True,
-            autoretry_for=(runner.TransientError,),
-            retry_backoff=5,
-            retry_backoff_max=120,
-            max_retries=10,
-        )(run_part_task)
+        app.task(name=name.value, **TASK_OPTIONS)(run_part_task)  # type: ignore[untyped-decorator]

@@ -42,7 +42,8 @@ from service.db.session import get_session_factory, session_scope
 from service.settings import Settings
 from service.storage import Storage
 from service.storage.backends import open_storage
-from worker import runner, shared_checkpoints
+from service.storage.local import LocalStorage
+from worker import leased, runner, shared_checkpoints
 from worker.bundle_cache import STAGES_SUFFIX
 from worker.device import device_config_factory
 
@@ -89,7 +90,7 @@ def backend_settings(work: Path, backend: str, s3: Any) -> Settings:
 def place_bundle(settings: Settings, storage: Storage, bundle: Path) -> float:
     """The bundle under ``bench-bundle/`` of the storage; returns the seconds it took."""
     start = time.perf_counter()
-    if storage.is_local:
+    if isinstance(storage.objects, LocalStorage):  # a local store: hard links, not a copy of 2 GB
         subprocess.run(["cp", "-al", str(bundle), str(storage.root / BUNDLE_PREFIX)], check=True)
     else:
         storage.store_tree(bundle, BUNDLE_PREFIX + "/")
@@ -123,7 +124,7 @@ def new_tenant(settings: Settings) -> uuid.UUID:
         return key.id
 
 
-def run_job(env: runner.JobEnv, tenant: uuid.UUID, scene: uuid.UUID, config: dict[str, Any]) -> dict[str, Any]:
+def run_job(env: leased.JobEnv, tenant: uuid.UUID, scene: uuid.UUID, config: dict[str, Any]) -> dict[str, Any]:
     with session_scope(env.session_factory) as session:
         job = Job(
             api_key_id=tenant,
@@ -170,7 +171,7 @@ def run_job(env: runner.JobEnv, tenant: uuid.UUID, scene: uuid.UUID, config: dic
     }
 
 
-def forget_checkpoint_copies(env: runner.JobEnv, scene: uuid.UUID) -> None:
+def forget_checkpoint_copies(env: leased.JobEnv, scene: uuid.UUID) -> None:
     """Remove this worker's copies of the scene's checkpoints (``worker/bundle_cache.py``), keeping its bundle."""
     shutil.rmtree(env.storage.root / "work" / "bundles" / f"{scene}{STAGES_SUFFIX}", ignore_errors=True)
 
@@ -202,13 +203,13 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     with ExitStack() as stack:
         s3 = stack.enter_context(seaweedfs(run_dir / "seaweedfs")) if "s3" in args.backends else None
-        envs: dict[str, tuple[runner.JobEnv, uuid.UUID]] = {}
+        envs: dict[str, tuple[leased.JobEnv, uuid.UUID]] = {}
         for backend in args.backends:
             settings = backend_settings(run_dir, backend, s3)
             storage = open_storage(settings)
             placed = place_bundle(settings, storage, bundle.resolve())
             print(f"{backend}: bundle placed in {placed:.1f} s", flush=True)
-            env = runner.JobEnv(
+            env = leased.JobEnv(
                 settings=settings,
                 session_factory=get_session_factory(settings.database),
                 storage=storage,

@@ -6,6 +6,7 @@ and the tiled run (:mod:`panogs_core.tiling.runner`).
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,13 +14,30 @@ from typing import Any
 
 from panogs_core.pipeline.profiling import StageStats
 
-# report.json's ``appearance.state``: where the Gaussian fit stands (docs/gaussians.md, "Results before the fit").
-FIT_RUNNING = "running"  # the results are written; the fit goes on and gaussians.ply is the initialisation
-FIT_SUCCEEDED = "succeeded"  # gaussians.ply is the fitted scene
-FIT_SKIPPED = "skipped"  # no fit was made (appearance.enabled false, no colour frame); gaussians.ply is final
-FIT_FAILED = "failed"  # the fit raised; the results stand, gaussians.ply is the initialisation
-FIT_CANCELED = "canceled"  # the run was stopped during the fit; the results stand, a re-run resumes the fit
-FIT_STATES = (FIT_RUNNING, FIT_SUCCEEDED, FIT_SKIPPED, FIT_FAILED, FIT_CANCELED)
+
+class FitState(enum.StrEnum):
+    """Where a run's Gaussian fit stands: report.json's ``appearance.state``, and a job's ``fit_state`` in the
+    service (one enum for both: docs/gaussians.md, "Results before the fit"). A member is its string."""
+
+    RUNNING = "running"  # the results are written; the fit goes on and gaussians.ply is the initialisation
+    SUCCEEDED = "succeeded"  # gaussians.ply is the fitted scene
+    SKIPPED = "skipped"  # no fit was made (appearance.enabled false, no colour frame); gaussians.ply is final
+    FAILED = "failed"  # the fit raised; the results stand, gaussians.ply is the initialisation
+    CANCELED = "canceled"  # the run was stopped during the fit; the results stand, a re-run resumes the fit
+
+    @property
+    def scene_ready(self) -> bool:
+        """True when gaussians.ply is final and renders may be made from it."""
+        return self in (FitState.SUCCEEDED, FitState.SKIPPED)
+
+
+# The members under the names the pipeline's modules use.
+FIT_RUNNING = FitState.RUNNING
+FIT_SUCCEEDED = FitState.SUCCEEDED
+FIT_SKIPPED = FitState.SKIPPED
+FIT_FAILED = FitState.FAILED
+FIT_CANCELED = FitState.CANCELED
+FIT_STATES = tuple(FitState)
 
 # ``on_progress(stage, done, total)`` of a run; may raise ``Cancelled`` to stop it.
 StageProgressFn = Callable[[str, int, int], None]

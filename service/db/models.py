@@ -15,6 +15,7 @@ from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index
 from sqlalchemy import UniqueConstraint as Unique
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
+from panogs_core.pipeline.result import FitState as FitState  # the pipeline's own states, one enum for both
 from service.db.base import Base, IdMixin, TimestampedMixin, UTCDateTime
 
 
@@ -72,25 +73,6 @@ class TileState(enum.StrEnum):
     SUCCEEDED = "succeeded"
     FAILED = "failed"
     CANCELED = "canceled"
-
-
-class FitState(enum.StrEnum):
-    """Where a job's appearance fit stands once its results are recorded (the pipeline's ``appearance.state``).
-
-    The fit runs after the results: a job whose ``results_at`` is set serves its instances, queries and viewer scene
-    while the fit goes on; ``gaussians.ply`` and renders wait for ``succeeded`` or ``skipped``.
-    """
-
-    RUNNING = "running"  # the results are served; the fit goes on (or waits in the queue with its job)
-    SUCCEEDED = "succeeded"  # gaussians.ply is the fitted scene
-    SKIPPED = "skipped"  # no fit was made (turned off, or no colour frame); gaussians.ply is the initialisation
-    FAILED = "failed"  # the fit raised (or its job failed during it); the results stand
-    CANCELED = "canceled"  # the job was canceled during the fit; the results stand
-
-    @property
-    def scene_ready(self) -> bool:
-        """True when gaussians.ply is final and renders may be made from it."""
-        return self in (FitState.SUCCEEDED, FitState.SKIPPED)
 
 
 class ApiKey(IdMixin, TimestampedMixin, Base):

@@ -31,7 +31,7 @@ def get_engine(url: str) -> Engine:
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
     # No pre-ping (a round trip per checkout): a connection broken by a database restart fails one request with
-    # 503 and SQLAlchemy then invalidates the whole pool; the worker retries (runner.with_db_retry).
+    # 503 and SQLAlchemy then invalidates the whole pool; the worker retries (worker.leased.with_db_retry).
     return create_engine(url, pool_size=10, max_overflow=20, pool_timeout=10, pool_recycle=1800)
 
 

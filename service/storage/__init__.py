@@ -12,27 +12,57 @@ S3 (``PANOGS_STORAGE_URL``) nothing is shared between hosts but the bucket: each
 of its own (``<data_dir>/work``): scratch folders for an extraction or a job, removed after it, and a cache of
 finished jobs' result files that the API reads.
 
+Every difference between the two lives in this package, behind :class:`Storage`: the folders a leased task works
+in (:mod:`service.storage.workspace`), an archive's way into a scene (:mod:`service.storage.extraction`), the
+writer of an upload's bytes (:mod:`service.storage.chunks`), a download (:mod:`service.storage.download`), the
+checkpoints kept as links or copies, and the free space there is to ask about. No module outside it asks which
+backend it has.
+
 Nothing is read or written whole in memory: writes go through a small buffer, hashes are computed in blocks.
 """
 
 from __future__ import annotations
 
 import hashlib
-import os
 import shutil
 import threading
 import uuid
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, Any
 
+from service.storage.extraction import Extraction, open_extraction
+from service.storage.files import (
+    BLOCK,
+    archive_suffix,
+    detect_archive,
+    dir_size,
+    sha256_file,
+    sha256_object,
+    upload_folder,
+)
 from service.storage.local import LocalStorage
-from service.storage.objects import ObjectStorage
+from service.storage.objects import ObjectInfo, ObjectStorage
+from service.storage.workspace import InPlace, WorkPlan, Workspace
 
-BLOCK = 1 << 20  # read/write block, bytes
-ARCHIVE_SUFFIXES = {"zip": ".zip", "tar": ".tar", "gzip": ".tar.gz"}
+if TYPE_CHECKING:
+    from service.storage.chunks import UploadWriter
+
+__all__ = [
+    "BLOCK",
+    "HashStates",
+    "Storage",
+    "TreePush",
+    "archive_suffix",
+    "detect_archive",
+    "dir_size",
+    "sha256_file",
+    "sha256_object",
+    "upload_folder",
+]
+
 STAGES_PREFIX = "stages/"  # a job's checkpoints: never in the API's cache of result files
 
 
@@ -43,7 +73,8 @@ class Storage:
         """``root``: the local backend's folder, or (with ``objects`` another backend) this process's work folder."""
         self.root = root.resolve()
         self.objects: ObjectStorage = objects if objects is not None else LocalStorage(self.root)
-        self.is_local = isinstance(self.objects, LocalStorage) and self.objects.root == self.root
+        # The objects are this folder's own files: the service works on them in place (no scratch, no cache).
+        self._in_place = isinstance(self.objects, LocalStorage) and self.objects.root == self.root
 
     # Keys ------------------------------------------------------------------------------------------------------
 
@@ -112,7 +143,7 @@ class Storage:
         """A local folder with a job's result files: the job's own folder with the local backend; else a cache of
         them in the work folder, brought up to date from the storage (a file that changed or is new is fetched;
         the stage checkpoints are not)."""
-        if self.is_local:
+        if self._in_place:
             return self.job_dir(job_id)
         folder = self.root / "work" / "cache" / "artifacts" / str(job_id)
         prefix = self.job_prefix(job_id)
@@ -128,7 +159,7 @@ class Storage:
 
     def drop_cached(self, job_id: uuid.UUID) -> None:
         """Forget the cached result files of a deleted job (S3 backend)."""
-        if not self.is_local:
+        if not self._in_place:
             shutil.rmtree(self.root / "work" / "cache" / "artifacts" / str(job_id), ignore_errors=True)
 
     def fetch_tree(self, prefix: str, folder: Path) -> int:
@@ -142,6 +173,125 @@ class Storage:
     def store_tree(self, folder: Path, prefix: str) -> int:
         """Store every file under ``folder`` as an object under ``prefix``; returns the bytes stored."""
         return TreePush(self, folder, prefix).push()
+
+    # What the backends do differently -------------------------------------------------------------------------
+
+    def begin_upload(self, upload_id: uuid.UUID) -> dict[str, Any] | None:
+        """Make room for a new upload's bytes: an empty file in place, or a multipart upload (whose state the row
+        records, returned here)."""
+        if self._in_place:
+            path = self.upload_file(upload_id)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.touch()
+            return None
+        from service.storage import parts
+
+        return parts.begin(self.objects, self.upload_key(upload_id))
+
+    def upload_writer(
+        self,
+        key: str,
+        upload_id: uuid.UUID,
+        offset: int,
+        multipart: dict[str, Any] | None,
+        hashes: HashStates,
+        chunk_algo: str | None,
+    ) -> UploadWriter:
+        """The writer of one PATCH body at ``offset`` of the upload stored at ``key`` (blocking: call from a
+        thread): appended to the file in place, or parts of the multipart upload (a running hash this process
+        does not keep is made from the joined object at the end)."""
+        from service.storage.chunks import ChunkWriter
+        from service.storage.parts import PartWriter
+
+        if self._in_place:
+            path = self.path(key)
+            running = hashes.take(upload_id, path, offset)
+            assert running is not None  # rebuilt from the file when not kept
+            return ChunkWriter(path, offset, running, chunk_algo)
+        cached = hashes.take(upload_id, None, offset)
+        return PartWriter(self.objects, key, offset, multipart, cached, chunk_algo)
+
+    def upload_complete(self, key: str) -> None:
+        """The upload at ``key`` is recorded complete: the states of its parts are done with (object storage)."""
+        if not self._in_place:
+            from service.storage import parts
+
+            parts.forget_other_states(self.objects, key, -1)
+
+    def download_link(self, key: str, expires_s: int) -> str | None:
+        """A link of the store that downloads ``key`` for ``expires_s``, or None where there is none a client could
+        follow: the local backend (the API is the store), or a store reachable only from the service's network."""
+        public_url = getattr(self.objects, "public_url", None)
+        if self._in_place or public_url is None:
+            return None
+        url: str | None = public_url(key, expires_s)
+        return url
+
+    def served_file(self, key: str) -> Path | None:
+        """The object ``key`` as a file a response may send itself (the local backend's own file), or None: the
+        object is streamed from the store (:mod:`service.storage.download`)."""
+        return self.path(key) if self._in_place else None
+
+    def volume_free_bytes(self) -> int | None:
+        """Free bytes of the volume the objects are written to, or None where there is none to ask (an object
+        store: only an extraction's scratch folder is bounded, through the work folder's volume)."""
+        return shutil.disk_usage(self.root).free if self._in_place else None
+
+    def work_folder(self, name: str) -> Path | None:
+        """A folder of this process's work folder for copies of stored objects kept between tasks (a worker's
+        bundles and checkpoints), or None where the objects are files of this host already (a copy would be a
+        second one)."""
+        return None if isinstance(self.objects, LocalStorage) else self.root / "work" / name
+
+    def get_linked(self, key: str, dest: Path) -> ObjectInfo:
+        """The object ``key`` at ``dest``: a second name of the same file where the objects are files of this host,
+        else a download. For objects only ever replaced by a rename (the checkpoints)."""
+        if isinstance(self.objects, LocalStorage):
+            return self.objects.link_out(key, dest)
+        return self.objects.get_file(key, dest)
+
+    def put_linked(self, key: str, path: Path) -> ObjectInfo:
+        """Keep the file at ``path`` as the object ``key``: a second name of it where the objects are files of this
+        host, else an upload. For files only ever replaced by a rename (the checkpoints)."""
+        if isinstance(self.objects, LocalStorage):
+            return self.objects.link_in(key, path)
+        return self.objects.put_file(key, path)
+
+    @contextmanager
+    def workspace(self, job_id: uuid.UUID, plan: WorkPlan) -> Iterator[Workspace]:
+        """The folders of one leased task of job ``job_id`` (:mod:`service.storage.workspace`): in place with the
+        local backend; else a scratch folder of the task, removed when it ends, with the scene's bundle (the
+        worker's cached one, or fetched), what the task reads of the job's folder fetched, and a push of what it
+        writes."""
+        if self._in_place:
+            out = self.job_dir(job_id)
+            out.mkdir(parents=True, exist_ok=True)
+            yield Workspace(self.path(plan.bundle_path), out, InPlace())
+            return
+        prefix = self.job_prefix(job_id)
+        with ExitStack() as stack:
+            scratch = stack.enter_context(self.scratch(f"{plan.name}-{job_id}"))
+            out = scratch / "out"
+            out.mkdir()
+            if plan.cached_bundle is not None:
+                bundle = stack.enter_context(plan.cached_bundle())
+            else:
+                bundle = scratch / "bundle"
+                self.fetch_tree(plan.bundle_path.rstrip("/") + "/", bundle)
+            for rel in plan.fetch:
+                if rel == "" or rel.endswith("/"):
+                    self.fetch_tree(prefix + rel, out / rel)
+                else:
+                    self.objects.get_file(prefix + rel, out / rel)
+            own = out / plan.push
+            own.mkdir(parents=True, exist_ok=True)
+            push = TreePush(self, own, prefix + plan.push)
+            push.mark_present()
+            yield Workspace(bundle, out, push)
+
+    def extraction(self, upload_key: str, scene_id: uuid.UUID) -> AbstractContextManager[Extraction | None]:
+        """An archive's way into scene ``scene_id`` (:func:`service.storage.extraction.open_extraction`)."""
+        return open_extraction(self, self._in_place, upload_key, scene_id)
 
 
 class TreePush:
@@ -191,61 +341,6 @@ class TreePush:
         return total
 
 
-def sha256_file(path: Path, length: int | None = None) -> hashlib._Hash:
-    """SHA-256 of the first ``length`` bytes of ``path`` (all of it by default), read in blocks."""
-    digest = hashlib.sha256()
-    remaining = path.stat().st_size if length is None else length
-    with path.open("rb") as f:
-        while remaining > 0:
-            block = f.read(min(BLOCK, remaining))
-            if not block:
-                break
-            digest.update(block)
-            remaining -= len(block)
-    return digest
-
-
-def upload_folder(key: str) -> str:
-    """The prefix of an upload's objects (``uploads/<id>/``), from the key of its bytes."""
-    return key.rsplit("/", 1)[0] + "/"
-
-
-def sha256_object(objects: ObjectStorage, key: str) -> hashlib._Hash:
-    """SHA-256 of a stored object, read in blocks."""
-    digest = hashlib.sha256()
-    for block in objects.read_range(key, 0, None, block=BLOCK):
-        digest.update(block)
-    return digest
-
-
-def detect_archive(path: Path) -> str | None:
-    """``.zip``, ``.tar`` or ``.tar.gz`` from the file's first bytes (not its name), or None."""
-    with path.open("rb") as f:
-        return archive_suffix(f.read(512))
-
-
-def archive_suffix(head: bytes) -> str | None:
-    """:func:`detect_archive` from a file's first 512 bytes."""
-    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
-        return ARCHIVE_SUFFIXES["zip"]
-    if head.startswith(b"\x1f\x8b"):
-        return ARCHIVE_SUFFIXES["gzip"]
-    if len(head) >= 262 and head[257:262] == b"ustar":
-        return ARCHIVE_SUFFIXES["tar"]
-    return None
-
-
-def dir_size(path: Path) -> int:
-    """Total bytes of the regular files under ``path`` (links are not followed)."""
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for name in files:
-            p = Path(dirpath) / name
-            if not p.is_symlink():
-                total += p.stat().st_size
-    return total
-
-
 class HashStates:
     """Running SHA-256 of in-progress uploads, so that each byte is hashed once when PATCHes arrive in order.
 
@@ -278,44 +373,3 @@ class HashStates:
         """Forget an upload's state."""
         with self._lock:
             self._states.pop(upload_id, None)
-
-
-class ChunkWriter:
-    """Writes one PATCH body at a known offset, hashing as it goes; used from a worker thread.
-
-    ``write`` is fed the request's chunks; ``close`` flushes and returns the new offset. ``rollback`` cuts the
-    file back to where this PATCH started (checksum mismatch).
-    """
-
-    def __init__(self, path: Path, offset: int, running: hashlib._Hash, chunk_algo: str | None) -> None:
-        self.path = path
-        self.start = offset
-        self.offset = offset
-        self.running = running
-        self.chunk_hash = hashlib.new(chunk_algo) if chunk_algo else None
-        self._file: BinaryIO = path.open("r+b")
-        self._file.seek(offset)
-        self._file.truncate(offset)  # bytes past the recorded offset are from an interrupted PATCH
-
-    def write(self, data: bytes | bytearray) -> None:
-        """Append ``data`` at the current offset."""
-        self._file.write(data)
-        self.running.update(data)
-        if self.chunk_hash is not None:
-            self.chunk_hash.update(data)
-        self.offset += len(data)
-
-    def close(self) -> int:
-        """Flush to disk; returns the offset after the last byte written."""
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        return self.offset
-
-    def rollback(self) -> None:
-        """Discard everything this writer wrote."""
-        if not self._file.closed:
-            self._file.close()
-        with self.path.open("r+b") as f:
-            f.truncate(self.start)
-        self.offset = self.start

@@ -29,6 +29,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
+from service.storage.files import sha256_object
 from service.storage.objects import MIN_PART_BYTES, ObjectNotFound, ObjectStorage, Part, StorageError
 
 logger = logging.getLogger(__name__)
@@ -142,7 +143,7 @@ def _delete_quietly(objects: ObjectStorage, key: str) -> None:
 
 
 class PartWriter:
-    """One PATCH body into the parts of an upload; the :class:`service.storage.ChunkWriter` of S3.
+    """One PATCH body into the parts of an upload; the :class:`service.storage.chunks.ChunkWriter` of S3.
 
     ``write`` is fed the request's chunks and sends each full part from a thread while the next fills; ``close``
     stores the tail and returns the new offset, whose state :meth:`record` gives for the row; ``finish`` (after
@@ -243,6 +244,15 @@ class PartWriter:
         self.buffer = bytearray()
         return self.running.hexdigest() if self.running is not None else None
 
+    def settle(self, length: int) -> tuple[Any, dict[str, Any] | None]:
+        """After :meth:`close`: the running hash (once the last byte is in, the parts are joined and the hash is the
+        upload's, made from the joined object when none was kept) and the state for the upload's row."""
+        running = self.running
+        if self.offset == length:
+            digest = self.finish()
+            running = _Digest(digest or sha256_object(self.objects, self.key).hexdigest())
+        return running, self.record()
+
     def rollback(self) -> None:
         """Discard this PATCH: the state at its start offset still stands (parts it sent are sent again later).
         A part still in flight is waited for, so that it cannot land after the retry's part of the same number."""
@@ -254,3 +264,13 @@ class PartWriter:
                 pass
         self.buffer = bytearray()
         self.offset = self.start
+
+
+class _Digest:
+    """A finished hash, as ``uploads.record_bytes`` reads one."""
+
+    def __init__(self, hexdigest: str) -> None:
+        self._hex = hexdigest
+
+    def hexdigest(self) -> str:
+        return self._hex

@@ -20,7 +20,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from panogs_core.io.bounded_json import JsonLimitError, JsonSyntaxError, loads
+from panogs_core.bounded_json import JsonLimitError, JsonSyntaxError, loads
 from service.viewer.assets import static_dir
 from service.viewer.scene import build_scene
 

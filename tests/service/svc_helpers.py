@@ -22,7 +22,8 @@ from service.db.base import utcnow
 from service.db.models import FitState, Job, JobState
 from service.db.session import get_session_factory, session_scope
 from service.storage import Storage
-from worker.runner import FITTED_FILES, collect_artifacts
+from worker.job_io import collect_artifacts
+from worker.runner import FITTED_FILES
 
 # Run a test on PostgreSQL and on the embedded SQLite (the ``settings`` fixture reads the parameter).
 BOTH_BACKENDS = pytest.mark.parametrize("settings", ["postgres", "sqlite"], indirect=True)

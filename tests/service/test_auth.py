@@ -38,7 +38,8 @@ class TestKeys:
             row, key = create_api_key(session, "carol")
             ident = {"listed": row.prefix, "pgs_prefix": f"pgs_{row.prefix}", "whole key": key}[spelling]
             revoked = revoke_api_key(session, ident)
-            assert revoked is not None and revoked.id == row.id
+            assert revoked is not None
+            assert revoked.id == row.id
             assert KeyVerifier(ttl_s=0).verify(session, key) is None
 
 

@@ -26,7 +26,7 @@ from service.db.session import get_session_factory, session_scope
 from service.schemas import MAX_VOCABULARY_CLASSES
 from service.settings import Settings
 from service.storage import Storage
-from worker import runner
+from worker import leased, runner
 
 INLINE = {
     "classes": [
@@ -68,7 +68,7 @@ def _run_worker(
     settings: Settings, job_id: str, pipeline: Any = scripted.run_pipeline,
     make_config: Any = scripted.make_config, stages: tuple[str, ...] = scripted.STAGES,
 ) -> JobState | None:  # fmt: skip
-    env = runner.JobEnv(
+    env = leased.JobEnv(
         settings=settings, session_factory=get_session_factory(settings.database), storage=Storage(settings.storage),
         pipeline=pipeline, make_config=make_config, stages=stages,
     )  # fmt: skip

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from svc_helpers import make_scene, mark_results_ready, mark_succeeded
 from test_renders import write_scene_result
 
-from service.db.models import FitState, JobState
+from service.db.models import FitState, Job, JobState
 from service.settings import Settings
 from service.storage import Storage
 
@@ -134,7 +134,7 @@ def test_a_cancel_during_the_fit_keeps_the_results(
     assert r.status_code == 202, r.text
     assert r.json()["cancel_requested"] is True
     with session_scope(get_session_factory(settings.database)) as session:
-        job = session.get(crud.Job, fitting_job)
+        job = session.get(Job, fitting_job)
         assert job is not None
         job.lease = "task"
         session.commit()
@@ -145,3 +145,12 @@ def test_a_cancel_during_the_fit_keeps_the_results(
     assert client.get(f"/v1/jobs/{fitting_job}/instances", headers=auth).status_code == 200
     names = {a["name"] for a in client.get(f"/v1/jobs/{fitting_job}/artifacts", headers=auth).json()["data"]}
     assert "instances.json" in names, "the results' artifacts stay"
+
+
+def test_the_fit_states_the_service_records_are_the_pipelines() -> None:
+    """``job.fit_state`` stores what ``report.json``'s ``appearance.state`` says: one enum, the pipeline's."""
+    from panogs_core.pipeline.result import FIT_STATES
+    from panogs_core.pipeline.result import FitState as PipelineFitState
+
+    assert FitState is PipelineFitState
+    assert [str(state) for state in FIT_STATES] == ["running", "succeeded", "skipped", "failed", "canceled"]

@@ -30,7 +30,7 @@ from service.settings import Settings
 from service.storage import parts
 from service.storage.backends import open_storage
 from service.storage.objects import Part
-from worker import runner
+from worker import leased, runner
 
 MIB = 1024 * 1024
 TUS = {"Tus-Resumable": "1.0.0", "Content-Type": "application/offset+octet-stream"}
@@ -247,8 +247,8 @@ def test_scene_job_results_range_and_delete(
     assert not (s3_settings.data_dir / "work" / "cache" / "artifacts" / str(job_id)).exists()
 
 
-def _worker_env(settings: Settings) -> runner.JobEnv:
-    return runner.JobEnv(
+def _worker_env(settings: Settings) -> leased.JobEnv:
+    return leased.JobEnv(
         settings=settings,
         session_factory=get_session_factory(settings.database),
         storage=open_storage(settings),

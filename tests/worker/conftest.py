@@ -17,7 +17,7 @@ from service.db.models import ApiKey, Job, JobState, Scene
 from service.db.session import get_engine, get_session_factory, session_scope
 from service.settings import Settings
 from service.storage import Storage
-from worker import runner
+from worker import leased
 
 
 @pytest.fixture(scope="session")
@@ -39,10 +39,10 @@ def settings(tmp_path: Path, sqlite_template: Path) -> Settings:
 
 
 @pytest.fixture
-def make_env(settings: Settings) -> Callable[..., runner.JobEnv]:
-    def make(pipeline: Any = scripted.run_pipeline, settings_: Settings | None = None, **kw: Any) -> runner.JobEnv:
+def make_env(settings: Settings) -> Callable[..., leased.JobEnv]:
+    def make(pipeline: Any = scripted.run_pipeline, settings_: Settings | None = None, **kw: Any) -> leased.JobEnv:
         s = settings_ or settings
-        return runner.JobEnv(
+        return leased.JobEnv(
             settings=s, session_factory=get_session_factory(s.database), storage=Storage(s.storage),
             pipeline=pipeline, make_config=scripted.make_config, stages=scripted.STAGES, **kw,
         )  # fmt: skip

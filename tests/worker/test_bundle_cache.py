@@ -24,7 +24,7 @@ def _store_bundle(objects: LocalStorage, scene_id: uuid.UUID, size: int) -> str:
 def _cache(tmp_path: Path, max_bytes: int, alive: set[uuid.UUID]) -> tuple[BundleCache, LocalStorage]:
     objects = LocalStorage(tmp_path / "store")
     storage = Storage(tmp_path / "worker", objects)
-    assert not storage.is_local  # the worker's folder is not the store
+    assert storage.root != objects.root  # the worker's folder is not the store
 
     def live(ids: Iterable[uuid.UUID]) -> set[uuid.UUID]:
         return set(ids) & alive

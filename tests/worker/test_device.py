@@ -18,10 +18,10 @@ from panogs_core.errors import ConfigError
 from panogs_core.pipeline.config import PipelineConfig
 from service.db.models import JobState
 from service.settings import Settings
-from worker import runner, tasks
+from worker import leased, runner, tasks
 from worker.device import device_config_factory, requested_device, resolve_device, with_device
 
-Env = Callable[..., runner.JobEnv]
+Env = Callable[..., leased.JobEnv]
 MakeJob = Callable[..., uuid.UUID]
 
 

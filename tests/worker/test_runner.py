@@ -24,13 +24,13 @@ from panogs_core.io.run_folder import DOWNLOADABLE
 from service.db.base import utcnow
 from service.db.models import FitState, JobState
 from service.settings import Settings
-from worker import runner
+from worker import leased, runner
 
-Env = Callable[..., runner.JobEnv]
+Env = Callable[..., leased.JobEnv]
 MakeJob = Callable[..., uuid.UUID]
 
 
-def _run(env: runner.JobEnv, job_id: uuid.UUID, lease: str = "task-1") -> JobState | None:
+def _run(env: leased.JobEnv, job_id: uuid.UUID, lease: str = "task-1") -> JobState | None:
     return runner.execute_job(job_id, lease=lease, worker="test", env=env)
 
 
@@ -221,7 +221,7 @@ class TestTransient:
                 raise OperationalError("SELECT 1", {}, Exception("connection refused"))
             return "ok"
 
-        assert runner.with_db_retry(flaky, deadline_s=5, what="test") == "ok"
+        assert leased.with_db_retry(flaky, deadline_s=5, what="test") == "ok"
         assert len(calls) == 3
 
     def test_only_an_outage_is_waited_out(self, tmp_path: Path) -> None:
@@ -238,15 +238,15 @@ class TestTransient:
 
         duplicate()
         with pytest.raises(IntegrityError):
-            runner.with_db_retry(duplicate, deadline_s=5, what="test")
+            leased.with_db_retry(duplicate, deadline_s=5, what="test")
         assert len(calls) == 2, "tried once, not retried"
 
     def test_gives_up_with_a_transient_error(self) -> None:
         def down() -> None:
             raise OperationalError("SELECT 1", {}, Exception("connection refused"))
 
-        with pytest.raises(runner.TransientError, match="database unavailable while trying to test"):
-            runner.with_db_retry(down, deadline_s=0.3, what="test")
+        with pytest.raises(leased.TransientError, match="database unavailable while trying to test"):
+            leased.with_db_retry(down, deadline_s=0.3, what="test")
 
     def test_merge_timings_keeps_computed_times_of_cached_stages(self) -> None:
         class Stat:

@@ -19,10 +19,10 @@ from service.jobs import to_public
 from service.lifecycle import delete_scene
 from service.settings import Settings
 from service.storage import Storage
-from worker import runner
+from worker import leased, runner
 from worker.shared_checkpoints import SceneCheckpoints
 
-Env = Callable[..., runner.JobEnv]
+Env = Callable[..., leased.JobEnv]
 
 
 def _second_job(settings: Settings, first: uuid.UUID, config: dict[str, Any]) -> uuid.UUID:

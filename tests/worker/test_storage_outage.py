@@ -22,9 +22,9 @@ from service.db.session import get_session_factory, session_scope
 from service.jobs import to_public
 from service.settings import Settings
 from service.storage.backends import open_storage
-from worker import runner
+from worker import leased, runner
 
-Env = Callable[..., runner.JobEnv]
+Env = Callable[..., leased.JobEnv]
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_an_outage_retries_the_job_which_then_finishes(
 ) -> None:
     job_id = make_job()
     env = dataclasses.replace(make_env(pipeline=_outage_at(stage, s3)), storage=open_storage(settings))
-    with pytest.raises(runner.TransientError, match="object storage unavailable"):
+    with pytest.raises(leased.TransientError, match="object storage unavailable"):
         runner.execute_job(job_id, lease="a", worker="w", env=env)  # Celery retries the task with backoff
     handed_back = _job(settings, job_id)
     assert handed_back.state is JobState.QUEUED

@@ -29,7 +29,7 @@ from service.db.session import get_session_factory, session_scope
 from service.reaper import sweep
 from service.settings import Settings
 from service.storage import Storage
-from worker import runner, tasks, tiles
+from worker import leased, runner, tasks, tiles
 
 pytestmark = pytest.mark.slow
 
@@ -55,8 +55,8 @@ def building(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_building(tmp_path_factory.mktemp("building") / "b", rooms=(2, 1), room="tiny", feature_space=SPACE)
 
 
-def _env(settings: Settings, sender: Recorder) -> runner.JobEnv:
-    return runner.JobEnv(
+def _env(settings: Settings, sender: Recorder) -> leased.JobEnv:
+    return leased.JobEnv(
         settings=settings, session_factory=get_session_factory(settings.database), storage=Storage(settings.storage),
         pipeline=run_pipeline, make_config=jobs.pipeline_config, stages=tuple(STAGES), sender=sender,
     )  # fmt: skip
@@ -82,14 +82,14 @@ def _job(settings: Settings, building: Path, tiling: dict[str, Any]) -> uuid.UUI
         return job.id
 
 
-def _rows(env: runner.JobEnv, job_id: uuid.UUID) -> list[JobTile]:
+def _rows(env: leased.JobEnv, job_id: uuid.UUID) -> list[JobTile]:
     with session_scope(env.session_factory) as session:
         rows = list(session.scalars(select(JobTile).where(JobTile.job_id == job_id).order_by(JobTile.tile_index)))
         session.expunge_all()
         return rows
 
 
-def _job_row(env: runner.JobEnv, job_id: uuid.UUID) -> Job:
+def _job_row(env: leased.JobEnv, job_id: uuid.UUID) -> Job:
     with session_scope(env.session_factory) as session:
         job = session.get(Job, job_id)
         assert job is not None

@@ -133,8 +133,8 @@ def _binary_vertex_chunks(fh: BinaryIO, header: Header, path: Path) -> Iterator[
         dtype = np.dtype([(p.name, order + p.dtype) for p in element.properties])
         _require_bytes(fh, dtype.itemsize * element.count, path, element.name)
         for start in range(0, max(element.count, 1), _CHUNK_ROWS):
-            rows = min(_CHUNK_ROWS, element.count - start)
-            record = np.frombuffer(fh.read(dtype.itemsize * rows), dtype=dtype)
+            chunk_rows = min(_CHUNK_ROWS, element.count - start)
+            record = np.frombuffer(fh.read(dtype.itemsize * chunk_rows), dtype=dtype)
             yield {p.name: record[p.name].astype(p.dtype) for p in element.properties}
         return
     raise InputError(f"{path.name}: PLY has no vertex element")  # unreachable: the header checked it

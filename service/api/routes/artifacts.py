@@ -12,10 +12,10 @@ from fastapi.responses import FileResponse, Response
 from panogs_core.io.run_folder import DOWNLOADABLE, GAUSSIANS_PLY
 from service.api.deps import JobDep, SettingsDep, StorageDep
 from service.db.models import Job
-from service.downloads import object_response, signed_redirect
 from service.errors import Conflict, NotFound
 from service.job_results import check_fitted
 from service.schemas import ArtifactPublic, ArtifactsPublic, error_responses
+from service.storage.download import object_response, signed_redirect
 
 router = APIRouter(prefix="/jobs/{job_id}", tags=["results"])
 _ERRORS = error_responses(404, 409)

@@ -43,10 +43,7 @@ async def signed_redirect(storage: Storage, key: str, expires_s: int) -> Respons
     """A 307 to a link of the object store that downloads ``key`` for ``expires_s`` (Range works there too), or None
     where there is none a client could follow: the local backend (the API is the store), or S3 reachable only from
     the service's network (no ``PANOGS_S3_PUBLIC_ENDPOINT_URL``)."""
-    public_url = getattr(storage.objects, "public_url", None)
-    if storage.is_local or public_url is None:
-        return None
-    url: str | None = await run_in_threadpool(public_url, key, expires_s)
+    url = await run_in_threadpool(storage.download_link, key, expires_s)
     if url is None:
         return None
     return RedirectResponse(url, status_code=307, headers={"Cache-Control": "no-store"})
@@ -57,8 +54,9 @@ async def object_response(
 ) -> Response:
     """The object ``key`` as a download (whole or the requested range)."""
     disposition = {"Content-Disposition": f'attachment; filename="{filename}"'}
-    if storage.is_local:
-        return FileResponse(storage.path(key), media_type=media_type, filename=filename, headers=headers)
+    path = storage.served_file(key)
+    if path is not None:
+        return FileResponse(path, media_type=media_type, filename=filename, headers=headers)
     info: ObjectInfo | None = await run_in_threadpool(storage.objects.stat, key)
     if info is None:
         raise NotFound("artifact", filename)
