@@ -37,7 +37,8 @@ def feature_basis(
     count = rows.shape[0]
     gen = torch.Generator().manual_seed(seed)
     pick = torch.randperm(count, generator=gen)[:BASIS_SAMPLE_ROWS].to(rows.device)
-    sample = features.index_select(0, rows.index_select(0, pick)) * inverse_norms.index_select(0, pick).unsqueeze(1)
+    sample = features.index_select(0, rows.index_select(0, pick))  # (S, D), scaled in place: one copy
+    sample.mul_(inverse_norms.index_select(0, pick).unsqueeze(1))
     moment = sample.t() @ (sample * weights.index_select(0, pick).unsqueeze(1))  # (D, D)
     _, vectors = torch.linalg.eigh(moment.double().cpu())  # ascending eigenvalues
     top = vectors[:, dim - min(dims, dim) :].flip(1)  # (D, k), largest first
