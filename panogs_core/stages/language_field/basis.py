@@ -17,7 +17,10 @@ import torch
 # that room's target energy at 64 directions, the one from all 69,638 rows 0.8785 (32: 0.8409 and 0.8418;
 # docs/benchmarks.md, "Language field speed (current)").
 BASIS_SAMPLE_ROWS = 8192
-_PROJECT_BATCH = 8192  # rows projected at a time: no (M, D) copy of the features is made
+# Rows read at a time: no (M, D) copy of the features is made, and each temporary stays at 2 MiB (D = 512). With
+# 8192 rows, the 16 MiB temporaries stayed resident after they were freed and the run's peak grew by 50-60 MB
+# (docs/benchmarks.md, "Language field speed (current)").
+_PROJECT_BATCH = 1024
 
 
 def feature_basis(
@@ -31,15 +34,17 @@ def feature_basis(
     """The ``k`` directions that keep most of the confidence-weighted energy of the unit target rows.
 
     Top eigenvectors of ``sum_i w_i t_i t_i^T`` (not centred: the mean direction of a room's features is part of
-    every target) over at most :data:`BASIS_SAMPLE_ROWS` rows drawn with a seeded generator.
+    every target) over at most :data:`BASIS_SAMPLE_ROWS` rows drawn with a seeded generator, read in batches.
     """
     dim = features.shape[1]
     count = rows.shape[0]
     gen = torch.Generator().manual_seed(seed)
     pick = torch.randperm(count, generator=gen)[:BASIS_SAMPLE_ROWS].to(rows.device)
-    sample = features.index_select(0, rows.index_select(0, pick))  # (S, D), scaled in place: one copy
-    sample.mul_(inverse_norms.index_select(0, pick).unsqueeze(1))
-    moment = sample.t() @ (sample * weights.index_select(0, pick).unsqueeze(1))  # (D, D)
+    moment = features.new_zeros((dim, dim))  # (D, D)
+    for start in range(0, pick.shape[0], _PROJECT_BATCH):
+        part = pick[start : start + _PROJECT_BATCH]
+        unit = features.index_select(0, rows.index_select(0, part)).mul_(inverse_norms.index_select(0, part)[:, None])
+        moment.addmm_(unit.t(), unit * weights.index_select(0, part).unsqueeze(1))
     _, vectors = torch.linalg.eigh(moment.double().cpu())  # ascending eigenvalues
     top = vectors[:, dim - min(dims, dim) :].flip(1)  # (D, k), largest first
     return top.to(dtype=torch.float32, device=features.device).contiguous()
