@@ -390,6 +390,7 @@ class TestConfig:
             ("max_resolution", 1),
             ("device", "not-a-device"),
             ("cpu_threads", 0),
+            ("basis_dims", 0),
         ],
     )
     def test_exception_names_field(self, field: str, value: object) -> None:
@@ -404,3 +405,63 @@ class TestConfig:
         assert cfg.betas == (0.9, 0.99)
         assert cfg.weight_decay == 1e-6
         assert cfg.init_scale == 0.1
+
+
+class TestFeatureBasis:
+    """The scene's feature basis: the loss taken in it, the basis itself, and a fit that predicts in it."""
+
+    def test_loss_in_the_basis_is_the_full_cosine(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.basis import project_rows
+        from panogs_core.stages.language_field.triplane import _cosine_loss_and_gradients
+
+        gen = torch.Generator().manual_seed(1)
+        basis, _ = torch.linalg.qr(torch.randn((12, 4), generator=gen, dtype=torch.float64))  # (D, k) orthonormal
+        reduced = [torch.randn((o, i), generator=gen, dtype=torch.float64) for i, o in ((5, 8), (8, 4))]
+        full = [reduced[0], basis @ reduced[1]]  # the decoder whose outputs lie in the basis's span
+        latent = torch.randn((30, 5), generator=gen, dtype=torch.float64)
+        targets = torch.randn((30, 12), generator=gen, dtype=torch.float64) * 2.0  # partly outside the span
+        weights = torch.rand(30, generator=gen, dtype=torch.float64)
+        inverse = 1 / targets.norm(dim=1)
+        rows = torch.arange(30)
+        coefficients = project_rows(targets, rows, inverse, basis)
+        loss_k, latent_grad_k, grads_k = _cosine_loss_and_gradients(
+            reduced, latent, coefficients, torch.ones(30, dtype=torch.float64), weights
+        )
+        loss_d, latent_grad_d, grads_d = _cosine_loss_and_gradients(full, latent, targets, inverse, weights)
+        assert float(loss_k) == pytest.approx(float(loss_d), rel=1e-12)
+        np.testing.assert_allclose(latent_grad_k.numpy(), latent_grad_d.numpy(), rtol=1e-9, atol=1e-14)
+        np.testing.assert_allclose(grads_k[0].numpy(), grads_d[0].numpy(), rtol=1e-9, atol=1e-14)
+        # The reduced layer's gradient is the full one's seen through the basis (W = U V: dV = U^T dW).
+        np.testing.assert_allclose(grads_k[1].numpy(), (basis.t() @ grads_d[1]).numpy(), rtol=1e-9, atol=1e-14)
+
+    def test_basis_spans_features_of_few_directions(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.basis import feature_basis, kept_energy, project_rows
+
+        rng = np.random.default_rng(0)
+        directions = rng.normal(size=(5, 40))
+        features = torch.from_numpy((rng.normal(size=(300, 5)) @ directions).astype(np.float32))  # rank 5 in 40-d
+        rows = torch.arange(300)
+        inverse = 1 / features.norm(dim=1)
+        weights = torch.ones(300)
+        wide = feature_basis(features, rows, inverse, weights, 5, seed=0)
+        assert wide.shape == (40, 5)
+        np.testing.assert_allclose((wide.t() @ wide).numpy(), np.eye(5), atol=1e-5)
+        assert kept_energy(project_rows(features, rows, inverse, wide), weights) == pytest.approx(1.0, abs=1e-4)
+        narrow = feature_basis(features, rows, inverse, weights, 2, seed=0)
+        assert kept_energy(project_rows(features, rows, inverse, narrow), weights) < 0.99
+
+    def test_fit_predicts_in_the_basis(self) -> None:
+        points, region, anchors = _three_regions(n_per=200, seed=4)
+        wide = np.zeros((3, 48), np.float32)
+        wide[:, :DIM] = anchors  # 48-d features that span 3 directions
+        fused = _fused(wide[region], np.ones(len(points)))
+        field = fit_language_field(points, fused, _small_cfg(basis_dims=8))
+        assert field.state["mlp.1"].shape == (48, 32)
+        cos = (field.features * wide[region]).sum(axis=1)
+        assert cos.min() > 0.95
+        full = fit_language_field(points, fused, _small_cfg(basis_dims=None))
+        assert not np.array_equal(full.state["mlp.1"], field.state["mlp.1"])

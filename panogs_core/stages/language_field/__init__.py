@@ -152,7 +152,11 @@ def fit_language_field(
     resolutions = plane_resolutions(bounds, cfg)
     with torch_threads(cfg.cpu_threads if device.type == "cpu" else None):
         model = init_model(resolutions, features.shape[1], cfg)
-        train_model(model, TrainingSet(points, features, weights, bounds, resolutions, device), cfg, on_progress)
+        data = TrainingSet(
+            points, features, weights, bounds, resolutions, device, basis_dims=cfg.basis_dims, seed=cfg.seed
+        )
+        train_model(model, data, cfg, on_progress)
+        del data  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
         model.eval()
         decoded = decode_features(model, points, bounds)  # (N, D)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))

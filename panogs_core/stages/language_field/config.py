@@ -46,6 +46,12 @@ class LanguageFieldConfig:
     # kernels are small (1024 points), and on the shared 2-core machine a lone fit took 100-250 ms a step with two
     # threads (spinning against each other and other processes) against 16-28 ms with one (docs/benchmarks.md).
     cpu_threads: int | None = 1
+    # DEPARTURE (docs/method.md §3.3): the decoder predicts in the top `basis_dims` directions of the scene's own
+    # fused features and the loss is taken there (the cosine in D dims of a decoder whose outputs lie in that span);
+    # None: the full D dims, as the reference. The step's matrix products shrink by D / basis_dims. Off by default:
+    # 64 directions cost the ScanNet-size room 1.9 mIoU points and 34 MB of peak for 0.83x the run's CPU seconds
+    # (docs/benchmarks.md, "Language field speed").
+    basis_dims: int | None = None
     seed: int = 0  # seeds plane/decoder initialisation and batch shuffling
 
     def __post_init__(self) -> None:
@@ -74,6 +80,7 @@ class LanguageFieldConfig:
             self.bound_padding,
         )
         _require(self.max_resolution >= 2, "max_resolution", ">= 2", self.max_resolution)
+        _require(self.basis_dims is None or self.basis_dims >= 1, "basis_dims", "None or >= 1", self.basis_dims)
         _require(self.cpu_threads is None or self.cpu_threads >= 1, "cpu_threads", "None or >= 1", self.cpu_threads)
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         _require(

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from panogs_core.errors import InputError, NumericalError
 from panogs_core.progress import ProgressFn, report
+from panogs_core.stages.language_field.basis import feature_basis, kept_energy, project_rows
 
 if TYPE_CHECKING:
     from panogs_core.stages.language_field.config import LanguageFieldConfig
@@ -129,6 +130,10 @@ class TrainingSet:
 
     The training points never move, so where each one samples the planes is computed once
     (:func:`bilinear_corners`): a step gathers those cells instead of calling ``grid_sample`` per level.
+
+    With ``basis_dims`` below ``D``, the targets are the coefficients of the unit rows in the scene's feature
+    basis (:mod:`panogs_core.stages.language_field.basis`, :attr:`basis`), computed once; :attr:`inverse_norms`
+    is then 1 (the coefficients are of unit rows already).
     """
 
     def __init__(
@@ -139,6 +144,9 @@ class TrainingSet:
         bounds: np.ndarray,
         resolutions: list[int],
         device: torch.device,
+        *,
+        basis_dims: int | None = None,
+        seed: int = 0,
     ) -> None:
         keep = np.flatnonzero(weights > 0)
         features = np.asarray(features, dtype=np.float32)  # (N, D), no copy when it is float32 already
@@ -155,12 +163,21 @@ class TrainingSet:
         if not features.flags.writeable:  # torch.from_numpy warns on read-only memory
             features = features.copy()
         self._features = torch.from_numpy(features).to(device)  # (N, D) shares memory on the CPU
+        self.basis: torch.Tensor | None = None  # (D, k) orthonormal, or None: the targets are the fused rows
+        self.kept_energy = 1.0  # share of the unit targets' energy the basis keeps
+        if basis_dims is not None and basis_dims < features.shape[1]:
+            self.basis = feature_basis(self._features, self._rows, self.inverse_norms, self.weights, basis_dims, seed)
+            self._features = project_rows(self._features, self._rows, self.inverse_norms, self.basis)  # (M, k)
+            self._rows = torch.arange(len(keep), device=device)
+            self.inverse_norms = torch.ones_like(self.inverse_norms)
+            self.kept_energy = kept_energy(self._features, self.weights)
 
     def __len__(self) -> int:
         return int(self._rows.shape[0])
 
-    def targets(self, idx: torch.Tensor) -> torch.Tensor:  # (B, D) rows of the kept primitives idx, as fused
-        """The fused rows of a batch, not normalised: :attr:`inverse_norms` scales them to unit length."""
+    def targets(self, idx: torch.Tensor) -> torch.Tensor:  # (B, D) or (B, k) rows of the kept primitives idx
+        """The fused rows of a batch, not normalised (:attr:`inverse_norms` scales them to unit length), or their
+        unit rows' coefficients in :attr:`basis`."""
         return self._features.index_select(0, self._rows.index_select(0, idx))
 
 
@@ -357,11 +374,15 @@ def train_model(
     decoder's weights are updated in place. Adam keeps the reference's two groups: planes (eps 1e-15, no decay)
     and decoder (L2 weight decay); Adam is element-wise, so the update of every plane value is the one it would
     get in its ``(3, C, R, R)`` plane. Gradients are computed by hand (:func:`_cosine_loss_and_gradients`,
-    :func:`_add_table_gradient`): no autograd graph is built.
+    :func:`_add_table_gradient`): no autograd graph is built. With a feature basis ``U`` (``data.basis``) the last
+    layer trains as ``V = U^T W`` (``k``, H) and is written back as ``W = U V``.
     """
     resolutions = [int(p.shape[-1]) for p in model.planes]
     table = plane_table([p.detach() for p in model.planes])  # (cells, C), a copy
-    mlp = [w.detach() for w in model.mlp]  # the decoder's own storage: its updates land in the model
+    weights_out = [w.detach() for w in model.mlp]  # the decoder's own storage
+    basis = data.basis  # (D, k) or None
+    # The layers that train: the decoder's own (updates land in the model), the last one in the basis if any.
+    mlp = weights_out if basis is None else [*weights_out[:-1], basis.t() @ weights_out[-1]]
     planes_adam = _Adam([table], lr=cfg.plane_lr, betas=cfg.betas, eps=1e-15, weight_decay=0.0)
     mlp_adam = _Adam(mlp, lr=cfg.lr, betas=cfg.betas, eps=1e-8, weight_decay=cfg.weight_decay)  # torch's eps
     gen = torch.Generator().manual_seed(cfg.seed + 1)
@@ -389,3 +410,5 @@ def train_model(
             report(on_progress, epoch + 1, epochs)
         for plane, trained in zip(model.planes, planes_from_table(table, resolutions), strict=True):
             plane.copy_(trained)
+        if basis is not None:
+            weights_out[-1].copy_(basis @ mlp[-1])  # (D, H), outputs in the basis's span
