@@ -91,9 +91,7 @@ class Maps2DConfig:
             "in (0, 1]",
             self.nms_iou_thresh,
         )
-        _require(
-            _finite_in(self.min_mask_fraction, 0.0, 1.0), "min_mask_fraction", "in [0, 1]", self.min_mask_fraction
-        )
+        _require(_finite_in(self.min_mask_fraction, 0.0, 1.0), "min_mask_fraction", "in [0, 1]", self.min_mask_fraction)
         _require(self.max_candidates >= 1, "max_candidates", ">= 1", self.max_candidates)
         _require(1 <= self.max_masks <= 65535, "max_masks", "in [1, 65535]", self.max_masks)
         _require(self.mask_long_side >= 8, "mask_long_side", ">= 8", self.mask_long_side)

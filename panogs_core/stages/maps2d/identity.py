@@ -133,8 +133,9 @@ def clip_space(folder: str | Path) -> str:
     width = int(vision.get("hidden_size", 768))
     patch = int(vision.get("patch_size", 32))
     resolution = int(vision.get("image_size", 224))
-    size = _VIT_SIZES.get(width, f"w{width}")
-    arch = f"{family}-vit-{size}{patch}" + ("" if resolution == 224 else f"-{resolution}")
+    size = _VIT_SIZES.get(width)
+    tower = f"{size}{patch}" if size else f"w{width}p{patch}"  # an unpublished width: w<width>p<patch>
+    arch = f"{family}-vit-{tower}" + ("" if resolution == 224 else f"-{resolution}")
     return f"{arch}@{model_hash(root, with_tokenizer=True)[:SPACE_HASH_CHARS]}"
 
 

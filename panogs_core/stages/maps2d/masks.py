@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812 - torch's own alias
+import torch.nn.functional as F
 
 from panogs_core.stages.maps2d.config import Maps2DConfig, scaled_size
 from panogs_core.stages.maps2d.models import LoadedModel

@@ -60,7 +60,7 @@ def load_sam(folder: Path, device: str) -> LoadedModel:
     dev, dtype = pick_device(device)
     try:
         processor = SamImageProcessorPil.from_pretrained(folder, local_files_only=True)
-        model = SamModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
+        model: Any = SamModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
     except Exception as exc:  # transformers and safetensors raise many types for a bad file; all mean "no"
         raise ModelLoadError(f"{folder}: the SAM model does not load: {exc}") from exc
     return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)
@@ -82,7 +82,7 @@ def load_clip(folder: Path, device: str) -> LoadedModel:
     dev, dtype = pick_device(device)
     try:
         processor = CLIPImageProcessorPil.from_pretrained(folder, local_files_only=True)
-        model = CLIPModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
+        model: Any = CLIPModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
     except Exception as exc:  # as above
         raise ModelLoadError(f"{folder}: the CLIP model does not load: {exc}") from exc
     return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)

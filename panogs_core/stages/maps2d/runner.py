@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from panogs_core.stages.maps2d.config import Maps2DConfig
 from panogs_core.stages.maps2d.features import frame_features
