@@ -36,7 +36,7 @@ class Models:
 
 
 @dataclass(frozen=True)
-class FrameMaps:
+class ComputedMaps:
     """One frame's computed maps: either may be None when its model did not run."""
 
     masks: np.ndarray | None  # (Hm, Wm) uint16
@@ -60,12 +60,12 @@ def threads(cfg: Maps2DConfig) -> Iterator[None]:
         yield
 
 
-def process_frame(models: Models, color: np.ndarray, masks: np.ndarray | None, cfg: Maps2DConfig) -> FrameMaps:
+def process_frame(models: Models, color: np.ndarray, masks: np.ndarray | None, cfg: Maps2DConfig) -> ComputedMaps:
     """The maps of one frame: masks from the SAM model when loaded (else the frame's own), then features."""
     computed = automatic_masks(models.sam, color, cfg) if models.sam is not None else None
     ids = computed if computed is not None else _consecutive(masks)
     features = frame_features(models.clip, color, ids, cfg) if models.clip is not None else None
-    return FrameMaps(computed, features, int(ids.max()) if ids.size else 0)
+    return ComputedMaps(computed, features, int(ids.max()) if ids.size else 0)
 
 
 def _consecutive(masks: np.ndarray | None) -> np.ndarray:
