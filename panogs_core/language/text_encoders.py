@@ -7,6 +7,11 @@ The encoder is chosen by ``features.space`` (docs/scene_format.md §2.4):
 - ``clip-vit-b32``: the CLIP ViT-B/32 text tower (512-d, the LSeg / OpenScene text space) through
   ``transformers``, from a local folder or a hub name given as ``model_path``. Nothing is downloaded unless
   the caller names a hub model and has a network.
+- ``clip-vit-<size><patch>[-<res>]@<hash>`` (e.g. ``clip-vit-b16@3f2a9c0d1e2b4a5c``): the space of feature maps
+  that panogs computed with a CLIP model (the 2D-maps stage, docs/method.md §17), named by
+  :func:`panogs_core.language.model_identity.clip_space` from the model's config and the hash of its files. Its
+  text tower loads from ``model_path``, the same folder (or cached hub name) as the image tower, and only when
+  that folder's own space name is this one: other weights are refused, never used in their place.
 
 Any other space has no encoder: queries then need vocabulary class names or raw vectors.
 Loaded encoders are cached per (space, model_path) in the process, so a query after the first is warm.
@@ -21,6 +26,7 @@ from typing import Protocol
 import numpy as np
 
 from panogs_core.errors import EncoderUnavailableError
+from panogs_core.language.model_identity import ModelLoadError, clip_space, resolve_model_dir, split_space
 
 # OpenScene's prompt for label-set embeddings in the CLIP space (docs/method.md §1.6); the MiniLM sentence encoder
 # is used on bare names.
@@ -40,9 +46,22 @@ class TextEncoder(Protocol):
         ...
 
 
+def is_model_space(space: str) -> bool:
+    """Whether ``space`` names the exact CLIP weights that computed a scene's features (``clip-...@<hash>``)."""
+    arch, digest = split_space(space)
+    return digest is not None and arch.startswith("clip-vit-")
+
+
+def prompt_template(space: str) -> str:
+    """The prompt class names are embedded with: OpenScene's for every CLIP space, bare names otherwise."""
+    if space in PROMPT_TEMPLATES:
+        return PROMPT_TEMPLATES[space]
+    return PROMPT_TEMPLATES["clip-vit-b32"] if is_model_space(space) else "{}"
+
+
 def encode_labels(encoder: TextEncoder, names: list[str]) -> np.ndarray:  # (L, D) float32
     """Embed class names with the prompt template of the encoder's space."""
-    template = PROMPT_TEMPLATES.get(encoder.space, "{}")
+    template = prompt_template(encoder.space)
     return encoder.encode([template.format(n) for n in names])
 
 
@@ -88,15 +107,14 @@ class MiniLMEncoder:
 class ClipTextEncoder:
     """The CLIP text tower (``CLIPModel.get_text_features``) from a local folder or hub name."""
 
-    space = "clip-vit-b32"
-
-    def __init__(self, model_path: str) -> None:
+    def __init__(self, model_path: str, space: str = "clip-vit-b32") -> None:
+        self.space = space
         try:
             import torch
             from transformers import AutoTokenizer, CLIPModel
         except ImportError as exc:  # pragma: no cover - depends on the install
             raise EncoderUnavailableError(
-                "clip-vit-b32: transformers is not installed (pip install 'panogs[text]')"
+                f"{space}: transformers is not installed (pip install 'panogs[text]')"
             ) from exc
         try:
             # AutoTokenizer: the fast CLIP tokenizer is CLIPTokenizerFast in transformers 4 and
@@ -104,7 +122,7 @@ class ClipTextEncoder:
             self._tokenizer = AutoTokenizer.from_pretrained(model_path)
             self._model = CLIPModel.from_pretrained(model_path).eval()
         except (OSError, ValueError) as exc:
-            raise EncoderUnavailableError(f"clip-vit-b32: cannot load a CLIP model from {model_path!r}: {exc}") from exc
+            raise EncoderUnavailableError(f"{space}: cannot load a CLIP model from {model_path!r}: {exc}") from exc
         self._torch = torch
         self.dim = int(self._model.config.projection_dim)
         # Truncate to the model's context (77 for CLIP): a tokenizer folder without tokenizer_config.json has
@@ -131,13 +149,18 @@ def get_text_encoder(space: str, *, model_path: str | None = None) -> TextEncode
     Args:
         space: ``features.space`` of the scene.
         model_path: Local folder (or hub name, where a network exists) of the model. Required for
-            ``clip-vit-b32``; optional for ``minilm-l6`` (defaults to the offline package).
+            ``clip-vit-b32`` and the ``clip-...@<hash>`` spaces (there: the folder or cached hub name whose
+            weights computed the features, never fetched); optional for ``minilm-l6`` (defaults to the offline
+            package).
 
     Raises:
-        EncoderUnavailableError: the space has no encoder here, saying what would provide one.
+        EncoderUnavailableError: the space has no encoder here, or ``model_path`` holds other weights than the
+            space names, saying what would provide one.
     """
     if space == "minilm-l6":
         return MiniLMEncoder(model_path)
+    if is_model_space(space):
+        return _model_space_encoder(space, model_path)
     if space == "clip-vit-b32":
         if model_path is None:
             raise EncoderUnavailableError(
@@ -147,6 +170,26 @@ def get_text_encoder(space: str, *, model_path: str | None = None) -> TextEncode
             )
         return ClipTextEncoder(model_path)
     raise EncoderUnavailableError(
-        f"feature space {space!r} has no text encoder (known: {', '.join(KNOWN_SPACES)}); query with "
-        "vocabulary class names or a vector"
+        f"feature space {space!r} has no text encoder (known: {', '.join(KNOWN_SPACES)}, and clip-...@<hash> "
+        "with the CLIP model that computed the features); query with vocabulary class names or a vector"
     )
+
+
+def _model_space_encoder(space: str, model_path: str | None) -> ClipTextEncoder:
+    """The text tower of the exact CLIP weights a ``clip-...@<hash>`` space names, from ``model_path``."""
+    if model_path is None:
+        raise EncoderUnavailableError(
+            f"{space}: no CLIP model configured; pass the folder (or cached hub name) of the CLIP model that "
+            "computed the scene's features, or query with vocabulary class names or a vector"
+        )
+    try:
+        folder = resolve_model_dir(model_path)  # offline: a hub name must already be in the local cache
+        found = clip_space(folder)
+    except ModelLoadError as exc:
+        raise EncoderUnavailableError(f"{space}: {exc}") from exc
+    if found != space:
+        raise EncoderUnavailableError(
+            f"{space}: {model_path} holds other weights ({found}); the scene's features were computed by the "
+            "model this space names, and queries embed only with its own text tower"
+        )
+    return ClipTextEncoder(str(folder), space)

@@ -80,7 +80,6 @@ FLOORS: tuple[Layer, ...] = (
 )
 # Import cycles in service/ and worker/ that are known and being removed (each named, with the change that removes
 # it); the check allows exactly these, and fails once one is gone so that its entry goes too.
-KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
 
 def _module_name(path: Path) -> str:
@@ -328,24 +327,13 @@ def test_the_floor_rule_fails_on_a_planted_upward_import(importer: str, imported
 def test_service_and_worker_have_no_import_cycle_but_the_known_ones() -> None:
     edges, _ = import_graph((REPO / "service", REPO / "worker"))
     assert len(edges) > 40, "the reader found no modules of service/ and worker/"
-    cycles = [c for c in find_cycles(edges) if frozenset(c) not in KNOWN_CYCLES]
+    cycles = find_cycles(edges)
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
 
 
-def test_every_known_cycle_is_still_there() -> None:
-    """An exception outlives its cycle only by mistake: once the change named lands, its entry goes."""
-    edges, _ = import_graph((REPO / "service", REPO / "worker"))
-    found = {frozenset(c) for c in find_cycles(edges)}
-    gone = [f"{sorted(members)} ({why})" for members, why in KNOWN_CYCLES.items() if members not in found]
-    assert not gone, f"delete these entries of KNOWN_CYCLES, their cycles are gone: {gone}"
-
-
-def test_a_cycle_beside_a_known_one_is_found() -> None:
-    known = next(iter(KNOWN_CYCLES), frozenset({"worker.runner", "worker.tiles"}))
-    first, second = sorted(known)
-    planted = {first: {second}, second: {first}, "service.a": {"service.b"}, "service.b": {"service.a"}}
-    cycles = [c for c in find_cycles(planted) if frozenset(c) not in KNOWN_CYCLES]
-    assert cycles == [["service.a", "service.b", "service.a"]]
+def test_a_planted_cycle_is_found() -> None:
+    planted = {"service.a": {"service.b"}, "service.b": {"service.a"}, "service.c": {"service.a"}}
+    assert find_cycles(planted) == [["service.a", "service.b", "service.a"]]
 
 
 def test_the_packages_and_the_layer_rules_agree() -> None:

@@ -122,3 +122,60 @@ def test_clip_bad_folder(tmp_path: Path) -> None:
     pytest.importorskip("transformers")
     with pytest.raises(EncoderUnavailableError, match="cannot load a CLIP model"):
         get_text_encoder("clip-vit-b32", model_path=str(tmp_path / "missing"))
+
+
+class TestModelSpaces:
+    """A scene whose features a CLIP model computed (``clip-...@<hash>``) embeds text with that model's own text
+    tower, from the same folder, and refuses any other."""
+
+    @pytest.fixture
+    def clip_folder(self, tmp_path: Path) -> Path:
+        pytest.importorskip("transformers")
+        from test_maps2d_models import tiny_clip
+
+        return tiny_clip(tmp_path / "clip")
+
+    @pytest.mark.slow  # imports transformers and loads a model (2-5 s here)
+    @pytest.mark.usefixtures("offline")
+    def test_same_folder_embeds(self, clip_folder: Path) -> None:
+        from panogs_core.language.model_identity import clip_space
+
+        space = clip_space(clip_folder)
+        enc = get_text_encoder(space, model_path=str(clip_folder))
+        assert enc.space == space
+        emb = encode_labels(enc, ["chair", "table"])
+        assert emb.shape == (2, 12)
+        assert emb.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-5)
+        # The CLIP prompt, as for clip-vit-b32: the same as encoding the prompted text.
+        np.testing.assert_allclose(emb[0], enc.encode(["a chair in a scene"])[0], atol=1e-6)
+
+    @pytest.mark.slow
+    @pytest.mark.usefixtures("offline")
+    def test_other_weights_refused(self, clip_folder: Path, tmp_path: Path) -> None:
+        from test_maps2d_models import tiny_clip
+
+        from panogs_core.language.model_identity import clip_space
+
+        space = clip_space(clip_folder)
+        other = tiny_clip(tmp_path / "other", seed=1)
+        with pytest.raises(EncoderUnavailableError, match=r"holds other weights \(clip-vit-w16p8-16@"):
+            get_text_encoder(space, model_path=str(other))
+
+    def test_needs_the_model(self) -> None:
+        with pytest.raises(EncoderUnavailableError, match="clip-vit-b16@0123456789abcdef: no CLIP model configured"):
+            get_text_encoder("clip-vit-b16@0123456789abcdef")
+
+    def test_missing_folder(self, tmp_path: Path) -> None:
+        with pytest.raises(EncoderUnavailableError, match="not a folder, and not a hub name"):
+            get_text_encoder("clip-vit-b16@0123456789abcdef", model_path=str(tmp_path / "nope"))
+
+    def test_prompt_templates(self) -> None:
+        from panogs_core.language.text_encoders import is_model_space, prompt_template
+
+        assert is_model_space("clip-vit-l14-336@0123456789abcdef")
+        assert not is_model_space("clip-vit-b32")
+        assert not is_model_space("lseg@x")
+        assert prompt_template("clip-vit-b16@0123456789abcdef") == "a {} in a scene"
+        assert prompt_template("minilm-l6") == "{}"
+        assert prompt_template("other") == "{}"

@@ -1,0 +1,273 @@
+"""2D-maps stage costs: time per key frame and peak memory of each supported model at its real size (docs/method.md
+§17, docs/benchmarks.md "2D maps stage costs").
+
+Usage:
+    python bench/maps2d.py [--threads 2] [--frames 2] [--warm 0|1] [--cases sam-vit-b slimsam-77 ...] [--root DIR]
+    python bench/maps2d.py --components   # CPU seconds per part (encoder, decoder per point, crop), one thread
+
+No weights can be downloaded here, so each model is built at its published architecture with random weights and
+saved with ``save_pretrained`` (kept under ``--root``); random weights cost what real ones do, except where the work
+depends on the outputs: the number of masks SAM keeps. So the mask cases keep every candidate up to the stage's
+``max_candidates`` (the most the NMS sees), and the feature cases paint a fixed id map of ``--masks`` rectangles
+(each embedded at every crop margin, plus the whole image). Frames are 640x480 (ScanNet's colour frames as the
+reference resizes them; SAM resizes to 1024 and CLIP crops to 224 whatever the input, so the input size moves
+little). Each case runs in its own process (peak memory is its own ``ru_maxrss``): one warm-up frame (``--warm 0``:
+none, the timed run then includes the models' load), then ``--frames`` timed ones, each in a fresh checkpoint
+folder. Prints a markdown table with wall time and CPU time (user + system) per frame: on a host that other
+processes load, wall time grows with the load while CPU time stays the work's; the room estimate is CPU time /
+threads (a perfect 2-core split, an upper bound on speed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+HEIGHT, WIDTH = 480, 640
+
+# Published architectures (the hub's config.json of each; SlimSAM-77: a SAM ViT-B pruned to width 168).
+SAM_ARCH = {
+    "sam-vit-b": {},
+    "slimsam-77": {"hidden_size": 168, "mlp_dim": 696},
+}
+CLIP_ARCH = {
+    "clip-b32": (
+        {
+            "hidden_size": 768,
+            "intermediate_size": 3072,
+            "num_hidden_layers": 12,
+            "num_attention_heads": 12,
+            "patch_size": 32,
+        },
+        {"hidden_size": 512, "intermediate_size": 2048, "num_attention_heads": 8},
+        512,
+    ),
+    "clip-b16": (
+        {
+            "hidden_size": 768,
+            "intermediate_size": 3072,
+            "num_hidden_layers": 12,
+            "num_attention_heads": 12,
+            "patch_size": 16,
+        },
+        {"hidden_size": 512, "intermediate_size": 2048, "num_attention_heads": 8},
+        512,
+    ),
+    "clip-l14": (
+        {
+            "hidden_size": 1024,
+            "intermediate_size": 4096,
+            "num_hidden_layers": 24,
+            "num_attention_heads": 16,
+            "patch_size": 14,
+        },
+        {"hidden_size": 768, "intermediate_size": 3072, "num_attention_heads": 12},
+        768,
+    ),
+}
+# case name -> (masks model, features model, settings)
+CASES = {
+    "sam-vit-b": ("sam-vit-b", None, {"points_per_side": 32}),
+    "slimsam-77": ("slimsam-77", None, {"points_per_side": 32}),
+    "slimsam-77-p16": ("slimsam-77", None, {"points_per_side": 16}),
+    "clip-b32": (None, "clip-b32", {}),
+    "clip-b16": (None, "clip-b16", {}),
+    "clip-b16-1crop": (None, "clip-b16", {"crop_margins": (0.1,)}),
+    "clip-l14": (None, "clip-l14", {}),
+    "slimsam-77-p16+clip-b16": ("slimsam-77", "clip-b16", {"points_per_side": 16}),
+}
+KEEP_ALL = {"pred_iou_thresh": -1.0, "stability_score_thresh": 0.0, "min_mask_fraction": 0.0}
+
+
+def build(name: str, root: Path) -> Path:
+    """The model's folder under ``root``, saved once with random weights."""
+    folder = root / name
+    if (folder / "config.json").is_file():
+        return folder
+    import torch
+
+    torch.manual_seed(0)
+    if name in SAM_ARCH:
+        from transformers import SamConfig, SamImageProcessorPil, SamModel
+
+        SamModel(SamConfig(vision_config=SAM_ARCH[name])).save_pretrained(folder)
+        SamImageProcessorPil().save_pretrained(folder)
+    else:
+        from transformers import CLIPConfig, CLIPImageProcessorPil, CLIPModel
+
+        vision, text, dim = CLIP_ARCH[name]
+        CLIPModel(CLIPConfig(vision_config=vision, text_config=text, projection_dim=dim)).save_pretrained(folder)
+        CLIPImageProcessorPil().save_pretrained(folder)
+    return folder
+
+
+def frames(count: int, masks: int | None):
+    """Synthetic 640x480 frames; with ``masks``, an id map of that many rectangles (a features-only run)."""
+    from panogs_core.stages.maps2d import FrameImage
+
+    rng = np.random.default_rng(0)
+    ids = None
+    if masks:
+        side = int(np.ceil(np.sqrt(masks)))
+        rows = np.minimum(np.arange(HEIGHT) * side // HEIGHT, side - 1)
+        cols = np.minimum(np.arange(WIDTH) * side // WIDTH, side - 1)
+        ids = (rows[:, None] * side + cols[None, :] + 1).astype(np.int64)
+        ids[ids > masks] = 0
+    for i in range(count):
+        image = rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+        yield FrameImage(f"{i:06d}", image, ids)
+
+
+def run_case(name: str, args: argparse.Namespace) -> dict[str, object]:
+    """One case in this process: warm-up frame, then the timed frames."""
+    import torch
+
+    from panogs_core.stages.maps2d import Maps2DConfig, compute_2d_maps
+
+    torch.set_num_threads(args.threads)
+    masks_name, feats_name, extra = CASES[name]
+    root = Path(args.root)
+    masks_dir = build(masks_name, root / "models") if masks_name else None
+    feats_dir = build(feats_name, root / "models") if feats_name else None
+    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **extra})
+    n_masks = None if masks_dir else args.masks
+    out = root / "runs" / name
+    shutil.rmtree(out, ignore_errors=True)  # a kept folder would be continued, not computed
+    start = time.perf_counter()
+    if args.warm:
+        compute_2d_maps(frames(1, n_masks), out / "warm", cfg, masks_model=masks_dir, features_model=feats_dir)
+    warm = time.perf_counter() - start
+    cpu_before = _cpu_seconds()
+    start = time.perf_counter()
+    result = compute_2d_maps(
+        frames(args.frames, n_masks), out / "timed", cfg, masks_model=masks_dir, features_model=feats_dir
+    )
+    per_frame = (time.perf_counter() - start) / args.frames
+    cpu_per_frame = (_cpu_seconds() - cpu_before) / args.frames
+    sizes = [p.stat().st_size for p in (out / "timed").rglob("*") if p.suffix in (".png", ".npy")]
+    return {
+        "case": name,
+        "per_frame_s": per_frame,
+        "cpu_per_frame_s": cpu_per_frame,
+        "first_s": warm,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "masks": [f.mask_count for f in result.frames],
+        "bytes_per_frame": sum(sizes) / args.frames,
+    }
+
+
+def run_components(args: argparse.Namespace) -> None:
+    """CPU seconds of each model's parts on one thread: SAM's image encoder per frame and decoder per prompt
+    point, CLIP's image tower per 224-px crop (a batch of 8). Prints one JSON line each."""
+    import torch
+    from transformers import CLIPModel, SamModel
+
+    torch.set_num_threads(1)
+    root = Path(args.root) / "models"
+    with torch.inference_mode():
+        for name in CLIP_ARCH:
+            clip = CLIPModel.from_pretrained(build(name, root)).eval()
+            crops = torch.randn(8, 3, 224, 224)
+            clip.get_image_features(pixel_values=crops[:1])
+            before = _cpu_seconds()
+            clip.get_image_features(pixel_values=crops)
+            print(json.dumps({"model": name, "cpu_s_per_crop": round((_cpu_seconds() - before) / 8, 3)}), flush=True)
+            del clip
+        for name in SAM_ARCH:
+            sam = SamModel.from_pretrained(build(name, root)).eval()
+            before = _cpu_seconds()
+            embeddings = sam.get_image_embeddings(torch.randn(1, 3, 1024, 1024))
+            encoder = _cpu_seconds() - before
+            points = torch.rand(1, 64, 1, 2) * 1000
+            before = _cpu_seconds()
+            sam(image_embeddings=embeddings, input_points=points, input_labels=torch.ones(1, 64, 1, dtype=torch.long))
+            per_point = (_cpu_seconds() - before) / 64
+            print(
+                json.dumps(
+                    {"model": name, "encoder_cpu_s": round(encoder, 2), "decoder_cpu_s_per_point": round(per_point, 3)}
+                ),
+                flush=True,
+            )
+            del sam
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process: on a host other processes load, the work itself."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--frames", type=int, default=2, help="timed frames per case (after one warm-up)")
+    parser.add_argument("--masks", type=int, default=32, help="masks per frame: max_masks, and the features' id map")
+    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--warm", type=int, default=1, choices=(0, 1), help="0: no warm-up frame (the timed run loads)")
+    parser.add_argument("--root", default="/tmp/maps2d-bench")
+    parser.add_argument("--components", action="store_true", help="per-part CPU seconds on one thread instead")
+    parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one case, print its JSON
+    args = parser.parse_args()
+    if args.components:
+        run_components(args)
+        return
+    if args.one:
+        print(json.dumps(run_case(args.one, args)))
+        return
+    print(
+        f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.processor() or platform.machine()}, "
+        f"load {os.getloadavg()[0]:.2f}, {args.threads} threads, {args.frames} timed frames, {args.masks} masks"
+    )
+    print(
+        "| case | wall s / key frame | CPU s / key frame | first frame wall s | peak RSS MB | masks "
+        "| MB written / frame "
+        "| 100 frames, min (CPU s / threads) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.cases:
+        argv = [
+            sys.executable,
+            __file__,
+            "--one",
+            name,
+            "--threads",
+            str(args.threads),
+            "--frames",
+            str(args.frames),
+            "--masks",
+            str(args.masks),
+            "--warm",
+            str(args.warm),
+            "--root",
+            args.root,
+        ]
+        proc = subprocess.run(argv, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            print(f"| {name} | failed: {proc.stderr.strip().splitlines()[-1]} |")
+            continue
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        room_min = row["cpu_per_frame_s"] / args.threads * 100 / 60
+        print(
+            f"| {name} | {row['per_frame_s']:.2f} | {row['cpu_per_frame_s']:.2f} | {row['first_s']:.2f} | "
+            f"{row['peak_mb']:.0f} | {max(row['masks'])} | {row['bytes_per_frame'] / 1e6:.2f} | {room_min:.1f} |",
+            flush=True,
+        )
+    print(f"# load after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""The torch half's model loading: a Segment-Anything-family model and a CLIP-family image tower, with their
+processors, from a folder in the Hugging Face layout (through :mod:`transformers`; no model code here).
+
+Processors are the Pillow ones (``...ImageProcessorPil``): the default ones of transformers 5 need torchvision,
+which does not load beside the CPU build of torch here, and the Pillow ones give the same pixels on every install.
+Weights load with ``local_files_only``: a hub name is resolved to the local cache first
+(:func:`panogs_core.language.model_identity.resolve_model_dir`), so nothing is fetched here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from panogs_core.language.model_identity import ModelLoadError, read_config
+
+SAM_TYPES = ("sam",)  # SAM ViT-B/L/H, SlimSAM (pruned SAM, same classes)
+CLIP_TYPES = ("clip",)
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model ready to run: the module in eval mode on its device, and its processor."""
+
+    model: Any
+    processor: Any
+    folder: Path
+    device: torch.device
+    dtype: torch.dtype
+
+
+def pick_device(device: str) -> tuple[torch.device, torch.dtype]:
+    """The device and dtype of a ``Maps2DConfig.device``: CUDA in half precision, else the CPU in float32."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ModelLoadError(f"maps2d.device {device!r}: torch sees no CUDA device")
+    return dev, (torch.float16 if dev.type == "cuda" else torch.float32)
+
+
+def load_sam(folder: Path, device: str) -> LoadedModel:
+    """A SAM-family model and its processor.
+
+    Raises:
+        ModelLoadError: the folder is not a SAM model's, or its files do not load.
+    """
+    from transformers import SamImageProcessorPil, SamModel
+
+    kind = read_config(folder).get("model_type")
+    if kind not in SAM_TYPES:
+        raise ModelLoadError(
+            f"{folder}: config.json model_type {kind!r}, expected a Segment Anything model ('sam': SAM ViT-B/L/H, "
+            "SlimSAM)"
+        )
+    _need_processor(folder, "SAM")
+    dev, dtype = pick_device(device)
+    try:
+        processor = SamImageProcessorPil.from_pretrained(folder, local_files_only=True)
+        model: Any = SamModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
+    except Exception as exc:  # transformers and safetensors raise many types for a bad file; all mean "no"
+        raise ModelLoadError(f"{folder}: the SAM model does not load: {exc}") from exc
+    return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)
+
+
+def load_clip(folder: Path, device: str) -> LoadedModel:
+    """A CLIP model's image tower and its image processor (the text tower stays for
+    :mod:`panogs_core.language.text_encoders`, which loads the same folder).
+
+    Raises:
+        ModelLoadError: the folder is not a CLIP model's, or its files do not load.
+    """
+    from transformers import CLIPImageProcessorPil, CLIPModel
+
+    kind = read_config(folder).get("model_type")
+    if kind not in CLIP_TYPES:
+        raise ModelLoadError(f"{folder}: config.json model_type {kind!r}, expected a CLIP model ('clip')")
+    _need_processor(folder, "CLIP")
+    dev, dtype = pick_device(device)
+    try:
+        processor = CLIPImageProcessorPil.from_pretrained(folder, local_files_only=True)
+        model: Any = CLIPModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
+    except Exception as exc:  # as above
+        raise ModelLoadError(f"{folder}: the CLIP model does not load: {exc}") from exc
+    return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)
+
+
+def _need_processor(folder: Path, what: str) -> None:
+    if not (folder / "preprocessor_config.json").is_file():
+        raise ModelLoadError(
+            f"{folder}: no preprocessor_config.json; save the {what} processor beside the model "
+            "(processor.save_pretrained(folder))"
+        )

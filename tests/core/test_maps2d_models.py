@@ -1,0 +1,376 @@
+"""The 2D-maps stage through real model code: tiny SAM and CLIP models with random weights, saved as
+``save_pretrained`` saves a real checkpoint and loaded through exactly the path a user's folder takes.
+
+Random weights give meaningless masks and features: these tests assert the plumbing (shapes, dtypes, id
+conventions, unit rows, determinism, progress, cancel, resume, errors), not quality.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("transformers")
+pytest.importorskip("PIL")
+
+from panogs_core.errors import Cancelled, InputError, ShapeError
+from panogs_core.language.model_identity import clip_space, model_hash
+from panogs_core.stages.maps2d import (
+    FrameImage,
+    Maps2DConfig,
+    Maps2DResult,
+    ModelLoadError,
+    compute_2d_maps,
+    identify_models,
+)
+
+pytestmark = pytest.mark.slow  # imports transformers and loads models (1-8 s a test here)
+
+# Random weights score every mask near 0: keep them all, so that the painting and the crops run.
+KEEP_ALL = {"pred_iou_thresh": -1.0, "stability_score_thresh": 0.0, "min_mask_fraction": 0.0}
+
+
+def _byte_alphabet() -> list[str]:
+    """The 256 printable stand-ins of the bytes used by byte-level BPE (GPT-2 / CLIP convention)."""
+    printable = {*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1), *range(ord("®"), ord("ÿ") + 1)}
+    shifted = iter(range(256, 512))
+    return [chr(b) if b in printable else chr(next(shifted)) for b in range(256)]
+
+
+def tiny_clip(folder: Path, *, seed: int = 0, projection_dim: int = 12) -> Path:
+    """A random tiny CLIP model, its image processor and a tiny BPE tokenizer, saved into ``folder``."""
+    import torch
+    from transformers import CLIPConfig, CLIPImageProcessorPil, CLIPModel
+
+    alphabet = _byte_alphabet()
+    merges = ["c h", "ch a", "cha i", "chai r</w>"]
+    tokens = [*alphabet, *(c + "</w>" for c in alphabet), "ch", "cha", "chai", "chair</w>"]
+    tokens += ["<|startoftext|>", "<|endoftext|>"]
+    vocab = {t: i for i, t in enumerate(tokens)}
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "vocab.json").write_text(json.dumps(vocab))
+    (folder / "merges.txt").write_text("#version: 0.2\n" + "\n".join(merges) + "\n")
+    special = {
+        "bos_token_id": vocab["<|startoftext|>"],
+        "eos_token_id": vocab["<|endoftext|>"],
+        "pad_token_id": vocab["<|endoftext|>"],
+    }
+    config = CLIPConfig(
+        text_config={
+            "vocab_size": len(vocab),
+            "hidden_size": 16,
+            "intermediate_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "max_position_embeddings": 16,
+            **special,
+        },
+        vision_config={
+            "hidden_size": 16,
+            "intermediate_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "image_size": 16,
+            "patch_size": 8,
+        },
+        projection_dim=projection_dim,
+    )
+    torch.manual_seed(seed)
+    CLIPModel(config).save_pretrained(folder)
+    CLIPImageProcessorPil(size={"shortest_edge": 16}, crop_size={"height": 16, "width": 16}).save_pretrained(folder)
+    return folder
+
+
+def tiny_sam(folder: Path, *, seed: int = 0) -> Path:
+    """A random tiny SAM (SlimSAM and SAM ViT-B/H share its classes) and its processor, saved into ``folder``."""
+    import torch
+    from transformers import SamConfig, SamImageProcessorPil, SamModel
+
+    config = SamConfig(
+        vision_config={
+            "hidden_size": 16,
+            "output_channels": 16,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "image_size": 64,
+            "patch_size": 8,
+            "mlp_dim": 32,
+            "global_attn_indexes": [1],
+            "window_size": 4,
+            "num_pos_feats": 8,
+        },
+        prompt_encoder_config={"hidden_size": 16, "image_size": 64, "patch_size": 8, "mask_input_channels": 4},
+        mask_decoder_config={
+            "hidden_size": 16,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "mlp_dim": 32,
+            "iou_head_hidden_dim": 16,
+        },
+    )
+    torch.manual_seed(seed)
+    SamModel(config).save_pretrained(folder)
+    SamImageProcessorPil(
+        size={"longest_edge": 64},
+        pad_size={"height": 64, "width": 64},
+        mask_size={"longest_edge": 16},
+        mask_pad_size={"height": 16, "width": 16},
+    ).save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("models2d")
+    return tiny_sam(root / "sam"), tiny_clip(root / "clip")
+
+
+@pytest.fixture(autouse=True)
+def offline(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No network: loading must work from local files only."""
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
+
+
+def _frames(count: int = 3, size: tuple[int, int] = (36, 48)) -> list[FrameImage]:
+    rng = np.random.default_rng(7)
+    out = []
+    for i in range(count):
+        image = np.zeros((*size, 3), dtype=np.uint8)
+        image[: size[0] // 2] = (200, 40, 40)  # two halves and a box: structure, not noise alone
+        image[size[0] // 2 :] = (40, 40, 200)
+        image[8:20, 10 + 4 * i : 26 + 4 * i] = (30, 200, 30)
+        image = np.clip(image + rng.integers(0, 20, image.shape), 0, 255).astype(np.uint8)
+        out.append(FrameImage(f"{i:06d}", image))
+    return out
+
+
+CFG = Maps2DConfig(
+    points_per_side=4, points_per_batch=5, max_masks=6, mask_long_side=32, feature_long_side=8, device="cpu", **KEEP_ALL
+)
+
+
+class TestMaps2DWithModels:
+    def test_smoke(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, clip = models
+        calls: list[tuple[int, int]] = []
+        result = compute_2d_maps(
+            iter(_frames()),
+            tmp_path / "maps",
+            CFG,
+            masks_model=sam,
+            features_model=clip,
+            total=3,
+            on_progress=lambda d, t: calls.append((d, t)),
+        )
+        assert calls == [(1, 3), (2, 3), (3, 3)]
+        assert result.complete
+        assert [f.id for f in result.frames] == ["000000", "000001", "000002"]
+        assert result.space == clip_space(clip)
+        assert result.space.startswith("clip-vit-w16p8-16@")  # a 16-wide tower is no published size
+        assert result.feature_dim == 12
+        for entry in result.frames:
+            ids = result.read_masks(entry.id)
+            assert ids.shape == (24, 32)  # 36x48 scaled to a long side of 32
+            assert ids.dtype == np.uint16
+            present = np.unique(ids[ids > 0])
+            assert present.tolist() == list(range(1, entry.mask_count + 1))  # consecutive ids from 1
+            assert 1 <= entry.mask_count <= CFG.max_masks
+            feats = result.read_features(entry.id)
+            assert feats.shape == (6, 8, 12)
+            assert feats.dtype == np.float16
+            np.testing.assert_allclose(np.linalg.norm(feats.astype(np.float32), axis=-1), 1.0, atol=2e-3)
+        # The files the manifest names, the bundle's names.
+        assert (tmp_path / "maps" / "masks" / "000001.png").is_file()
+        assert (tmp_path / "maps" / "features" / "000001.npy").is_file()
+        again = Maps2DResult.load(tmp_path / "maps")
+        assert again == result
+
+    def test_deterministic(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, clip = models
+        a = compute_2d_maps(_frames(2), tmp_path / "a", CFG, masks_model=sam, features_model=clip)
+        b = compute_2d_maps(_frames(2), tmp_path / "b", CFG, masks_model=sam, features_model=clip)
+        assert a.key == b.key
+        for entry in a.frames:
+            np.testing.assert_array_equal(a.read_masks(entry.id), b.read_masks(entry.id))
+            np.testing.assert_array_equal(a.read_features(entry.id), b.read_features(entry.id))
+
+    def test_cancel_between_frames_then_resume(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, clip = models
+
+        def stop_after_two(done: int, total: int) -> None:
+            if done == 2:
+                raise Cancelled("stop")
+
+        with pytest.raises(Cancelled):
+            compute_2d_maps(
+                _frames(), tmp_path / "m", CFG, masks_model=sam, features_model=clip, on_progress=stop_after_two
+            )
+        partial = Maps2DResult.load(tmp_path / "m")
+        assert not partial.complete
+        assert [f.id for f in partial.frames] == ["000000", "000001"]  # both written before the cancel
+        first = partial.read_features("000000").copy()
+        computed: list[str] = []
+        frames = _frames()
+
+        def recording() -> Iterator[FrameImage]:
+            for f in frames:
+                computed.append(f.id)
+                yield f
+
+        mtime = (tmp_path / "m" / "features" / "000000.npy").stat().st_mtime_ns
+        done = compute_2d_maps(recording(), tmp_path / "m", CFG, masks_model=sam, features_model=clip)
+        assert done.complete
+        assert len(done.frames) == 3
+        assert (tmp_path / "m" / "features" / "000000.npy").stat().st_mtime_ns == mtime  # not recomputed
+        np.testing.assert_array_equal(done.read_features("000000"), first)
+
+    def test_other_settings_start_over(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, clip = models
+        a = compute_2d_maps(_frames(1), tmp_path / "m", CFG, masks_model=sam, features_model=clip)
+        other = Maps2DConfig(**{**CFG.__dict__, "feature_long_side": 4})
+        b = compute_2d_maps(_frames(1), tmp_path / "m", other, masks_model=sam, features_model=clip)
+        assert a.key != b.key
+        assert b.read_features("000000").shape == (3, 4, 12)
+
+    def test_masks_only(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, _ = models
+        result = compute_2d_maps(_frames(2), tmp_path / "m", CFG, masks_model=sam)
+        assert result.features_model is None
+        assert result.space is None
+        assert result.feature_dim is None
+        assert result.read_masks("000000").dtype == np.uint16
+        assert not (tmp_path / "m" / "features").exists()
+        with pytest.raises(InputError, match="no feature map here"):
+            result.read_features("000000")
+
+    def test_features_only_from_the_frames_masks(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        _, clip = models
+        frames = []
+        for f in _frames(2):
+            ids = np.zeros((12, 16), dtype=np.uint8)
+            ids[:6] = 7  # sparse ids, as an 8-bit bundle map has them
+            ids[8:, 4:12] = 255
+            frames.append(FrameImage(f.id, f.color, ids))
+        result = compute_2d_maps(frames, tmp_path / "m", CFG, features_model=clip)
+        assert result.masks_model is None
+        feats = result.read_features("000000").astype(np.float32)
+        assert feats.shape == (6, 8, 12)
+        top, bottom_box, uncovered = feats[0, 0], feats[5, 3], feats[4, 0]
+        assert np.allclose(feats[:3], top, atol=1e-3)  # one mask: one feature on all its cells
+        assert not np.allclose(top, bottom_box, atol=1e-3)
+        assert not np.allclose(top, uncovered, atol=1e-3)
+        assert not np.allclose(bottom_box, uncovered, atol=1e-3)
+        assert result.frames[0].mask_count == 2
+
+    def test_features_only_needs_masks(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        _, clip = models
+        with pytest.raises(InputError, match="frame 000000: no mask map, and no masks model"):
+            compute_2d_maps(_frames(1), tmp_path / "m", CFG, features_model=clip)
+
+    def test_exception(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        sam, _clip = models
+        with pytest.raises(InputError, match="neither masks_model nor features_model"):
+            compute_2d_maps(_frames(1), tmp_path / "m", CFG)
+        bad = [FrameImage("../x", _frames(1)[0].color)]
+        with pytest.raises(InputError, match=r"frame id '\.\./x'"):
+            compute_2d_maps(bad, tmp_path / "m", CFG, masks_model=sam)
+        twice = [_frames(1)[0], _frames(1)[0]]
+        with pytest.raises(InputError, match="appears twice"):
+            compute_2d_maps(twice, tmp_path / "m", CFG, masks_model=sam)
+        grey = [FrameImage("a", np.zeros((8, 8), dtype=np.uint8))]
+        with pytest.raises(ShapeError, match=r"frame a: colour uint8 \(8, 8\), expected \(H, W, 3\) uint8"):
+            compute_2d_maps(grey, tmp_path / "m", CFG, masks_model=sam)
+
+
+class TestModelErrors:
+    """A model that cannot load fails before any frame is read, naming its place and what is missing."""
+
+    @staticmethod
+    def _never() -> Iterator[FrameImage]:
+        raise AssertionError("a frame was read before the models loaded")
+        yield  # pragma: no cover
+
+    def test_missing_folder(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        with pytest.raises(ModelLoadError, match="not a folder, and not a hub name"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model=str(tmp_path / "nope"))
+
+    def test_hub_name_not_cached(self, tmp_path: Path) -> None:
+        with pytest.raises(ModelLoadError, match="facebook/no-such-model: not in the local hub cache"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model="facebook/no-such-model")
+
+    def test_no_weights(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        folder = tmp_path / "sam"
+        folder.mkdir()
+        (folder / "config.json").write_text((models[0] / "config.json").read_text())
+        with pytest.raises(ModelLoadError, match=r"sam: no weights \(\*.safetensors"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model=folder)
+
+    def test_no_config(self, tmp_path: Path) -> None:
+        folder = tmp_path / "sam"
+        folder.mkdir()
+        (folder / "model.safetensors").write_bytes(b"x")
+        with pytest.raises(ModelLoadError, match=r"sam: no config\.json"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model=folder)
+
+    def test_no_processor(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        import shutil
+
+        folder = tmp_path / "sam"
+        shutil.copytree(models[0], folder)
+        (folder / "preprocessor_config.json").unlink()
+        with pytest.raises(ModelLoadError, match=r"no preprocessor_config\.json; save the SAM processor"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model=folder)
+
+    def test_wrong_family(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        sam, clip = models
+        with pytest.raises(ModelLoadError, match="model_type 'clip', expected a Segment Anything model"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, masks_model=clip)
+        with pytest.raises(ModelLoadError, match="model_type 'sam', expected a CLIP model"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, features_model=sam)
+
+    def test_corrupt_weights(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        import shutil
+
+        folder = tmp_path / "clip"
+        shutil.copytree(models[1], folder)
+        (folder / "model.safetensors").write_bytes(b"not a safetensors file")
+        with pytest.raises(ModelLoadError, match="the CLIP model does not load"):
+            compute_2d_maps(self._never(), tmp_path / "m", CFG, features_model=folder)
+
+
+class TestIdentity:
+    def test_hash_follows_the_files_not_the_path(self, tmp_path: Path, models: tuple[Path, Path]) -> None:
+        import shutil
+
+        sam, clip = models
+        copy = tmp_path / "elsewhere" / "sam"
+        shutil.copytree(sam, copy)
+        assert model_hash(copy) == model_hash(sam)
+        other = tiny_sam(tmp_path / "sam_seed1", seed=1)
+        assert model_hash(other) != model_hash(sam)
+        masks_id, feats_id = identify_models(sam, clip)
+        assert masks_id is not None
+        assert masks_id.sha256 == model_hash(sam)
+        assert feats_id is not None
+        assert feats_id.space == clip_space(clip)
+        assert feats_id.space.endswith("@" + feats_id.sha256[:16])
+
+    def test_space_names_the_architecture(self, tmp_path: Path) -> None:
+        folder = tmp_path / "c"
+        folder.mkdir()
+        (folder / "model.safetensors").write_bytes(b"w")
+        vision = {"hidden_size": 768, "patch_size": 16, "image_size": 224}
+        (folder / "config.json").write_text(json.dumps({"model_type": "clip", "vision_config": vision}))
+        assert clip_space(folder).startswith("clip-vit-b16@")
+        vision = {"hidden_size": 1024, "patch_size": 14, "image_size": 336}
+        (folder / "config.json").write_text(json.dumps({"model_type": "clip", "vision_config": vision}))
+        assert clip_space(folder).startswith("clip-vit-l14-336@")
+        (folder / "config.json").write_text(json.dumps({"model_type": "sam"}))
+        with pytest.raises(ModelLoadError, match="expected a CLIP model"):
+            clip_space(folder)
