@@ -68,9 +68,10 @@ readme-check: install ## run the demo afresh and fail when README.md shows other
 	$(PY) tools/run_folder_docs.py --check
 	$(PY) tools/readme_demo.py --check
 
-docs-tables: $(VENV)/.installed ## write the generated docs: run-folder tables, docs/settings.md, the module lists
+docs-tables: $(VENV)/.installed ## write the generated docs: run-folder tables, docs/settings.md, the module lists, the layer sketch
 	$(PY) tools/run_folder_docs.py --write
 	$(PY) tools/reference_docs.py --write
+	$(PY) tools/layer_sketch.py --write
 
 docs-cli: $(VENV)/.installed ## write docs/cli.md, the reference of every command, from the parsers
 	$(PY) tools/cli_docs.py --write

@@ -19,8 +19,11 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+from generated_docs import write_or_check  # tools/generated_docs.py: the script's own folder is on sys.path
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's parsers, whichever checkout the environment installed
+
 
 from panogs_core.cli import build_parser  # noqa: E402
 from panogs_core.cli.command_groups import not_installed_text  # noqa: E402
@@ -151,18 +154,15 @@ def write(root: Path = REPO) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--write", action="store_true", help=f"rewrite {PAGE}")
-    mode.add_argument("--check", action="store_true", help=f"fail when {PAGE} differs from the parsers")
-    args = parser.parse_args(argv)
-    if args.write:
-        sys.stdout.write(f"wrote {PAGE}\n" if write() else f"{PAGE} already matches the parsers\n")
-        return 0
-    problems = differences()
-    if problems:
-        sys.stderr.write("\n".join([*problems, "run tools/cli_docs.py --write (make docs-cli)"]) + "\n")
-    return 1 if problems else 0
+    return write_or_check(
+        argv,
+        description=__doc__.splitlines()[0],
+        what=PAGE,
+        source="the parsers",
+        write=lambda: [PAGE] if write() else [],
+        differences=differences,
+        hint="run tools/cli_docs.py --write (make docs-cli)",
+    )
 
 
 if __name__ == "__main__":

@@ -11,13 +11,14 @@ declarations, so it cannot say other than what the test keeps. ``--check`` fails
 
 from __future__ import annotations
 
-import argparse
 import difflib
 import importlib.util
 import sys
 import textwrap
 from pathlib import Path
 from types import ModuleType
+
+from generated_docs import write_or_check  # tools/generated_docs.py: the script's own folder is on sys.path
 
 REPO = Path(__file__).resolve().parents[1]
 RULES = REPO / "tests" / "core" / "test_import_graph.py"
@@ -91,18 +92,15 @@ def write(root: Path = REPO) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--write", action="store_true", help="rewrite the sketch between the markers")
-    mode.add_argument("--check", action="store_true", help="fail when the sketch differs from the rules")
-    args = parser.parse_args(argv)
-    if args.write:
-        sys.stdout.write(f"wrote {DOC}\n" if write() else "the sketch already matches the rules\n")
-        return 0
-    problems = sketch_difference()
-    if problems:
-        sys.stderr.write("\n".join([*problems, "run tools/layer_sketch.py --write"]) + "\n")
-    return 1 if problems else 0
+    return write_or_check(
+        argv,
+        description=__doc__.splitlines()[0],
+        what="the sketch between the markers",
+        source="the rules",
+        write=lambda: [DOC] if write() else [],
+        differences=sketch_difference,
+        hint="run tools/layer_sketch.py --write",
+    )
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ Both stand between markers; ``--check`` fails when either differs from the code 
 
 from __future__ import annotations
 
-import argparse
 import ast
 import difflib
 import importlib
@@ -30,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import annotated_types
+from generated_docs import write_or_check  # tools/generated_docs.py: the script's own folder is on sys.path
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings
 
@@ -285,20 +285,16 @@ def write(root: Path = REPO) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--write", action="store_true", help="rewrite the generated blocks")
-    mode.add_argument("--check", action="store_true", help="fail when a generated block differs from the code")
-    args = parser.parse_args(argv)
-    if args.write:
-        changed = write()
-        sys.stdout.write(f"wrote {', '.join(changed)}\n" if changed else "the reference docs already match the code\n")
-        problems = [f"{name}: no module docstring" for name in modules_without_docstring()]
-    else:
-        problems = differences()
-    if problems:
-        sys.stderr.write("\n".join([*problems, "run tools/reference_docs.py --write"]) + "\n")
-    return 1 if problems else 0
+    return write_or_check(
+        argv,
+        description=(__doc__ or "").splitlines()[0],
+        what="the generated blocks",
+        source="the code",
+        write=write,
+        differences=differences,
+        after_write=lambda: [f"{name}: no module docstring" for name in modules_without_docstring()],
+        hint="run tools/reference_docs.py --write",
+    )
 
 
 if __name__ == "__main__":

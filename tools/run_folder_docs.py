@@ -12,15 +12,17 @@ other downloads than the declaration's.
 
 from __future__ import annotations
 
-import argparse
 import difflib
 import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from generated_docs import write_or_check  # tools/generated_docs.py: the script's own folder is on sys.path
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's declaration, whichever checkout the environment installed
+
 
 from panogs_core.io.run_folder import DOWNLOADABLE, RUN_FILES, RunFile  # noqa: E402
 
@@ -117,21 +119,16 @@ def write(root: Path = REPO) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--write", action="store_true", help="rewrite the tables between the markers")
-    mode.add_argument("--check", action="store_true", help="fail when a table differs from the declaration")
-    args = parser.parse_args(argv)
-    if args.write:
-        changed = write()
-        sys.stdout.write(f"wrote {', '.join(changed)}\n" if changed else "the tables already match the declaration\n")
-        problems = service_doc_differences()
-    else:
-        problems = table_differences() + service_doc_differences()
-    if problems:
-        hint = f"run tools/run_folder_docs.py --write ({SERVICE_DOC}: edit its artifacts row)"
-        sys.stderr.write("\n".join([*problems, hint]) + "\n")
-    return 1 if problems else 0
+    return write_or_check(
+        argv,
+        description=__doc__.splitlines()[0],
+        what="the tables between the markers",
+        source="the declaration",
+        write=write,
+        differences=lambda: table_differences() + service_doc_differences(),
+        after_write=service_doc_differences,
+        hint=f"run tools/run_folder_docs.py --write ({SERVICE_DOC}: edit its artifacts row)",
+    )
 
 
 if __name__ == "__main__":
