@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from capture_room import export_maps, tilted_world, write_record3d, write_tum
+from capture_room import export_maps, import_tilted_tum, tilted_world, write_record3d
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from panogs_core.cli import main as cli_main
@@ -18,9 +18,8 @@ from panogs_core.errors import BundleError
 from panogs_core.gaussians.config import AppearanceConfig
 from panogs_core.io.bundle import open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
-from panogs_core.io.importers.capture import FrameSelection, MapSources
+from panogs_core.io.importers.capture import MapSources
 from panogs_core.io.importers.record3d import Record3DOptions, import_record3d
-from panogs_core.io.importers.tum import TumOptions, import_tum
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import run_pipeline
 from panogs_core.stages.up_direction import camera_up, floor_normal, run_up
@@ -42,23 +41,15 @@ def _cameras(run: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def tilted_run(synth_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[float]]:
+def tilted_run(synth_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The room as a TUM sequence in the tilted world (TUM records no gravity), every 2nd frame imported, run."""
     root = tmp_path_factory.mktemp("tilted")
-    stamps = write_tum(synth_tiny, root / "seq", world=TILT)
-    cam = open_bundle(synth_tiny).camera
-    (root / "seq" / "intrinsics.txt").write_text(f"{cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}\n")
-    room = open_bundle(synth_tiny)
-    features, masks = export_maps(room, [f"{t:.6f}" for t in stamps], root / "maps")
-    maps = MapSources(features=features, masks=masks, feature_space=room.feature_space, vocabulary=room.vocabulary)
-    options = TumOptions(intrinsics=root / "seq" / "intrinsics.txt", maps=maps, selection=FrameSelection(stride=2))
-    import_tum(root / "seq", root / "bundle", options)
-    run_pipeline(root / "bundle", root / "run", NO_FIT)
-    return root, stamps
+    run_pipeline(import_tilted_tum(synth_tiny, root, TILT), root / "run", NO_FIT)
+    return root
 
 
-def test_a_tilted_capture_without_gravity_gets_the_floor_as_up(tilted_run: tuple[Path, list[float]]) -> None:
-    root, _ = tilted_run
+def test_a_tilted_capture_without_gravity_gets_the_floor_as_up(tilted_run: Path) -> None:
+    root = tilted_run
     assert open_bundle(root / "bundle").up is None
     cameras = _cameras(root / "run")
     assert cameras["up_source"] == "floor"
@@ -66,8 +57,8 @@ def test_a_tilted_capture_without_gravity_gets_the_floor_as_up(tilted_run: tuple
     assert abs(np.linalg.norm(cameras["up"]) - 1.0) < 1e-5
 
 
-def test_render_from_a_frame_the_stride_left_out(tilted_run: tuple[Path, list[float]], synth_tiny: Path) -> None:
-    root, _ = tilted_run
+def test_render_from_a_frame_the_stride_left_out(tilted_run: Path, synth_tiny: Path) -> None:
+    root = tilted_run
     bundle = open_bundle(root / "bundle")
     skipped = dict(bundle.skipped_poses)
     assert len(skipped) == len(open_bundle(synth_tiny).frames) - len(bundle.frames) > 0

@@ -93,6 +93,24 @@ def write_tum(room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray
     return stamps
 
 
+def import_tilted_tum(room: Path, root: Path, world: np.ndarray, *, stride: int = 2) -> Path:
+    """The room written as a TUM sequence (which records no gravity) in ``world`` and imported back with the
+    room's maps and vocabulary, every ``stride``-th frame kept; returns the bundle folder (``root / "bundle"``)."""
+    from panogs_core.io.importers.capture import FrameSelection, MapSources
+    from panogs_core.io.importers.tum import TumOptions, import_tum
+
+    scene = open_bundle(room)
+    stamps = write_tum(room, root / "seq", world=world)
+    cam = scene.camera
+    (root / "seq" / "intrinsics.txt").write_text(f"{cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}\n")
+    features, masks = export_maps(scene, [f"{t:.6f}" for t in stamps], root / "maps")
+    maps = MapSources(features=features, masks=masks, feature_space=scene.feature_space, vocabulary=scene.vocabulary)
+    selection = FrameSelection(stride=stride)
+    import_tum(root / "seq", root / "bundle", TumOptions(intrinsics=root / "seq" / "intrinsics.txt", maps=maps,
+                                                         selection=selection))  # fmt: skip
+    return root / "bundle"
+
+
 def write_record3d(room: Path, dst: Path, *, color_scale: int = 4, world: np.ndarray | None = None) -> None:
     """The room as a Record3D EXR + JPG export: colour ``color_scale`` times the depth size, K column-major at
     the colour size, ARKit (OpenGL-axes) quaternion poses, EXR depth in metres, confidence all high; the poses in
