@@ -68,7 +68,8 @@ def _assert_upright(axes: dict[str, list[float]], up: np.ndarray, where: str) ->
 def test_first_view_of_a_tilted_capture_is_upright_and_stays_so(
     browser: Any, view_url: str, tilted_run: Path, artifacts: Path
 ) -> None:
-    up = np.asarray(json.loads((tilted_run / "cameras.json").read_text())["up"])
+    cameras = json.loads((tilted_run / "cameras.json").read_text())
+    up = np.asarray(cameras["up"])
     context = browser.new_context(viewport={"width": 960, "height": 720})
     page = context.new_page()
     try:
@@ -88,7 +89,15 @@ def test_first_view_of_a_tilted_capture_is_upright_and_stays_so(
         page.mouse.up()
         orbited = page.evaluate(CAMERA_AXES)
         canvas_pixels(page, artifacts / "viewer-tilted-capture-orbited.png")
+        # A frame the import's stride left out is in the "look from" list, marked, and looks from its own pose.
+        skipped = next(f for f in cameras["frames"] if f.get("skipped"))
+        choose = page.locator("select[data-role=frame]")
+        label = choose.locator(f"option[value='{skipped['id']}']").text_content()
+        choose.select_option(str(skipped["id"]))
+        position = page.evaluate("() => window.__panogs.viewer.camera.position.toArray()")
     finally:
         context.close()
     assert np.linalg.norm(np.asarray(orbited["right"]) - first["right"]) > 0.1, "the drag did not orbit"
     _assert_upright(orbited, up, "after an orbit")
+    assert label == f"frame {skipped['id']} (not in the bundle)"
+    np.testing.assert_allclose(position, np.asarray(skipped["T_world_cam"])[:3, 3], atol=1e-6)

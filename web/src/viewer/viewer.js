@@ -159,7 +159,8 @@ export class Viewer {
       if (!this.state.cam && this.state.frame === null) this.fit(false);
     }
     const ids = this.cameras.frames.map((frame) => String(frame.id));
-    this.panels.fillFrames(ids, this.state.frame);
+    const skipped = new Set(this.cameras.frames.filter((f) => f.skipped).map((f) => String(f.id)));
+    this.panels.fillFrames(ids, this.state.frame, skipped);
     if (this.state.frame !== null && ids.includes(this.state.frame)) this.lookFromFrame(this.state.frame);
   }
 
