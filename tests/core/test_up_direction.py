@@ -136,3 +136,8 @@ def test_the_estimate_falls_back_to_the_cameras_and_follows_their_sign() -> None
     assert found is not None
     assert _degrees(found, [-0.05, 0, 1]) < 1e-3  # the sign the camera's up gives
     assert run_up((0, 0, 3), [level], floor).up == (0.0, 0.0, 1.0)
+    tilted = run_up(None, [level], floor)  # 2.9 degrees off z: kept as found
+    assert tilted.source == "floor"
+    assert _degrees(tilted.up, [-0.05, 0, 1]) < 1e-3
+    nearly = np.concatenate([walls, np.tile([0.02, 0.0, 1.0], (20, 1))])  # 1.1 degrees off z: z itself
+    assert run_up(None, [level], nearly).up == (0.0, 0.0, 1.0)
