@@ -20,9 +20,10 @@ from panogs_core.io.bundle import open_bundle
 from panogs_core.io.bundle.writer import BundleWriter
 from panogs_core.io.importers.capture import MapSources
 from panogs_core.io.importers.record3d import Record3DOptions, import_record3d
+from panogs_core.io.ply import read_ply_vertices
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import run_pipeline
-from panogs_core.stages.up_direction import camera_up, floor_normal, run_up
+from panogs_core.stages.up_direction import UpDirection, camera_up, floor_normal, run_up
 from panogs_core.types import Camera
 
 TILT = tilted_world((1.0, 0.4, 0.0), 55.0)  # the room's z-up ends up 55 degrees from every world axis it had
@@ -99,6 +100,11 @@ def test_gravity_from_the_source_is_stored_and_used(synth_tiny: Path, tmp_path: 
     run_pipeline(tmp_path / "bundle", tmp_path / "run", NO_FIT)
     cameras = _cameras(tmp_path / "run")
     assert (cameras["up"], cameras["up_source"]) == ([0.0, 1.0, 0.0], "bundle")
+    # Without the source's word, the estimate from the same run's normals and poses finds the same up.
+    vertices = read_ply_vertices(tmp_path / "run" / "gaussians.ply")
+    normals = np.stack([vertices[k] for k in ("nx", "ny", "nz")], axis=1)
+    poses = [np.asarray(f["T_world_cam"]) for f in cameras["frames"]]
+    assert run_up(None, poses, normals) == UpDirection((0.0, 1.0, 0.0), "floor")
 
 
 def test_up_in_scene_json_is_validated_and_normalised(tmp_path: Path) -> None:
