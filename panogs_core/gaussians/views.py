@@ -1,8 +1,9 @@
 """Renders of a finished run from any camera: colour, depth, semantic class, instance, and a query's relevance.
 
 Inputs, all in the run's folder (:mod:`panogs_core.io.run_folder` declares them): ``gaussians.ply`` (the Gaussian
-scene with its labels), ``cameras.json`` (the bundle's intrinsics and frame poses, so that ``--frame ID`` needs no
-bundle), ``vocabulary.json`` and ``instances.json`` (for the palette and text queries).
+scene with its labels), ``cameras.json`` (the bundle's intrinsics, the poses of its frames and of the capture frames
+the importer left out, and the run's up direction, so that ``--frame ID`` needs no bundle), ``vocabulary.json``
+and ``instances.json`` (for the palette and text queries).
 
 A pose is given as JSON: ``{"T_world_cam": 4x4 camera-to-world (OpenCV axes, docs/conventions.md)}``, optionally
 with ``"camera": {"width", "height", "fx", "fy", "cx", "cy"}`` (default: the run's camera) ; ``size`` rescales the
@@ -53,14 +54,37 @@ class ViewImages:
     relevance: np.ndarray | None  # (H, W) float32 in [0, 1], with a query
 
 
-def write_cameras(path: Path, camera: Camera, frames: Any) -> Path:
-    """``cameras.json``: the camera and each frame's id and pose (for renders without the bundle)."""
-    doc = {
-        "camera": {k: getattr(camera, k) for k in ("width", "height", "fx", "fy", "cx", "cy")},
-        "frames": [{"id": f.id, "T_world_cam": np.asarray(f.T_world_cam, float).tolist()} for f in frames],
-    }
+def write_cameras(
+    path: Path,
+    camera: Camera,
+    frames: Any,
+    *,
+    up: tuple[float, float, float] | None = None,
+    up_source: str = "",
+    skipped: tuple[tuple[str, np.ndarray], ...] = (),
+) -> Path:
+    """``cameras.json``: the camera, each frame's id and pose (for renders without the bundle), then the capture
+    frames the importer left out (``"skipped": true``, pose only), and the run's ``up`` and ``up_source``."""
+    doc: dict[str, Any] = {"camera": {k: getattr(camera, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}}
+    if up is not None:
+        doc.update(up=list(up), up_source=up_source)
+    doc["frames"] = [{"id": f.id, "T_world_cam": np.asarray(f.T_world_cam, float).tolist()} for f in frames] + [
+        {"id": frame_id, "T_world_cam": np.asarray(pose, float).tolist(), "skipped": True} for frame_id, pose in skipped
+    ]
     path.write_text(json.dumps(doc))
     return path
+
+
+def parse_up(value: Any, where: str) -> tuple[float, float, float]:
+    """A unit up vector from 3 finite numbers, not all 0."""
+    try:
+        vec = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{where}: expected 3 numbers, got {value!r}") from exc
+    if vec.shape != (3,) or not np.all(np.isfinite(vec)) or not np.linalg.norm(vec) > 1e-9:
+        raise InputError(f"{where}: expected 3 finite numbers, not all 0, got {value!r}")
+    x, y, z = (float(v) for v in vec / np.linalg.norm(vec))
+    return (x, y, z)
 
 
 def parse_camera(doc: Any, where: str) -> Camera:
@@ -131,7 +155,7 @@ def run_camera(run_dir: Path) -> tuple[Camera, dict[str, np.ndarray]]:
 
 
 def view_from_frame(run_dir: Path, frame_id: str, size: tuple[int, int] | None) -> ViewPose:
-    """The pose of key frame ``frame_id`` with the run's camera."""
+    """The pose of capture frame ``frame_id`` (a bundle frame, or one the importer left out) with the run's camera."""
     camera, poses = run_camera(run_dir)
     if frame_id not in poses:
         some = ", ".join(list(poses)[:5])
@@ -289,7 +313,7 @@ def render_to_dir(
     size: tuple[int, int] | None = None,
     query: str | None = None,
 ) -> dict[str, Path]:
-    """Render one view of a run (by key frame id or pose document) and write its PNGs into ``out_dir``."""
+    """Render one view of a run (by capture frame id or pose document) and write its PNGs into ``out_dir``."""
     root = Path(run_dir)
     if (frame is None) == (pose is None):
         raise InputError("render: give exactly one of a frame id or a pose")

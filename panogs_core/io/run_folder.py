@@ -124,9 +124,12 @@ GAUSSIANS_PLY = RunFile(
 CAMERAS_JSON = RunFile(
     "cameras.json",
     JSON,
-    "the camera and the pose of every frame of the bundle, so that `panogs render --frame` needs no bundle",
+    "the camera, the pose of every frame of the bundle and of the capture frames the importer left out "
+    "(`skipped`: true), so that `panogs render --frame` needs no bundle, and the run's `up` (unit vector, world) "
+    "with `up_source` (`bundle`, `floor` or `cameras`: docs/scene_format.md §2.5), which the viewer's first view "
+    "and orbit use",
     _EXPORT,
-    ("panogs_core.gaussians.views", "service.render_child"),
+    ("panogs_core.gaussians.views", "service.render_child", "service.viewer.scene"),
     downloadable=True,
 )
 REPORT_JSON = RunFile(

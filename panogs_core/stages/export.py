@@ -132,8 +132,13 @@ def write_outputs(
     files[GAUSSIANS_PLY.name] = GAUSSIANS_PLY.path(out)
     write_gaussians(files[GAUSSIANS_PLY.name], prims, primitive_colors(prims, fused), semantic, instance, gaussians)
     from panogs_core.gaussians.views import write_cameras
+    from panogs_core.stages.up_direction import run_up
 
-    files[CAMERAS_JSON.name] = write_cameras(CAMERAS_JSON.path(out), scene.camera, scene.frames)
+    poses = [f.T_world_cam for f in scene.frames] + [pose for _, pose in scene.skipped_poses]
+    up = run_up(scene.up, poses, np.asarray(prims.normals))
+    files[CAMERAS_JSON.name] = write_cameras(
+        CAMERAS_JSON.path(out), scene.camera, scene.frames, up=up.up, up_source=up.source, skipped=scene.skipped_poses
+    )
 
     metrics = compute_metrics(scene, pts, semantic, instance, vocab)
     if metrics is not None:

@@ -14,7 +14,9 @@ Arrays: ``position`` float32 (N, 3), ``color`` uint8 (N, 3) camera colour, ``sem
 Gaussian's mean axis, at most its neighbour-spacing radius (``point_radii``).
 
 The header carries the classes (name, kind, palette colour, primitive count), the instances of ``instances.json``
-(with their colour), the bounds, and the primitive count before decimation. Built from ``gaussians.ply`` (colour
+(with their colour), the bounds, the primitive count before decimation, and ``up``: the run's up direction from
+``cameras.json`` (a unit vector in world coordinates; absent for a run without one, which the viewer takes as +z),
+so that the first view is upright before anything else is fetched. Built from ``gaussians.ply`` (colour
 and scale, read by the core's Gaussian PLY reader) and ``vocabulary.json``/``instances.json``, as
 ``panogs_core.io.run_folder`` declares them; numpy only, so ``panogs view`` needs no pipeline.
 """
@@ -31,7 +33,8 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.gaussians.ply import read_gaussian_ply
-from panogs_core.io.run_folder import GAUSSIANS_PLY, INSTANCES_JSON, VOCABULARY_JSON
+from panogs_core.gaussians.views import parse_up
+from panogs_core.io.run_folder import CAMERAS_JSON, GAUSSIANS_PLY, INSTANCES_JSON, VOCABULARY_JSON
 from panogs_core.io.run_json import read_run_json
 from panogs_core.palette import VOID_COLOR, class_color, instance_color
 
@@ -115,6 +118,7 @@ def build_scene(
         ],
         "void": {"color": VOID_COLOR, "count": int((semantic < 0).sum())},
         "instances": [{**row, "color": instance_color(int(row["id"]))} for row in instances],
+        **_up(run),
         **(extra or {}),
     }
     arrays: dict[str, np.ndarray] = {
@@ -147,6 +151,17 @@ def point_radii(
         spacing = np.exp(gaussian_log_scales(position)[:, 0].astype(np.float64))
         fitted = np.minimum(fitted, spacing)
     return fitted.astype(np.float32)
+
+
+def _up(run: Path) -> dict[str, list[float]]:
+    """``{"up": [x, y, z]}`` from the run's ``cameras.json``, or nothing for a run that has none (older runs)."""
+    path = CAMERAS_JSON.path(run)
+    if not path.is_file():
+        return {}
+    doc = read_run_json(path)
+    if not isinstance(doc, dict) or "up" not in doc:
+        return {}
+    return {"up": list(parse_up(doc["up"], f"{path}: up"))}
 
 
 def _bounds(position: np.ndarray) -> dict[str, list[float]]:

@@ -52,8 +52,20 @@ def export_maps(scene: Bundle, stems: list[str], dst: Path) -> tuple[Path, Path]
     return dst / "features", dst / "masks"
 
 
-def write_tum(room: Path, dst: Path, *, jitter: float = 0.007) -> list[float]:
-    """The room as a TUM RGB-D sequence: depth * 5000, timestamps of the streams off by ``jitter`` seconds.
+def tilted_world(axis: tuple[float, float, float], degrees: float) -> np.ndarray:  # (4, 4)
+    """A rigid transform turning the room's world by ``degrees`` about ``axis`` (Rodrigues), for a capture written
+    in a world whose up is not the room's z: the room's up becomes ``tilted_world(...)[:3, 2]``."""
+    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = np.radians(degrees)
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    return T
+
+
+def write_tum(room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray | None = None) -> list[float]:
+    """The room as a TUM RGB-D sequence: depth * 5000, timestamps of the streams off by ``jitter`` seconds; the
+    poses in ``world`` (a (4, 4) applied to the room's world; ``tilted_world``) when given.
 
     Returns the depth timestamps, one per room frame. The ground truth has a row near each frame (off by
     ``jitter / 2``) and rows between frames with other poses, so only the nearest-in-time row is right.
@@ -71,7 +83,7 @@ def write_tum(room: Path, dst: Path, *, jitter: float = 0.007) -> list[float]:
         cv2.imwrite(str(dst / "rgb" / f"{t + jitter:.6f}.png"), rgb[:, :, ::-1])
         depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
         rgb_lines.append(f"{t + jitter:.6f} rgb/{t + jitter:.6f}.png")
-        T = np.asarray(frame.T_world_cam)
+        T = (np.eye(4) if world is None else world) @ np.asarray(frame.T_world_cam)
         q = quaternion_xyzw(T[:3, :3])
         gt_lines.append(f"{t + jitter / 2:.4f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)))
         gt_lines.append(f"{t + 1 / 60:.4f} 9 9 9 0 0 0 1")  # between frames: a pose no frame may take
@@ -81,9 +93,28 @@ def write_tum(room: Path, dst: Path, *, jitter: float = 0.007) -> list[float]:
     return stamps
 
 
-def write_record3d(room: Path, dst: Path, *, color_scale: int = 4) -> None:
+def import_tilted_tum(room: Path, root: Path, world: np.ndarray, *, stride: int = 2) -> Path:
+    """The room written as a TUM sequence (which records no gravity) in ``world`` and imported back with the
+    room's maps and vocabulary, every ``stride``-th frame kept; returns the bundle folder (``root / "bundle"``)."""
+    from panogs_core.io.importers.capture import FrameSelection, MapSources
+    from panogs_core.io.importers.tum import TumOptions, import_tum
+
+    scene = open_bundle(room)
+    stamps = write_tum(room, root / "seq", world=world)
+    cam = scene.camera
+    (root / "seq" / "intrinsics.txt").write_text(f"{cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}\n")
+    features, masks = export_maps(scene, [f"{t:.6f}" for t in stamps], root / "maps")
+    maps = MapSources(features=features, masks=masks, feature_space=scene.feature_space, vocabulary=scene.vocabulary)
+    selection = FrameSelection(stride=stride)
+    import_tum(root / "seq", root / "bundle", TumOptions(intrinsics=root / "seq" / "intrinsics.txt", maps=maps,
+                                                         selection=selection))  # fmt: skip
+    return root / "bundle"
+
+
+def write_record3d(room: Path, dst: Path, *, color_scale: int = 4, world: np.ndarray | None = None) -> None:
     """The room as a Record3D EXR + JPG export: colour ``color_scale`` times the depth size, K column-major at
-    the colour size, ARKit (OpenGL-axes) quaternion poses, EXR depth in metres, confidence all high."""
+    the colour size, ARKit (OpenGL-axes) quaternion poses, EXR depth in metres, confidence all high; the poses in
+    ``world`` (a (4, 4) applied to the room's world) when given (ARKit's own world is +Y up)."""
     import OpenEXR
 
     scene = open_bundle(room)
@@ -99,7 +130,7 @@ def write_record3d(room: Path, dst: Path, *, color_scale: int = 4) -> None:
         rgb = cv2.resize(scene.read_color(frame), (big.width, big.height), interpolation=cv2.INTER_LINEAR)
         cv2.imwrite(str(dst / "rgb" / f"{n}.jpg"), rgb[:, :, ::-1])
         cv2.imwrite(str(dst / "conf" / f"{n}.png"), np.full(depth.shape, 2, np.uint8))
-        T_gl = np.asarray(frame.T_world_cam) @ GL_TO_CV
+        T_gl = (np.eye(4) if world is None else world) @ np.asarray(frame.T_world_cam) @ GL_TO_CV
         poses.append([*quaternion_xyzw(T_gl[:3, :3]).tolist(), *T_gl[:3, 3].tolist()])
     K = big.K.T.reshape(-1).tolist()  # column-major
     meta = {"K": K, "w": big.width, "h": big.height, "fps": 60, "poses": poses}

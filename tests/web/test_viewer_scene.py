@@ -222,3 +222,14 @@ def test_offline_file_opens_in_the_browser_and_answers_a_class(
         assert not page.get_attribute(".pgs-viewer", "data-lit")
     finally:
         page.close()
+
+
+def test_the_header_carries_the_runs_up_from_cameras_json(run: tuple[Path, dict[str, Any]]) -> None:
+    folder, _ = run
+    assert "up" not in decode(build_scene(folder).data)[0]  # an older run: the viewer keeps z up
+    cameras = {"camera": {"fy": 100.0, "height": 120}, "up": [0, 2, 0], "frames": []}
+    (folder / "cameras.json").write_text(json.dumps(cameras))
+    assert decode(build_scene(folder).data)[0]["up"] == [0.0, 1.0, 0.0]
+    (folder / "cameras.json").write_text(json.dumps({**cameras, "up": [0, 0, 0]}))
+    with pytest.raises(InputError, match=r"cameras\.json: up: expected 3 finite numbers"):
+        build_scene(folder)

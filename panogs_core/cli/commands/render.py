@@ -13,7 +13,11 @@ def add_command(sub: Any) -> None:
     p = sub.add_parser("render", help="render a view of a run: colour, depth, semantic, instance, query relevance")
     p.add_argument("run", help="the --out folder of a run")
     view = p.add_mutually_exclusive_group(required=True)
-    view.add_argument("--frame", help="a key frame id of the bundle (its pose and camera)")
+    view.add_argument(
+        "--frame",
+        help="a frame id of the capture (its pose and the run's camera): any bundle frame, or one the import's "
+        "stride or key-frame rule left out (cameras.json lists them all)",
+    )
     view.add_argument("--pose", metavar="FILE.json", help='{"T_world_cam": 4x4 camera-to-world[, "camera": {...}]}')
     p.add_argument("--size", metavar="WxH", help="render size (same field of view), e.g. 640x480")
     p.add_argument("--query", nargs="+", metavar="TEXT", help="also write relevance.png for this text")

@@ -22,7 +22,10 @@ FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
     "masks": (".png",),
 }
 FRAME_KEYS = frozenset({"id", "pose", *FRAME_FILES})
-TOP_KEYS = frozenset({"format", "name", "camera", "depth_scale", "features", "frames"})
+# "up" and "skipped_frames" are optional (docs/scene_format.md §2.5, §2.6): a reader that predates them warns and
+# ignores them, which is why they did not need a new format id.
+TOP_KEYS = frozenset({"format", "name", "camera", "depth_scale", "features", "frames", "up", "skipped_frames"})
+SKIPPED_FRAME_KEYS = frozenset({"id", "pose"})
 FEATURE_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
 GT_KEYS = ("semantic", "instance", "points")  # the members of gt/labels.npz that are read (docs/scene_format.md §4)
 ROTATION_TOL = 1e-3  # docs/scene_format.md §2.1: orthonormal rotation, det 1, tolerance 1e-3

@@ -33,6 +33,9 @@ class Bundle:
         vocabulary: From ``vocabulary.json`` (+ ``.npy``), or None.
         has_geometry: ``geometry.ply`` is present.
         has_ground_truth: ``gt/labels.npz`` is present.
+        up: The world's up direction (unit vector) when ``scene.json`` states it, else None.
+        skipped_poses: ``(id, camera-to-world pose)`` of the capture's frames the importer left out (pose only,
+            ``skipped_frames``), in manifest order.
     """
 
     root: Path
@@ -45,6 +48,8 @@ class Bundle:
     vocabulary: Vocabulary | None
     has_geometry: bool
     has_ground_truth: bool
+    up: tuple[float, float, float] | None = None
+    skipped_poses: tuple[tuple[str, np.ndarray], ...] = ()
 
     @property
     def feature_frames(self) -> tuple[Frame, ...]:

@@ -33,6 +33,7 @@ from panogs_core.io.bundle.format import (
     GT_KEYS,
     LAST_ROW_TOL,
     ROTATION_TOL,
+    SKIPPED_FRAME_KEYS,
     TOP_KEYS,
     BundleLimits,
     max_png_chunks,
@@ -65,6 +66,8 @@ def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> 
         _check_header(manifest, limits, problems) if manifest is not None else _Header(None, None, None, None, None)
     )
     frames = _check_frames(root, manifest, header, limits, problems) if manifest is not None else []
+    up = _check_up(manifest, problems) if manifest is not None else None
+    skipped = _check_skipped_frames(manifest, {f.id for f in frames}, problems) if manifest is not None else ()
     num_vertices = _check_geometry(root, problems)
     vocabulary = _check_vocabulary(root, header.feature_dim, limits.json, limits.max_classes, problems)
     has_gt = _check_ground_truth(root, vocabulary, num_vertices, limits, problems)
@@ -88,6 +91,8 @@ def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> 
         vocabulary=vocabulary,
         has_geometry=num_vertices is not None,
         has_ground_truth=has_gt,
+        up=up,
+        skipped_poses=skipped,
     )
 
 
@@ -238,6 +243,56 @@ def _check_frame_entry(root: Path, i: int, entry: Any, seen: set[str], problems:
     if pose is None or paths["depth"] is None:
         return None
     return Frame(frame_id, pose, paths["depth"], paths["color"], paths["features"], paths["masks"])  # type: ignore[arg-type]
+
+
+def _check_up(doc: dict[str, Any], problems: list[str]) -> tuple[float, float, float] | None:
+    """``up`` (§2.5): absent, or 3 finite numbers not all 0, returned normalised to unit length."""
+    if "up" not in doc:
+        return None
+    value = doc["up"]
+    numbers = [_number(v) for v in value] if isinstance(value, list) and len(value) == 3 else None
+    if numbers is None or any(v is None for v in numbers):
+        problems.append(f"scene.json: up {_short(value)}, expected a list of 3 finite numbers")
+        return None
+    vec = np.asarray(numbers, dtype=np.float64)
+    norm = float(np.linalg.norm(vec))
+    if not norm > 1e-9:
+        problems.append(f"scene.json: up {_short(value)} has no direction, expected a non-zero vector")
+        return None
+    x, y, z = (float(v) for v in vec / norm)
+    return (x, y, z)
+
+
+def _check_skipped_frames(
+    doc: dict[str, Any], frame_ids: set[str], problems: list[str]
+) -> tuple[tuple[str, np.ndarray], ...]:
+    """``skipped_frames`` (§2.6): frames of the capture with a pose only, ids unique among all frames."""
+    entries = doc.get("skipped_frames", [])
+    if not isinstance(entries, list):
+        problems.append(f"scene.json: skipped_frames {_short(entries)}, expected a list")
+        return ()
+    seen = set(frame_ids)
+    out: list[tuple[str, np.ndarray]] = []
+    for i, entry in enumerate(entries):
+        where = f"scene.json: skipped_frames[{i}]"
+        if not isinstance(entry, dict):
+            problems.append(f"{where}: {_short(entry)}, expected an object with id and pose")
+            continue
+        unknown = sorted(set(entry) - SKIPPED_FRAME_KEYS)
+        if unknown:
+            logger.warning("%s: ignoring unknown keys %s", where, unknown)
+        frame_id = entry.get("id")
+        if not isinstance(frame_id, str) or not frame_id:
+            problems.append(f"{where}.id: {frame_id!r}, expected a non-empty string")
+            continue
+        if frame_id in seen:
+            problems.append(f"{where}.id: {frame_id!r} used by another frame, expected unique ids")
+            continue
+        seen.add(frame_id)
+        pose = _check_pose(entry.get("pose"), f"{where}.pose", problems)
+        if pose is not None:
+            out.append((frame_id, pose))
+    return tuple(out)
 
 
 def _check_pose(value: Any, where: str, problems: list[str]) -> np.ndarray | None:  # (4, 4) float64

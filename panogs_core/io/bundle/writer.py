@@ -45,6 +45,7 @@ class BundleWriter:
         feature_space: ``features.space`` id, e.g. ``clip-vit-b32``.
         color_format: ``"jpg"`` or ``"png"`` for colour written from arrays.
         jpeg_quality: JPEG quality 0-100 when ``color_format == "jpg"``.
+        up: The world's up direction when the source knows it (``scene.json`` ``up``, stored as given).
 
     Raises:
         InputError: for a non-positive depth scale or feature dim, or an unknown colour format.
@@ -61,6 +62,7 @@ class BundleWriter:
         feature_space: str,
         color_format: Literal["jpg", "png"] = "jpg",
         jpeg_quality: int = 95,
+        up: tuple[float, float, float] | None = None,
     ) -> None:
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise InputError(f"BundleWriter: depth_scale must be > 0, got {depth_scale}")
@@ -68,6 +70,8 @@ class BundleWriter:
             raise InputError(f"BundleWriter: feature_dim must be > 0, got {feature_dim}")
         if color_format not in ("jpg", "png"):
             raise InputError(f"BundleWriter: color_format must be 'jpg' or 'png', got {color_format!r}")
+        if up is not None and not (len(up) == 3 and np.all(np.isfinite(up)) and np.linalg.norm(up) > 1e-9):
+            raise InputError(f"BundleWriter: up must be 3 finite numbers, not all 0, got {up}")
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.name = name
@@ -77,7 +81,9 @@ class BundleWriter:
         self.feature_space = feature_space
         self.color_format = color_format
         self.jpeg_quality = int(jpeg_quality)
+        self.up = None if up is None else [float(v) for v in up]
         self._frames: list[dict[str, Any]] = []
+        self._skipped: list[dict[str, Any]] = []
         self._ids: set[str] = set()
         self._vocabulary_size: int | None = None
 
@@ -169,6 +175,17 @@ class BundleWriter:
             entry["masks"] = self._copy(masks, f"masks/{frame_id}.png", (".png",), link)
         self._commit(frame_id, entry)
 
+    def add_skipped_frame(self, frame_id: str, T_world_cam: np.ndarray) -> None:
+        """Record a capture frame left out of the bundle, by its pose only (``skipped_frames``), so that a run can
+        still be rendered from it.
+
+        Raises:
+            InputError: if the id is reused or unsafe, or the pose is not a finite (4, 4).
+        """
+        entry = self._new_entry(frame_id, T_world_cam)
+        self._ids.add(frame_id)
+        self._skipped.append(entry)
+
     def write_geometry(
         self,
         points: np.ndarray,  # (N, 3) float, world, metres
@@ -258,7 +275,7 @@ class BundleWriter:
         if not self._frames:
             raise InputError("BundleWriter: a bundle needs at least one frame")
         cam = self.camera
-        manifest = {
+        manifest: dict[str, Any] = {
             "format": FORMAT_ID,
             "name": self.name,
             "camera": {
@@ -273,6 +290,10 @@ class BundleWriter:
             "features": {"dim": self.feature_dim, "space": self.feature_space},
             "frames": self._frames,
         }
+        if self.up is not None:
+            manifest["up"] = self.up
+        if self._skipped:
+            manifest["skipped_frames"] = self._skipped
         (self.root / "scene.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
         return self.root
 

@@ -12,7 +12,9 @@ OpenCV axes, docs/conventions.md) and a depth reader, then calls :func:`import_c
    removes the staging folder, so nothing half-written is ever left at ``dst``.
 
 Frames whose depth does not decode are dropped and named like the others; an import fails only when no frame is
-left. The bundle format has no place for the capture's gravity direction, so the report carries it.
+left. The capture's gravity direction, when the source knows it, becomes ``scene.json``'s ``up``; the valid frames
+that the stride, the motion rule or ``max_frames`` left out are kept by their pose only (``skipped_frames``,
+docs/scene_format.md §2.6), so that a run can be rendered from any frame of the capture.
 """
 
 from __future__ import annotations
@@ -142,7 +144,7 @@ class CaptureReport:
         not_selected: Valid frames left out by the stride, the motion rule or ``max_frames``.
         depth_range: (min, median, max) metres of the written depth (sampled), or None.
         bundle_bytes: Size of the bundle folder.
-        gravity_up: The world's up direction, or None; the bundle format has no field for it.
+        gravity_up: The world's up direction written as ``scene.json`` ``up``, or None (the pipeline estimates it).
         gravity_note: Where ``gravity_up`` comes from.
         placeholder_maps: Whether the 2D maps are placeholders.
         has_geometry: Whether ``geometry.ply`` was written.
@@ -172,7 +174,8 @@ class CaptureReport:
             lo, mid, hi = self.depth_range
             lines.append(f"depth {lo:.2f} - {hi:.2f} m (median {mid:.2f} m)")
         up = "unknown" if self.gravity_up is None else "(" + ", ".join(f"{v:g}" for v in self.gravity_up) + ")"
-        lines.append(f"gravity up in the world: {up} ({self.gravity_note}; not stored in the bundle)")
+        stored = "scene.json up" if self.gravity_up is not None else "the pipeline will estimate it"
+        lines.append(f"gravity up in the world: {up} ({self.gravity_note}; {stored})")
         lines.append(
             "geometry: " + ("geometry.ply from the capture" if self.has_geometry else "none, primitives by TSDF")
         )
@@ -261,8 +264,12 @@ def import_capture(
             f"import {capture.source}: feature maps but no instance masks ({where}); the bundle format needs masks "
             "on at least one frame: pass --masks DIR with <frame>.png id maps"
         )
+    chosen_ids = {f.id for f in chosen}
+    skipped = [f for f in valid if f.id not in chosen_ids]
     with staged(dst) as stage:
-        written, depth_range = _write(stage, capture, chosen, feature_files, mask_files, maps, dropped, on_progress)
+        written, depth_range = _write(
+            stage, capture, chosen, skipped, feature_files, mask_files, maps, dropped, on_progress
+        )
     return CaptureReport(
         bundle=dst,
         frames_source=len(capture.frames) + sum(len(v) for v in capture.dropped.values()),
@@ -337,6 +344,7 @@ def _write(
     stage: Path,
     capture: Capture,
     frames: list[CaptureFrame],
+    skipped: list[CaptureFrame],
     feature_files: list[Path | None],
     mask_files: list[Path | None],
     maps: MapSources,
@@ -352,6 +360,7 @@ def _write(
         depth_scale=capture.depth_scale,
         feature_dim=dim,
         feature_space=PLACEHOLDER_SPACE if placeholder else maps.feature_space,
+        up=capture.gravity_up,
     )
     vocabulary = placeholder_vocabulary() if placeholder else maps.vocabulary
     if vocabulary is not None:
@@ -378,6 +387,8 @@ def _write(
         raise InputError(
             f"import {capture.source}: no usable frame among {len(capture.frames)} ({reasons or 'none selected'})"
         )
+    for frame in skipped:  # pose only: `panogs render --frame` reaches every frame of the capture
+        writer.add_skipped_frame(frame.id, frame.T_world_cam)
     writer.close()
     values = np.concatenate(samples)
     depth_range = None if values.size == 0 else tuple(float(v) for v in np.percentile(values, [0, 50, 100]))

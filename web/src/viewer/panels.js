@@ -236,10 +236,12 @@ export class Panels {
     this.queryInput.value = text;
   }
 
-  // ids: the capture frames whose poses the run has (cameras.json), in its order; selected: the one looked from
-  fillFrames(ids, selected) {
+  // ids: the capture frames whose poses the run has (cameras.json), in its order; selected: the one looked from;
+  // skipped: the ids of frames the import left out of the bundle (a pose only: no key frame of the run)
+  fillFrames(ids, selected, skipped = new Set()) {
     const option = (value, text) => h("option", { value }, text);
-    this.frameSelect.replaceChildren(option("", "a capture frame ..."), ...ids.map((id) => option(id, `frame ${id}`)));
+    const label = (id) => (skipped.has(id) ? `frame ${id} (not in the bundle)` : `frame ${id}`);
+    this.frameSelect.replaceChildren(option("", "a capture frame ..."), ...ids.map((id) => option(id, label(id))));
     this.frameSelect.value = selected ?? "";
     this.frameBox.hidden = !ids.length;
   }

@@ -42,9 +42,18 @@ void main() {
 export const OVERLAY_ALPHA = 0.45; // the class or instance colours over the photo
 
 const BACKGROUND = 0x101418;
-const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize(); // from above, front left
+// From above, front left, in a z-up world; turned with the run's up (fitDirection) for any other.
+const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize();
 const FOV_DEG = 50; // the orbit view's vertical field of view (a capture frame's view takes the frame's own)
-const Z_UP = new THREE.Vector3(0, 0, 1); // captures are z-up
+const Z_UP = new THREE.Vector3(0, 0, 1); // a run that states no up (older runs) is taken as z-up
+const THREE_UP = new THREE.Vector3(0, 1, 0); // the axis OrbitControls orbits about, once turned by its quaternion
+
+// The run's up (scene header "up", from cameras.json) as a unit vector; z for a missing or degenerate one.
+export function sceneUp(header) {
+  const up = Array.isArray(header?.up) && header.up.length === 3 ? new THREE.Vector3(...header.up) : null;
+  if (!up || !Number.isFinite(up.length()) || up.length() < 1e-9) return Z_UP.clone();
+  return up.normalize();
+}
 
 export class PointsLayer {
   // container: the element the canvas fills; scene: the parsed binary scene (scene.js); size: the size factor;
@@ -83,8 +92,9 @@ export class PointsLayer {
     this.three = new THREE.Scene();
     this.three.add(this.points);
     this.camera = new THREE.PerspectiveCamera(FOV_DEG, 1, 0.01, 1000);
-    this.camera.up.copy(Z_UP);
-    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.up = sceneUp(scene.header);
+    this.camera.up.copy(this.up);
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement); // orbits about camera.up, as now
     this.controls.addEventListener("change", () => this.render());
     this.controls.addEventListener("end", onCameraEnd);
     this.raycaster = new THREE.Raycaster();
@@ -145,15 +155,29 @@ export class PointsLayer {
     this.render();
   }
 
-  // The whole scene in view from above, front left; near and far planes from its size.
+  // The run's up, when it arrives after the scene (a host's cameras.json): the fit view and the orbit's axis.
+  setUp(up) {
+    this.up = sceneUp({ up });
+    this.camera.up.copy(this.up);
+    // OrbitControls keeps the rotation from camera.up to its y axis from construction: turn it with the up.
+    this.controls._quat?.setFromUnitVectors(this.up, THREE_UP);
+    this.controls._quatInverse?.copy(this.controls._quat).invert();
+  }
+
+  // FIT_DIRECTION turned from z-up to the run's up.
+  fitDirection() {
+    return FIT_DIRECTION.clone().applyQuaternion(new THREE.Quaternion().setFromUnitVectors(Z_UP, this.up));
+  }
+
+  // The whole scene in view from above, front left (of the run's up); near and far planes from its size.
   fit() {
-    this.camera.up.copy(Z_UP); // a capture frame's view may have left its own up and field of view
+    this.camera.up.copy(this.up); // a capture frame's view may have left its own up and field of view
     this.camera.fov = FOV_DEG;
     const { min, max } = this.scene.header.bounds;
     const center = new THREE.Vector3((min[0] + max[0]) / 2, (min[1] + max[1]) / 2, (min[2] + max[2]) / 2);
     const radius = Math.max(0.1, new THREE.Vector3(...max).distanceTo(new THREE.Vector3(...min)) / 2);
     const distance = radius / Math.sin((this.camera.fov * Math.PI) / 360);
-    this.camera.position.copy(center).addScaledVector(FIT_DIRECTION, distance);
+    this.camera.position.copy(center).addScaledVector(this.fitDirection(), distance);
     this.camera.near = distance / 100;
     this.camera.far = distance * 10;
     this.controls.target.copy(center);

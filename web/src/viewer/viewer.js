@@ -16,7 +16,8 @@ export class Viewer {
   // photo: { load() -> Promise<photo.js module>, bytes() -> Promise<Uint8Array of gaussians.ply> }, given by a
   // host that has a fitted scene (or later, by offerPhoto, once the fit ends); without it the photo view is
   // unavailable. canAsk (default true): the host answers any threshold (the offline file answers stored ones).
-  // cameras?: () -> Promise<cameras.json of the run> ({camera, frames: [{id, T_world_cam}]}): the "look from" list.
+  // cameras?: () -> Promise<cameras.json of the run> ({camera, up?, frames: [{id, T_world_cam, skipped?}]}): the
+  // "look from" list, and the run's up when the scene's header has none.
   constructor(root, options) {
     this.root = root;
     this.options = options;
@@ -153,8 +154,13 @@ export class Viewer {
     } catch (_) {
       return; // no list: the orbit view only
     }
+    if (Array.isArray(this.cameras.up) && !this.scene.header.up && this.layer) {
+      this.layer.setUp(this.cameras.up); // an upright first view and orbit, unless the URL already placed it
+      if (!this.state.cam && this.state.frame === null) this.fit(false);
+    }
     const ids = this.cameras.frames.map((frame) => String(frame.id));
-    this.panels.fillFrames(ids, this.state.frame);
+    const skipped = new Set(this.cameras.frames.filter((f) => f.skipped).map((f) => String(f.id)));
+    this.panels.fillFrames(ids, this.state.frame, skipped);
     if (this.state.frame !== null && ids.includes(this.state.frame)) this.lookFromFrame(this.state.frame);
   }
 
