@@ -3,6 +3,8 @@ rows between frames), imported back: poses, intrinsics, points, drops by reason,
 
 from __future__ import annotations
 
+import json
+
 import shutil
 from pathlib import Path
 
@@ -98,11 +100,19 @@ class TestImportTum:
         assert np.isclose(cam.fx, fx / 4)
         assert np.isclose(cam.cx, (cx + 0.5) / 4 - 0.5)
 
+    def test_without_maps_writes_a_bundle_whose_maps_the_run_computes(self, sequence: Path, tmp_path: Path) -> None:
+        report = import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources()))
+        assert report.maps_to_compute == ("masks", "features") and not report.placeholder_maps
+        assert "--masks-model" in report.summary() and "--features-model" in report.summary()
+        bundle = open_bundle(tmp_path / "b")
+        assert bundle.feature_dim == 0 and bundle.feature_space == ""
+        assert not bundle.feature_frames and not bundle.mask_frames
+        assert all(f.color is not None for f in bundle.frames)
+        assert "features" not in json.loads((tmp_path / "b" / "scene.json").read_text())
+
     def test_exception(self, sequence: Path, tmp_path: Path) -> None:
         with pytest.raises(InputError, match="--camera freiburg1"):
             import_tum(sequence, tmp_path / "a", TumOptions(maps=MapSources(placeholder_maps=True)))
-        with pytest.raises(InputError, match="placeholder-maps"):
-            import_tum(sequence, tmp_path / "a", _options(sequence, maps=MapSources()))
         src = tmp_path / "seq"
         shutil.copytree(sequence, src)
         lines = (src / "rgb.txt").read_text().splitlines()

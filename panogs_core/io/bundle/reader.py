@@ -27,8 +27,8 @@ class Bundle:
         name: ``scene.json`` name.
         camera: Pinhole model of the depth image.
         depth_scale: Depth PNG value per metre.
-        feature_dim: ``features.dim`` (D).
-        feature_space: ``features.space`` id, e.g. ``clip-vit-b32`` or ``minilm-l6``.
+        feature_dim: ``features.dim`` (D); 0 for a bundle without feature maps (the 2D-maps stage computes them).
+        feature_space: ``features.space`` id, e.g. ``clip-vit-b32`` or ``minilm-l6``; ``""`` without feature maps.
         frames: Every frame of the manifest, in manifest order.
         vocabulary: From ``vocabulary.json`` (+ ``.npy``), or None.
         has_geometry: ``geometry.ply`` is present.
