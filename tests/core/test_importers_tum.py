@@ -4,7 +4,6 @@ rows between frames), imported back: poses, intrinsics, points, drops by reason,
 from __future__ import annotations
 
 import json
-
 import shutil
 from pathlib import Path
 
@@ -102,11 +101,15 @@ class TestImportTum:
 
     def test_without_maps_writes_a_bundle_whose_maps_the_run_computes(self, sequence: Path, tmp_path: Path) -> None:
         report = import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources()))
-        assert report.maps_to_compute == ("masks", "features") and not report.placeholder_maps
-        assert "--masks-model" in report.summary() and "--features-model" in report.summary()
+        assert report.maps_to_compute == ("masks", "features")
+        assert not report.placeholder_maps
+        assert "--masks-model" in report.summary()
+        assert "--features-model" in report.summary()
         bundle = open_bundle(tmp_path / "b")
-        assert bundle.feature_dim == 0 and bundle.feature_space == ""
-        assert not bundle.feature_frames and not bundle.mask_frames
+        assert bundle.feature_dim == 0
+        assert bundle.feature_space == ""
+        assert not bundle.feature_frames
+        assert not bundle.mask_frames
         assert all(f.color is not None for f in bundle.frames)
         assert "features" not in json.loads((tmp_path / "b" / "scene.json").read_text())
 

@@ -7,8 +7,9 @@ path it reads has passed the format's rules.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -16,6 +17,18 @@ import numpy as np
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.types import Camera, Frame, Geometry, GroundTruth, Vocabulary
+
+
+class ComputedMaps(Protocol):
+    """Maps computed for a bundle outside its folder (the 2D-maps stage's checkpoint), read by frame id."""
+
+    def serves(self, kind: str) -> bool:
+        """Whether it holds this kind of map (``masks`` or ``features``) in place of the bundle's."""
+        ...
+
+    def read_masks(self, frame_id: str) -> np.ndarray: ...
+
+    def read_features(self, frame_id: str) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -33,6 +46,8 @@ class Bundle:
         vocabulary: From ``vocabulary.json`` (+ ``.npy``), or None.
         has_geometry: ``geometry.ply`` is present.
         has_ground_truth: ``gt/labels.npz`` is present.
+        computed: Maps computed by the 2D-maps stage that serve the kinds the bundle lacks; a frame's ``masks`` /
+            ``features`` path is then relative to them, not to ``root``. None: every map is the bundle's.
     """
 
     root: Path
@@ -45,6 +60,7 @@ class Bundle:
     vocabulary: Vocabulary | None
     has_geometry: bool
     has_ground_truth: bool
+    computed: ComputedMaps | None = field(default=None, compare=False)
 
     @property
     def feature_frames(self) -> tuple[Frame, ...]:
@@ -80,6 +96,8 @@ class Bundle:
         """
         if frame.features is None:
             raise InputError(f"frame {frame.id}: has no feature map")
+        if self.computed is not None and self.computed.serves("features"):
+            return self.computed.read_features(frame.id)
         return np.load(self.root / frame.features, mmap_mode="r", allow_pickle=False)
 
     def read_masks(self, frame: Frame) -> np.ndarray:  # (Hm, Wm) int32, 0 = no mask
@@ -90,6 +108,8 @@ class Bundle:
         """
         if frame.masks is None:
             raise InputError(f"frame {frame.id}: has no masks")
+        if self.computed is not None and self.computed.serves("masks"):
+            return self.computed.read_masks(frame.id).astype(np.int32)
         return read_image_file(self.root, frame.masks).astype(np.int32)
 
     def read_geometry(self) -> Geometry | None:
