@@ -39,6 +39,7 @@ from panogs_core.pipeline.result import (
 from panogs_core.pipeline.stage_table import STAGES, resolve_scene_vocabulary
 from panogs_core.progress import ProgressFn
 from panogs_core.stages.maps2d import MapModels
+from panogs_core.stages.maps2d.stage import forget_maps
 from panogs_core.types import Vocabulary
 
 # What the callers of a run import from here (the worker, the tiled run, the CLI, the benchmarks).
@@ -220,7 +221,7 @@ def run_pipeline(
         vocabulary: ``scannet20`` | ``matterport21`` | a :class:`Vocabulary` (e.g. a job's inline one, or the
             CLI's ``--vocabulary FILE`` read by the CLI); overrides the bundle's. Never a path.
         on_progress: ``on_progress(stage, done, total)``; may raise :class:`Cancelled` to stop.
-        resume: Reuse checkpoints whose keys match.
+        resume: Reuse checkpoints whose keys match (the computed 2D maps too; without, they are removed).
         on_results: Called once the results are written, before the fit, with the result so far (its
             ``fit_state`` is ``running``); may raise :class:`Cancelled` to stop.
         shared: Checkpoints shared beyond ``out_dir`` (with ``resume``): fetched when this folder has none of a
@@ -240,6 +241,8 @@ def run_pipeline(
     cfg = config or PipelineConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        forget_maps(STAGES_FOLDER.path(out))
     values: dict[str, Any] = {"source": bundle, "out": out, "vocabulary_spec": vocabulary, "map_models": map_models}
     run = _Run(out, cfg, values, resume=resume, on_progress=on_progress, shared=shared)
     try:

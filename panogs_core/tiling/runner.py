@@ -30,7 +30,7 @@ from panogs_core.pipeline.result import FIT_SKIPPED, PipelineResult, ResultsFn, 
 from panogs_core.pipeline.run import run_pipeline
 from panogs_core.pipeline.stage_table import resolve_scene_vocabulary
 from panogs_core.stages.maps2d import MapModels
-from panogs_core.stages.maps2d.stage import missing_kinds, with_computed_maps
+from panogs_core.stages.maps2d.stage import forget_maps, missing_kinds, with_computed_maps
 from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
 from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
@@ -76,6 +76,8 @@ def run_tiled(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
+    if not resume:
+        forget_maps(STAGES_FOLDER.path(out))
     scene = bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out))
     plan, points, plan_stats = plan_run(scene, cfg, tiles, tiling, on_progress)
     maps_stats = None

@@ -17,6 +17,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -37,8 +38,15 @@ from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
 
+MAPS_FOLDER = "maps_2d"  # under the run's stages/: one folder per key
+
 # What each kind of map needs from the caller when the bundle lacks it: the ``panogs run`` option and the model.
 _OPTION = {"masks": "--masks-model (a Segment Anything model)", "features": "--features-model (a CLIP model)"}
+
+
+def forget_maps(checkpoints: Path) -> None:
+    """Remove the computed maps under a run's ``stages/`` (a run that must recompute every stage)."""
+    shutil.rmtree(checkpoints / MAPS_FOLDER, ignore_errors=True)
 
 
 def missing_kinds(bundle: Bundle) -> tuple[str, ...]:
@@ -82,7 +90,7 @@ def with_computed_maps(
     masks_id, feats_id = identify_models(masks_model, features_model, allow_download=models.allow_download)
     ids = [f.id for f in frames]
     key = _folder_key(checkpoint_key(masks_id, feats_id, cfg), ids)
-    folder = checkpoints / "maps_2d" / key
+    folder = checkpoints / MAPS_FOLDER / key
     result = _complete(folder, checkpoint_key(masks_id, feats_id, cfg), ids)
     if result is None:
         result = compute_2d_maps(
