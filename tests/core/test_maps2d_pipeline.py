@@ -28,8 +28,6 @@ from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import run_pipeline
 from panogs_core.stages.maps2d import MapModels, ModelLoadError
 
-pytestmark = pytest.mark.slow  # each test runs the tiny room's pipeline (10-40 s here)
-
 # Tiny settings: the tiny models' 64 px images, every mask kept, no appearance fit (not what is tested).
 SETTINGS = {
     **{f"maps2d.{k}": v for k, v in KEEP_ALL.items()},
@@ -95,6 +93,8 @@ def _without(bundle: Path, dst: Path, kind: str) -> Path:
     return dst
 
 
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
 def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
     capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -137,6 +137,8 @@ def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
     assert _stage(out, "maps_2d")["wall_s"] < 1.0
 
 
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
 def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     bundle = _without(synth_tiny, tmp_path / "b", "masks")
     out = tmp_path / "run"
@@ -150,6 +152,8 @@ def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[P
     assert _report(out)["feature_space"] == open_bundle(synth_tiny).feature_space
 
 
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
 def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     bundle = _without(synth_tiny, tmp_path / "b", "features")
     out = tmp_path / "run"
@@ -163,6 +167,8 @@ def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[P
     assert _report(out)["feature_space"] == doc["features_model"]["space"]
 
 
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
 def test_errors_come_before_any_frame(capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     cfg = PipelineConfig().with_overrides(_nested(SETTINGS))
     with pytest.raises(InputError, match=r"no masks nor feature maps; pass --masks-model .* and --features-model"):
@@ -182,3 +188,32 @@ def _nested(flat: dict[str, object]) -> dict[str, object]:
         section, name = key.split(".", 1)
         out.setdefault(section, {})[name] = value
     return dict(out)
+
+
+@pytest.mark.parametrize(
+    ("extra", "grid"),
+    [
+        (["--masks-model", "some/sam"], 16),  # the CPU default (docs/method.md §17)
+        (["--masks-model", "some/sam", "--set", "maps2d.points_per_side=8"], 8),  # the user's choice wins
+        (["--features-model", "some/clip"], 32),  # no masks model: the stage's own default, untouched
+        (["--masks-model", "some/sam", "--set", "maps2d.device=cuda"], 32),  # not on the CPU
+    ],
+)
+def test_the_cli_sets_the_cpu_grid_only_for_a_masks_model_on_the_cpu(extra: list[str], grid: int) -> None:
+    import torch
+
+    from panogs_core.cli.commands.run import _map_models, _settings
+    from panogs_core.cli.main import build_parser
+
+    if torch.cuda.is_available():
+        pytest.skip("the CPU default applies where torch sees no CUDA device")
+    args = build_parser().parse_args(["run", "b", "--out", "o", *extra])
+    cfg, _ = _settings(args)
+    assert cfg.maps2d.points_per_side == grid
+    models = _map_models(args)
+    assert models is not None
+    assert (models.masks, models.features, models.allow_download) == (
+        "some/sam" if "--masks-model" in extra else None,
+        "some/clip" if "--features-model" in extra else None,
+        False,
+    )
