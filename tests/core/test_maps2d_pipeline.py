@@ -169,6 +169,23 @@ def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[P
 
 # Runs the tiny room's pipeline with model folders (10-40 s here).
 @pytest.mark.slow
+def test_a_tiled_run_computes_the_maps_once_for_every_tile(
+    synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path
+) -> None:
+    from panogs_core.tiling.runner import run_tiled
+
+    bundle = _without(synth_tiny, tmp_path / "b", "masks")
+    out = tmp_path / "run"
+    result = run_tiled(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)), tiles=(2, 1),
+                       map_models=MapModels(masks=str(models[0])))  # fmt: skip
+    assert result.num_primitives > 0
+    assert len(_manifests(out)) == 1  # the scene's, before the plan
+    assert not list((out / "tiles").glob("*/stages/maps_2d"))  # no tile computed maps of its own
+    assert "maps_2d" in [s["stage"] for s in _report(out)["stages"]]
+
+
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
 def test_errors_come_before_any_frame(capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     cfg = PipelineConfig().with_overrides(_nested(SETTINGS))
     with pytest.raises(InputError, match=r"no masks nor feature maps; pass --masks-model .* and --features-model"):
