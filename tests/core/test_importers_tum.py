@@ -146,9 +146,13 @@ def test_associate_takes_the_nearest_within_tolerance() -> None:
     assert associate(query, np.array([]), 0.02).tolist() == [-1, -1, -1, -1]
 
 
-def test_features_without_masks_are_refused(sequence: Path, synth_tiny: Path, tmp_path: Path) -> None:
+def test_features_without_masks_leave_the_masks_to_the_run(sequence: Path, synth_tiny: Path, tmp_path: Path) -> None:
     stamps = sorted(p.stem for p in (sequence / "depth").glob("*.png"))
     features, _ = export_maps(open_bundle(synth_tiny), stamps, tmp_path / "maps")
-    with pytest.raises(InputError, match="no instance masks"):
-        import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources(features=features)))
-    assert not (tmp_path / "b").exists()
+    report = import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources(features=features)))
+    assert report.maps_to_compute == ("masks",)
+    assert "--masks-model" in report.summary()
+    assert "--features-model" not in report.summary()
+    scene = open_bundle(tmp_path / "b")
+    assert scene.feature_frames
+    assert not scene.mask_frames

@@ -137,8 +137,6 @@ def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
     assert _stage(out, "maps_2d")["wall_s"] < 1.0
 
 
-# Runs the tiny room's pipeline with model folders (10-40 s here).
-@pytest.mark.slow
 def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     bundle = _without(synth_tiny, tmp_path / "b", "masks")
     out = tmp_path / "run"
@@ -152,8 +150,6 @@ def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[P
     assert _report(out)["feature_space"] == open_bundle(synth_tiny).feature_space
 
 
-# Runs the tiny room's pipeline with model folders (10-40 s here).
-@pytest.mark.slow
 def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
     bundle = _without(synth_tiny, tmp_path / "b", "features")
     out = tmp_path / "run"
