@@ -4,6 +4,7 @@
 Usage:
     python bench/maps2d.py [--threads 2] [--frames 2] [--warm 0|1] [--cases sam-vit-b slimsam-77 ...] [--root DIR]
     python bench/maps2d.py --components   # CPU seconds per part (encoder, decoder per point, crop), one thread
+    python bench/maps2d.py --profile-decoder   # where SAM's decoder time goes, per operator, one thread
 
 No weights can be downloaded here, so each model is built at its published architecture with random weights and
 saved with ``save_pretrained`` (kept under ``--root``); random weights cost what real ones do, except where the work
@@ -205,6 +206,30 @@ def run_components(args: argparse.Namespace) -> None:
             del sam
 
 
+def run_decoder_profile() -> None:
+    """Where SAM's decoder spends its 0.19 CPU s per point: ``SamMaskDecoder`` alone (SAM ViT-B's default decoder
+    config, random weights), 64 single-point prompts on a random image embedding, one thread, no post-processing;
+    prints the CPU seconds per point and torch.profiler's operators by self CPU time."""
+    import torch
+    from transformers import SamConfig
+    from transformers.models.sam.modeling_sam import SamMaskDecoder
+
+    torch.set_num_threads(1)
+    decoder = SamMaskDecoder(SamConfig().mask_decoder_config).eval()
+    embedding, position, dense = (torch.randn(1, 256, 64, 64) for _ in range(3))
+    sparse = torch.randn(1, 64, 2, 256)  # 64 prompts, a point and its padding token each
+    kwargs = {"image_embeddings": embedding, "image_positional_embeddings": position,
+              "dense_prompt_embeddings": dense, "multimask_output": True}  # fmt: skip
+    with torch.inference_mode():
+        decoder(sparse_prompt_embeddings=sparse[:, :2], **kwargs)  # warm-up
+        with torch.profiler.profile() as prof:
+            before = _cpu_seconds()
+            decoder(sparse_prompt_embeddings=sparse, **kwargs)
+            per_point = (_cpu_seconds() - before) / 64
+    print(json.dumps({"decoder_cpu_s_per_point": round(per_point, 3)}), flush=True)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+
+
 def _cpu_seconds() -> float:
     """User + system CPU seconds of this process: on a host other processes load, the work itself."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -220,10 +245,14 @@ def main() -> None:
     parser.add_argument("--warm", type=int, default=1, choices=(0, 1), help="0: no warm-up frame (the timed run loads)")
     parser.add_argument("--root", default="/tmp/maps2d-bench")
     parser.add_argument("--components", action="store_true", help="per-part CPU seconds on one thread instead")
+    parser.add_argument("--profile-decoder", action="store_true", help="SAM's decoder alone, profiled, one thread")
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one case, print its JSON
     args = parser.parse_args()
     if args.components:
         run_components(args)
+        return
+    if args.profile_decoder:
+        run_decoder_profile()
         return
     if args.one:
         print(json.dumps(run_case(args.one, args)))

@@ -27,6 +27,7 @@ from panogs_core.pipeline.input_hash import hash_bundle
 from panogs_core.pipeline.profiling import StageStats
 from panogs_core.pipeline.stage_table import Checkpoint, StageSpec, stage_keys
 from panogs_core.snapshots import StageSnapshot
+from panogs_core.stages.maps2d.stage import maps_key
 from panogs_core.types import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -111,6 +112,7 @@ class StageKeys(Mapping[str, str]):
             self._hash = Future()
             self._hash.set_result(known_hash)
         self._cfg, self._vocab = cfg, vocab
+        self._maps = maps_key(scene)
         self._keys: dict[str, str] | None = None
 
     def ready(self) -> bool:
@@ -124,7 +126,7 @@ class StageKeys(Mapping[str, str]):
 
     def _resolved(self) -> dict[str, str]:
         if self._keys is None:
-            self._keys = stage_keys(self.input_hash, self._cfg, self._vocab)
+            self._keys = stage_keys(self.input_hash, self._cfg, self._vocab, self._maps)
         return self._keys
 
     def __getitem__(self, name: str) -> str:

@@ -23,6 +23,7 @@ from panogs_core.stages.clustering import ClusteringConfig
 from panogs_core.stages.fusion import FusionConfig
 from panogs_core.stages.labeling import LabelingConfig
 from panogs_core.stages.language_field.config import LanguageFieldConfig
+from panogs_core.stages.maps2d.config import Maps2DConfig
 from panogs_core.stages.primitives import PrimitivesConfig
 from panogs_core.stages.superprimitives import SuperPrimitiveConfig
 from panogs_core.stages.visibility import VisibilityConfig
@@ -34,6 +35,8 @@ T = TypeVar("T")
 class PipelineConfig:
     """Every setting of a pipeline run. Defaults follow the reference's ScanNet settings."""
 
+    # The 2D-maps stage: only a bundle without masks or feature maps runs it (with the models the caller names).
+    maps2d: Maps2DConfig = field(default_factory=Maps2DConfig)
     primitives: PrimitivesConfig = field(default_factory=PrimitivesConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)

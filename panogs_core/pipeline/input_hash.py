@@ -18,11 +18,17 @@ HASH_RULE = "sha256:scene.json+frames+geometry+vocabulary+gt:v1"
 
 
 def hash_bundle(scene: Bundle) -> str:
-    """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks); ``HASH_RULE``."""
+    """SHA-256 over ``scene.json`` and every file it references (streamed, 1 MiB chunks); ``HASH_RULE``.
+
+    Maps computed by the 2D-maps stage (``scene.computed``) are not the bundle's files: their own key covers them
+    (the ``maps_2d`` key of the stage table)."""
     digest = hashlib.sha256()
     paths = [scene.root / "scene.json"]
+    computed = scene.computed
     for frame in scene.frames:
-        paths += [scene.root / p for p in (frame.depth, frame.color, frame.features, frame.masks) if p]
+        features = None if computed is not None and computed.serves("features") else frame.features
+        masks = None if computed is not None and computed.serves("masks") else frame.masks
+        paths += [scene.root / p for p in (frame.depth, frame.color, features, masks) if p]
     for extra in ("geometry.ply", "vocabulary.json", "vocabulary.npy", "gt/labels.npz"):
         if (scene.root / extra).is_file():
             paths.append(scene.root / extra)

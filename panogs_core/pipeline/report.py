@@ -51,14 +51,17 @@ def stage_rows(timings: Sequence[StageStats], devices: dict[str, str] | None = N
 
 
 def torch_devices(scene: Bundle, cfg: PipelineConfig) -> dict[str, str]:
-    """The device of each stage that runs on a torch device: the language field and the appearance fit (every
-    other stage runs on the CPU)."""
+    """The device of each stage that runs on a torch device: the 2D maps, the language field and the appearance
+    fit (every other stage runs on the CPU)."""
     import torch
 
     from panogs_core.gaussians import resolve_schedule
 
     fit_device = resolve_schedule(cfg.appearance, scene.camera.width, torch.cuda.is_available()).device
-    return {"language_field": cfg.language_field.device, "appearance": fit_device}
+    maps_device = cfg.maps2d.device
+    if maps_device == "auto":  # as the stage picks it (stages/maps2d/models.py): CUDA in half precision, else CPU
+        maps_device = "cuda" if torch.cuda.is_available() else "cpu"
+    return {"maps_2d": maps_device, "language_field": cfg.language_field.device, "appearance": fit_device}
 
 
 def write_report(

@@ -38,6 +38,8 @@ from panogs_core.pipeline.result import (
 )
 from panogs_core.pipeline.stage_table import STAGES, resolve_scene_vocabulary
 from panogs_core.progress import ProgressFn
+from panogs_core.stages.maps2d import MapModels
+from panogs_core.stages.maps2d.stage import forget_maps
 from panogs_core.types import Vocabulary
 
 # What the callers of a run import from here (the worker, the tiled run, the CLI, the benchmarks).
@@ -201,6 +203,7 @@ def run_pipeline(
     resume: bool = True,
     on_results: ResultsFn | None = None,
     shared: SharedCheckpoints | None = None,
+    map_models: MapModels | None = None,
 ) -> PipelineResult:
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
@@ -218,23 +221,29 @@ def run_pipeline(
         vocabulary: ``scannet20`` | ``matterport21`` | a :class:`Vocabulary` (e.g. a job's inline one, or the
             CLI's ``--vocabulary FILE`` read by the CLI); overrides the bundle's. Never a path.
         on_progress: ``on_progress(stage, done, total)``; may raise :class:`Cancelled` to stop.
-        resume: Reuse checkpoints whose keys match.
+        resume: Reuse checkpoints whose keys match (the computed 2D maps too; without, they are removed).
         on_results: Called once the results are written, before the fit, with the result so far (its
             ``fit_state`` is ``running``); may raise :class:`Cancelled` to stop.
         shared: Checkpoints shared beyond ``out_dir`` (with ``resume``): fetched when this folder has none of a
             stage's key, given each checkpoint this run computes.
+        map_models: The models that compute the 2D maps the bundle lacks (docs/method.md §17); None, or None for
+            a kind: the bundle must bring it. A kind the bundle brings is never recomputed.
 
     Returns:
         The result summary; files are in ``out_dir``. ``appearance["state"]`` says how the fit ended.
 
     Raises:
         BundleError: the bundle is invalid (every problem listed).
+        InputError: the bundle lacks a kind of map and no model is named to compute it.
+        ModelLoadError: a model of ``map_models`` does not load (before any frame is computed).
         Cancelled: the progress callback asked to stop.
     """
     cfg = config or PipelineConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    values: dict[str, Any] = {"source": bundle, "out": out, "vocabulary_spec": vocabulary}
+    if not resume:
+        forget_maps(STAGES_FOLDER.path(out))
+    values: dict[str, Any] = {"source": bundle, "out": out, "vocabulary_spec": vocabulary, "map_models": map_models}
     run = _Run(out, cfg, values, resume=resume, on_progress=on_progress, shared=shared)
     try:
         result = _run_stages(run, vocabulary, on_results)

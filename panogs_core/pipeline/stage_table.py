@@ -27,8 +27,10 @@ import numpy as np
 from panogs_core.errors import InputError
 from panogs_core.gaussians import GaussianScene, fit_appearance
 from panogs_core.io.bundle import Bundle, open_bundle
-from panogs_core.io.run_folder import BUNDLE_FOLDER
+from panogs_core.io.run_folder import BUNDLE_FOLDER, STAGES_FOLDER
 from panogs_core.language.label_sets import builtin_vocabulary, ensure_embeddings
+from panogs_core.language.model_identity import resolve_model_dir
+from panogs_core.language.text_encoders import get_text_encoder, is_model_space
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.progress import ProgressFn
 from panogs_core.snapshots import StageSnapshot
@@ -37,6 +39,8 @@ from panogs_core.stages.clustering import Clusters, progressive_clustering
 from panogs_core.stages.fusion import FusedFeatures, fuse_features
 from panogs_core.stages.labeling import FusedEvidence, PanopticLabels, assign_panoptic, unit_embeddings
 from panogs_core.stages.language_field import LanguageField, fit_language_field
+from panogs_core.stages.maps2d import MapModels
+from panogs_core.stages.maps2d.stage import with_computed_maps
 from panogs_core.stages.masks import MaskObservations, observe_masks
 from panogs_core.stages.neighbors import KnnGraph, build_knn
 from panogs_core.stages.primitives import Primitives, build_primitives
@@ -46,7 +50,7 @@ from panogs_core.types import Vocabulary
 
 # The values a run starts with: the ``bundle`` argument (a path or an opened bundle), the run folder and the
 # ``vocabulary`` argument. Every other value is written by a stage of the table.
-RUN_ARGUMENTS = ("source", "out", "vocabulary_spec")
+RUN_ARGUMENTS = ("source", "out", "vocabulary_spec", "map_models")
 
 
 class Checkpoint(Protocol):
@@ -137,9 +141,12 @@ def _vocabulary_hash(vocab: Vocabulary) -> str:
     return digest.hexdigest()[:20]
 
 
-def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[str, str]:
-    """Checkpoint key of every stage that has one (and of the inputs they name), in table order."""
-    keys = {"input": input_hash, "vocabulary": _vocabulary_hash(vocab)}
+def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary, maps: str = "bundle") -> dict[str, str]:
+    """Checkpoint key of every stage that has one (and of the inputs they name), in table order.
+
+    ``maps``: the key of the maps the 2D-maps stage computed ("bundle" when every map is the bundle's, which
+    ``input_hash`` covers); the stages reading maps name it among their inputs."""
+    keys = {"input": input_hash, "vocabulary": _vocabulary_hash(vocab), "maps_2d": maps}
     for spec in PIPELINE:
         key = spec.key(keys, cfg)
         if key is not None:
@@ -147,12 +154,15 @@ def stage_keys(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> dict[
     return keys
 
 
-def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vocabulary:
-    """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for the CLIP space.
+def resolve_scene_vocabulary(
+    scene: Bundle, spec: str | Vocabulary | None, map_models: MapModels | None = None
+) -> Vocabulary:
+    """The label set of a run: ``spec`` > the bundle's > ScanNet-20 for a CLIP space.
 
     ``spec`` is a built-in label-set name or an already parsed :class:`Vocabulary`; never a path, so that a
     service job cannot name a file of the worker's host (the CLI reads a ``--vocabulary FILE`` itself). Embeddings
-    are added with the space's text encoder when the chosen vocabulary has none.
+    are added with the space's text encoder when the chosen vocabulary has none: for feature maps the 2D-maps
+    stage computed, the text tower of the features model that computed them (``map_models.features``).
     """
     if isinstance(spec, Vocabulary):
         vocabulary = spec
@@ -160,7 +170,7 @@ def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vo
         vocabulary = builtin_vocabulary(spec, feature_space=scene.feature_space)
     elif scene.vocabulary is not None:
         vocabulary = scene.vocabulary
-    elif scene.feature_space == "clip-vit-b32":
+    elif scene.feature_space == "clip-vit-b32" or is_model_space(scene.feature_space):
         vocabulary = builtin_vocabulary("scannet20", feature_space=scene.feature_space)
     else:
         raise InputError(
@@ -168,12 +178,24 @@ def resolve_scene_vocabulary(scene: Bundle, spec: str | Vocabulary | None) -> Vo
             f"{scene.feature_space!r} has no default label set; pass a vocabulary "
             "(--vocabulary scannet20|matterport21|FILE)"
         )
-    return ensure_embeddings(vocabulary, scene.feature_space, scene.feature_dim)
+    encoder = None
+    computed = scene.computed
+    if computed is not None and computed.serves("features") and vocabulary.embeddings is None:
+        assert map_models is not None
+        assert map_models.features is not None
+        folder = resolve_model_dir(map_models.features, allow_download=map_models.allow_download)
+        encoder = get_text_encoder(scene.feature_space, model_path=str(folder))
+    return ensure_embeddings(vocabulary, scene.feature_space, scene.feature_dim, encoder=encoder)
 
 
 def validate(source: str | Path | Bundle, out: Path, cfg: PipelineConfig, progress: ProgressFn) -> Bundle:
     """The bundle, opened and validated (an archive extracted into the run folder's ``bundle/``)."""
     return source if isinstance(source, Bundle) else open_bundle(source, workdir=BUNDLE_FOLDER.path(out))
+
+
+def maps_2d(bundle: Bundle, out: Path, models: MapModels | None, cfg: PipelineConfig, progress: ProgressFn) -> Bundle:
+    """The bundle with the 2D maps it lacks computed by ``models`` (itself, at once, when it lacks none)."""
+    return with_computed_maps(bundle, STAGES_FOLDER.path(out), cfg.maps2d, models, progress)
 
 
 def primitives(bundle: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
@@ -338,10 +360,13 @@ def _fits_field(cfg: PipelineConfig) -> bool:
 # segments after the export, so the appearance fit runs without them.
 PIPELINE: tuple[StageSpec, ...] = (
     StageSpec("validate", validate, ("source", "out"), writes="bundle"),
+    # The maps the bundle lacks, computed from its colour frames (its own checkpoint folder, keyed by the models'
+    # identities, the frames and the maps' settings); the stages after it read the bundle it writes.
+    StageSpec("maps_2d", maps_2d, ("bundle", "out", "map_models"), writes="bundle"),
     StageSpec(
         "vocabulary",
-        lambda bundle, spec, _c, _p: resolve_scene_vocabulary(bundle, spec),
-        ("bundle", "vocabulary_spec"),
+        lambda bundle, spec, models, _c, _p: resolve_scene_vocabulary(bundle, spec, models),
+        ("bundle", "vocabulary_spec", "map_models"),
         timed=False,
     ),
     StageSpec(
@@ -361,7 +386,7 @@ PIPELINE: tuple[StageSpec, ...] = (
         fusion,
         ("bundle", "visibility", "primitives"),
         load=FusedFeatures.load,
-        inputs=("visibility",),
+        inputs=("visibility", "maps_2d"),
         settings=lambda c: c.fusion,
     ),
     StageSpec(
@@ -389,7 +414,7 @@ PIPELINE: tuple[StageSpec, ...] = (
         masks,
         ("bundle", "visibility"),
         load=MaskObservations.load,
-        inputs=("visibility",),
+        inputs=("visibility", "maps_2d"),
         settings=lambda c: c.affinity.mask_lookup(),
     ),
     StageSpec(

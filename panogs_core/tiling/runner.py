@@ -29,6 +29,8 @@ from panogs_core.pipeline.report import write_report as write_run_report
 from panogs_core.pipeline.result import FIT_SKIPPED, PipelineResult, ResultsFn, StageProgressFn
 from panogs_core.pipeline.run import run_pipeline
 from panogs_core.pipeline.stage_table import resolve_scene_vocabulary
+from panogs_core.stages.maps2d import MapModels
+from panogs_core.stages.maps2d.stage import forget_maps, missing_kinds, with_computed_maps
 from panogs_core.tiling.choice import TILES_AUTO, TILES_OFF
 from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
@@ -53,11 +55,14 @@ def run_tiled(
     resume: bool = True,
     on_results: ResultsFn | None = None,
     tile_workers: int = 1,
+    map_models: MapModels | None = None,
 ) -> PipelineResult:
     """Run a scene as tiles and merge them; a scene the plan leaves whole runs as :func:`run_pipeline` does.
 
     Args:
-        bundle, out_dir, config, vocabulary, on_progress, resume, on_results: as :func:`run_pipeline`.
+        bundle, out_dir, config, vocabulary, on_progress, resume, on_results, map_models: as
+            :func:`run_pipeline`. The 2D maps a bundle lacks are computed once for the whole scene, before the
+            plan (stage ``maps_2d``), and every tile reads them.
             Progress names the stages ``plan``, ``tile <k>/<K> <stage>`` and ``merge``.
         tiles: ``auto``, ``off`` or ``(nx, ny)`` (``panogs_core.tiling.choice.parse_tiles``).
         tiling: Planner settings (memory target, halo).
@@ -71,17 +76,24 @@ def run_tiled(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
+    if not resume:
+        forget_maps(STAGES_FOLDER.path(out))
     scene = bundle if isinstance(bundle, Bundle) else open_bundle(bundle, workdir=BUNDLE_FOLDER.path(out))
     plan, points, plan_stats = plan_run(scene, cfg, tiles, tiling, on_progress)
+    maps_stats = None
+    if plan.tiled and missing_kinds(scene):
+        # A tile's frames are those with maps: plan again once they are computed, for the whole scene at once.
+        scene, maps_stats = _maps(scene, out, cfg, map_models, on_progress)
+        plan, points, plan_stats = plan_run(scene, cfg, tiles, tiling, on_progress)
     if not plan.tiled:
         return run_pipeline(scene, out, cfg, vocabulary=vocabulary, on_progress=on_progress, resume=resume,
-                            on_results=on_results)  # fmt: skip
+                            on_results=on_results, map_models=map_models)  # fmt: skip
     assert points is not None
-    vocab = resolve_scene_vocabulary(scene, vocabulary)
+    vocab = resolve_scene_vocabulary(scene, vocabulary, map_models)
     TILES_FOLDER.path(out).mkdir(parents=True, exist_ok=True)
     plan.save(plan_path(out))
     tile_cfg = tile_config(cfg)
-    if tile_workers > 1 and len(plan.tiles) > 1:
+    if tile_workers > 1 and len(plan.tiles) > 1 and scene.computed is None:  # a process reopens the bundle's files
         from panogs_core.tiling.parallel import run_tiles_in_processes
 
         done = run_tiles_in_processes(scene.root, out, plan, tile_cfg, vocab, workers=tile_workers, resume=resume,
@@ -92,13 +104,22 @@ def run_tiled(
             done.append(run_tile(scene, plan, tile, points, tile_cfg, vocab, out, on_progress, resume))
             release_memory()
     tile_rows = [row for row, _ in done]
-    timings = [plan_stats, *(stats for _, stats in done)]
+    timings = [*([maps_stats] if maps_stats else []), plan_stats, *(stats for _, stats in done)]
     result, seam_joins = merge_run(scene, plan, points, vocab, out, timings, on_progress)
     result.total_s = time.perf_counter() - t_start
     write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)
     if on_results is not None:
         on_results(result)
     return result
+
+
+def _maps(
+    scene: Bundle, out: Path, cfg: PipelineConfig, models: MapModels | None, on_progress: StageProgressFn | None
+) -> tuple[Bundle, StageStats]:
+    """The scene with the 2D maps it lacks computed (stage ``maps_2d``, timed)."""
+    with StageTimer("maps_2d") as timer:
+        scene = with_computed_maps(scene, STAGES_FOLDER.path(out), cfg.maps2d, models, _named(on_progress, "maps_2d"))
+    return scene, timer.stats
 
 
 def plan_run(

@@ -23,6 +23,7 @@ from panogs_core.pipeline.input_hash import hash_bundle
 from panogs_core.pipeline.profiling import StageStats
 from panogs_core.pipeline.result import StageProgressFn
 from panogs_core.pipeline.run import run_pipeline
+from panogs_core.stages.maps2d.stage import maps_key
 from panogs_core.tiling.plan import TilePlan, TileSpec
 from panogs_core.tiling.view import tile_bundle
 from panogs_core.types import Vocabulary
@@ -94,13 +95,14 @@ def run_tile(
     stats = StageStats(name=f"tile {tile.index}", wall_s=wall, peak_rss_mb=peak)
     _drop_bulky_checkpoints(folder)
     input_hash = json.loads(REPORT_JSON.path(folder).read_text())["input_sha256"]
-    doc = {"key": _tile_key(input_hash, cfg, vocab), "row": row, "wall_s": wall, "peak_rss_mb": peak}
+    doc = {"key": _tile_key(input_hash, cfg, vocab, maps_key(view)), "row": row, "wall_s": wall, "peak_rss_mb": peak}
     (folder / _TILE_DONE).write_text(json.dumps(doc))
     return row, stats
 
 
-def _tile_key(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary) -> str:
-    text = json.dumps([input_hash, cfg.to_dict(), list(vocab.names), [bool(t) for t in vocab.is_thing]])
+def _tile_key(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary, maps: str) -> str:
+    """``maps``: the computed maps' key (stages/maps2d/stage.py), which the bundle's hash does not cover."""
+    text = json.dumps([input_hash, cfg.to_dict(), list(vocab.names), [bool(t) for t in vocab.is_thing], maps])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -112,7 +114,7 @@ def _finished_tile(
     if not path.is_file() or not LABELS_NPZ.path(folder).is_file():
         return None
     doc = json.loads(path.read_text())
-    if doc.get("key") != _tile_key(hash_bundle(view), cfg, vocab):
+    if doc.get("key") != _tile_key(hash_bundle(view), cfg, vocab, maps_key(view)):
         return None
     index = doc["row"]["index"]
     return doc["row"], StageStats(name=f"tile {index}", wall_s=doc["wall_s"], peak_rss_mb=doc["peak_rss_mb"])

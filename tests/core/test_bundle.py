@@ -355,8 +355,13 @@ BROKEN: list[tuple[str, Callable[[Path], object], str]] = [
         "features/000000.npy: shape (6, 8, 8) of float16 declares 768 data bytes, the file holds",
     ),
     ("not npy", lambda r: (r / "features/000001.npy").write_bytes(b"\x93NUMPY junk"), "not a valid .npy"),
-    ("no features", _edit(_drop_key("features")), "no frame has features"),
-    ("no masks", _edit(_drop_key("masks")), "no frame has masks"),
+    (
+        "no features nor colour",
+        _edit(lambda d: [_drop_key(k)(d) for k in ("features", "color")]),
+        "no frame has feature maps nor a colour image",
+    ),
+    ("no masks nor colour", _edit(lambda d: [_drop_key(k)(d) for k in ("masks", "color")]), "no frame has masks nor"),
+    ("features without header", _edit(lambda d: d.pop("features")), "no features object (dim and space)"),
     (
         "bad geometry",
         lambda r: (r / "geometry.ply").write_bytes(b"ply\nformat ascii 1.0\n"),
@@ -1046,3 +1051,21 @@ class TestValidationBudgets:
         open_bundle(bundle_dir)
         pngs = {f[k] for f in doc["frames"] for k in ("depth", "masks", "color") if f.get(k, "").endswith(".png")}
         assert len(calls) == len(pngs)
+
+
+@pytest.mark.parametrize("drop", [("features",), ("masks",), ("features", "masks")])
+def test_a_bundle_without_maps_validates_when_its_frames_have_colour(bundle_dir: Path, drop: tuple[str, ...]) -> None:
+    doc = _manifest(bundle_dir)
+    for key in drop:
+        for frame in doc["frames"]:
+            frame.pop(key, None)
+    if "features" in drop:
+        doc.pop("features")
+        (bundle_dir / "vocabulary.json").unlink(missing_ok=True)
+        (bundle_dir / "vocabulary.npy").unlink(missing_ok=True)
+        (bundle_dir / "gt" / "labels.npz").unlink(missing_ok=True)
+    _save(bundle_dir, doc)
+    bundle = open_bundle(bundle_dir)
+    assert not bundle.feature_frames if "features" in drop else bundle.feature_frames
+    assert not bundle.mask_frames if "masks" in drop else bundle.mask_frames
+    assert (bundle.feature_dim == 0 and bundle.feature_space == "") is ("features" in drop)

@@ -3,6 +3,7 @@ rows between frames), imported back: poses, intrinsics, points, drops by reason,
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -98,11 +99,23 @@ class TestImportTum:
         assert np.isclose(cam.fx, fx / 4)
         assert np.isclose(cam.cx, (cx + 0.5) / 4 - 0.5)
 
+    def test_without_maps_writes_a_bundle_whose_maps_the_run_computes(self, sequence: Path, tmp_path: Path) -> None:
+        report = import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources()))
+        assert report.maps_to_compute == ("masks", "features")
+        assert not report.placeholder_maps
+        assert "--masks-model" in report.summary()
+        assert "--features-model" in report.summary()
+        bundle = open_bundle(tmp_path / "b")
+        assert bundle.feature_dim == 0
+        assert bundle.feature_space == ""
+        assert not bundle.feature_frames
+        assert not bundle.mask_frames
+        assert all(f.color is not None for f in bundle.frames)
+        assert "features" not in json.loads((tmp_path / "b" / "scene.json").read_text())
+
     def test_exception(self, sequence: Path, tmp_path: Path) -> None:
         with pytest.raises(InputError, match="--camera freiburg1"):
             import_tum(sequence, tmp_path / "a", TumOptions(maps=MapSources(placeholder_maps=True)))
-        with pytest.raises(InputError, match="placeholder-maps"):
-            import_tum(sequence, tmp_path / "a", _options(sequence, maps=MapSources()))
         src = tmp_path / "seq"
         shutil.copytree(sequence, src)
         lines = (src / "rgb.txt").read_text().splitlines()
@@ -133,9 +146,13 @@ def test_associate_takes_the_nearest_within_tolerance() -> None:
     assert associate(query, np.array([]), 0.02).tolist() == [-1, -1, -1, -1]
 
 
-def test_features_without_masks_are_refused(sequence: Path, synth_tiny: Path, tmp_path: Path) -> None:
+def test_features_without_masks_leave_the_masks_to_the_run(sequence: Path, synth_tiny: Path, tmp_path: Path) -> None:
     stamps = sorted(p.stem for p in (sequence / "depth").glob("*.png"))
     features, _ = export_maps(open_bundle(synth_tiny), stamps, tmp_path / "maps")
-    with pytest.raises(InputError, match="no instance masks"):
-        import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources(features=features)))
-    assert not (tmp_path / "b").exists()
+    report = import_tum(sequence, tmp_path / "b", _options(sequence, maps=MapSources(features=features)))
+    assert report.maps_to_compute == ("masks",)
+    assert "--masks-model" in report.summary()
+    assert "--features-model" not in report.summary()
+    scene = open_bundle(tmp_path / "b")
+    assert scene.feature_frames
+    assert not scene.mask_frames

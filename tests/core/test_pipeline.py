@@ -391,7 +391,7 @@ def test_a_fit_cancelled_after_the_results_leaves_them_and_says_so(
     assert [i.to_json()["id"] for i in load_result(tmp_path).instances] == [i["id"] for i in first.instances]
     resumed = run_pipeline(tiny_bundle, tmp_path, SHORT_FIT)  # a re-run finishes the fit from the checkpoints
     assert resumed.fit_state == "succeeded"
-    assert {t.name for t in resumed.timings if not t.cached} <= {"validate", "export", "appearance"}
+    assert {t.name for t in resumed.timings if not t.cached} <= {"validate", "maps_2d", "export", "appearance"}
 
 
 @pytest.mark.slow  # reads tiny_run, a whole pipeline run
@@ -498,7 +498,7 @@ def test_a_later_run_of_the_same_bundle_takes_its_hash_from_the_shared_store(
 
     monkeypatch.setattr(checkpoints, "hash_bundle", no_hashing)
     again = run_pipeline(tiny_bundle, tmp_path / "again", SHORT_FIT, shared=shared)
-    assert all(t.cached for t in again.timings if t.name not in ("validate", "export"))
+    assert all(t.cached for t in again.timings if t.name not in ("validate", "maps_2d", "export"))
     assert again.instances == first.instances
     assert json.loads((tmp_path / "again" / "report.json").read_text())["input_sha256"] == shared.input_hash
 
@@ -524,9 +524,8 @@ def test_the_stage_table_names_only_values_written_before_they_are_read() -> Non
 def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """One entry adds a stage: here one that would bring the bundle's missing 2D maps (it has them, so it hands
-    the bundle on), placed before the first stage that reads maps; the run calls it there, reports it, and the
-    results are the same."""
+    """One entry adds a stage: here one that hands the bundle on, placed before the first stage that reads maps;
+    the run calls it there, reports it, and the results are the same."""
     from panogs_core.io.bundle import Bundle
     from panogs_core.pipeline import stage_table as st
 
@@ -534,11 +533,11 @@ def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
     _copy_checkpoints(out, tmp_path)
     called: list[str] = []
 
-    def maps_2d(bundle: Bundle, cfg: PipelineConfig, progress: object) -> Bundle:
+    def hand_on(bundle: Bundle, cfg: PipelineConfig, progress: object) -> Bundle:
         called.append(bundle.name)
         return bundle
 
-    entry = st.StageSpec("maps_2d", maps_2d, ("bundle",), writes="bundle")
+    entry = st.StageSpec("added", hand_on, ("bundle",), writes="bundle")
     at = [spec.name for spec in st.PIPELINE].index("fusion")
     monkeypatch.setattr(st, "PIPELINE", (*st.PIPELINE[:at], entry, *st.PIPELINE[at:]))
     seen: list[str] = []
@@ -546,8 +545,8 @@ def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
     assert called == [first.scene_name]
     report = json.loads((tmp_path / "report.json").read_text())
     names = [s["stage"] for s in report["stages"]]
-    assert names == [*STAGES[: STAGES.index("fusion")], "maps_2d", *STAGES[STAGES.index("fusion") :]]
-    assert "maps_2d" in seen
+    assert names == [*STAGES[: STAGES.index("fusion")], "added", *STAGES[STAGES.index("fusion") :]]
+    assert "added" in seen
     assert result.instances == first.instances
     for name in ("labels.npz", "instances.json", "panoptic.ply"):
         assert (tmp_path / name).read_bytes() == (out / name).read_bytes()

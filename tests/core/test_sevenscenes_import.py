@@ -65,10 +65,14 @@ def test_features_and_masks_come_from_their_folders(tmp_path: Path) -> None:
     assert [f.id for f in scene.feature_frames] == [f.id for f in scene.mask_frames] == ["000001"]
 
 
-def test_without_feature_maps_the_import_says_what_to_pass(tmp_path: Path) -> None:
+def test_without_maps_the_bundle_has_colour_and_depth_for_the_run_to_compute_them(tmp_path: Path) -> None:
     src = _sequence(tmp_path / "seq", frames=1)
-    with pytest.raises(InputError, match="placeholder maps"):
-        import_sevenscenes(src, tmp_path / "b")
+    import_sevenscenes(src, tmp_path / "b")
+    scene = open_bundle(tmp_path / "b")
+    assert not scene.feature_frames
+    assert scene.feature_space == ""
+    assert "placeholder" not in scene.name
+    assert all(f.color is not None for f in scene.frames)
     (src / "camera-intrinsics.txt").unlink()
     with pytest.raises(InputError, match="camera-intrinsics"):
         import_sevenscenes(src, tmp_path / "c", placeholder_maps=True)

@@ -58,3 +58,13 @@ def test_every_key_depends_on_the_bundle_and_labels_on_the_vocabulary() -> None:
     renamed = Vocabulary(names=("wall", "seat"), kinds=VOCAB.kinds, embeddings=VOCAB.embeddings)
     relabelled = stage_keys("bundle-a", PipelineConfig(), renamed)
     assert {s for s in CHECKPOINTED if keys[s] != relabelled[s]} == {"labeling"}
+
+
+def test_other_computed_maps_redo_the_stages_that_read_maps_and_those_after_them() -> None:
+    before = stage_keys("bundle-hash", PipelineConfig(), VOCAB)
+    after = stage_keys("bundle-hash", PipelineConfig(), VOCAB, "other-maps-key")
+    redone = {stage for stage in CHECKPOINTED if before[stage] != after[stage]}
+    assert redone == set(CHECKPOINTED) - {"primitives", "visibility", "neighbors"}
+    # The 2D-maps stage's own settings are not in any stage key: their maps' key carries them.
+    changed = stage_keys("bundle-hash", PipelineConfig().with_overrides({"maps2d": {"points_per_side": 8}}), VOCAB)
+    assert changed == before

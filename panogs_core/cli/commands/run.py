@@ -65,6 +65,24 @@ def add_command(sub: Any) -> None:
         help="a tiled run: tiles run at once, each in a process of its own (default 1, one after another); "
         "each takes up to its tile's memory (report.json's estimated_mb)",
     )
+    p.add_argument(
+        "--masks-model",
+        metavar="PATH_OR_HUB",
+        help="a Segment Anything model (folder or hub name, e.g. Zigeng/SlimSAM-uniform-77) that computes the "
+        "masks of a bundle that has none, from its colour frames (docs/method.md §17); on a CPU its grid is "
+        "maps2d.points_per_side=16 unless --config/--set says otherwise",
+    )
+    p.add_argument(
+        "--features-model",
+        metavar="PATH_OR_HUB",
+        help="a CLIP model (folder or hub name, e.g. openai/clip-vit-base-patch16) that computes the feature maps "
+        "of a bundle that has none; its text tower embeds the label set (query the run with --model-path it)",
+    )
+    p.add_argument(
+        "--allow-download",
+        action="store_true",
+        help="let a hub name missing from the local Hugging Face cache be downloaded (never a folder)",
+    )
     p.set_defaults(func=run_run)
 
 
@@ -98,6 +116,7 @@ def run_run(args: argparse.Namespace) -> int:
             on_progress=progress,
             resume=not args.no_resume,
             on_results=print_results,
+            map_models=_map_models(args),
         )
     except KeyboardInterrupt:
         progress.close()
@@ -126,9 +145,45 @@ def _settings(args: argparse.Namespace) -> tuple[PipelineConfig, str | Vocabular
     vocabulary: str | Vocabulary | None = args.vocabulary
     if args.vocabulary is not None and not is_builtin_name(args.vocabulary):
         vocabulary = vocabulary_from_name_or_file(args.vocabulary)
-    if args.set:
-        cfg = cfg.with_overrides(parse_overrides(args.set))
+    overrides = parse_overrides(args.set) if args.set else {}
+    if overrides:
+        cfg = cfg.with_overrides(overrides)
+    if args.masks_model and not _sets_grid(args.config, overrides) and _on_cpu(cfg.maps2d.device):
+        # docs/method.md §17: the CPU default is a 16 x 16 prompt grid (a quarter of SAM's decoder cost).
+        cfg = cfg.with_overrides({"maps2d": {"points_per_side": CPU_POINTS_PER_SIDE}})
     return cfg, vocabulary
+
+
+# The masks' prompt grid on a CPU when the user sets none (docs/method.md §17, "CPU costs and the CPU default").
+CPU_POINTS_PER_SIDE = 16
+
+
+def _map_models(args: argparse.Namespace) -> Any:
+    """The models that compute the maps a bundle lacks (None when none is named)."""
+    if not (args.masks_model or args.features_model):
+        return None
+    from panogs_core.stages.maps2d import MapModels
+
+    return MapModels(masks=args.masks_model, features=args.features_model, allow_download=args.allow_download)
+
+
+def _sets_grid(config: str | None, overrides: dict[str, Any]) -> bool:
+    """Whether the user chose ``maps2d.points_per_side`` (in ``--config`` or ``--set``)."""
+    import yaml
+
+    chosen = [overrides]
+    if config:
+        chosen.append(yaml.safe_load(Path(config).read_text()) or {})
+    return any(isinstance(d.get("maps2d"), dict) and "points_per_side" in d["maps2d"] for d in chosen)
+
+
+def _on_cpu(device: str) -> bool:
+    """Whether the 2D-maps stage runs on the CPU (``auto``: when torch sees no CUDA device)."""
+    if device != "auto":
+        return device == "cpu"
+    import torch
+
+    return not torch.cuda.is_available()
 
 
 def _runner(args: argparse.Namespace) -> Callable[..., Any]:

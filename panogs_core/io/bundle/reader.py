@@ -7,8 +7,9 @@ path it reads has passed the format's rules.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -16,6 +17,18 @@ import numpy as np
 from panogs_core.errors import InputError
 from panogs_core.io.ply import read_ply_vertices
 from panogs_core.types import Camera, Frame, Geometry, GroundTruth, Vocabulary
+
+
+class ComputedMaps(Protocol):
+    """Maps computed for a bundle outside its folder (the 2D-maps stage's checkpoint), read by frame id."""
+
+    def serves(self, kind: str) -> bool:
+        """Whether it holds this kind of map (``masks`` or ``features``) in place of the bundle's."""
+        ...
+
+    def read_masks(self, frame_id: str) -> np.ndarray: ...
+
+    def read_features(self, frame_id: str) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -27,8 +40,8 @@ class Bundle:
         name: ``scene.json`` name.
         camera: Pinhole model of the depth image.
         depth_scale: Depth PNG value per metre.
-        feature_dim: ``features.dim`` (D).
-        feature_space: ``features.space`` id, e.g. ``clip-vit-b32`` or ``minilm-l6``.
+        feature_dim: ``features.dim`` (D); 0 for a bundle without feature maps (the 2D-maps stage computes them).
+        feature_space: ``features.space`` id, e.g. ``clip-vit-b32`` or ``minilm-l6``; ``""`` without feature maps.
         frames: Every frame of the manifest, in manifest order.
         vocabulary: From ``vocabulary.json`` (+ ``.npy``), or None.
         has_geometry: ``geometry.ply`` is present.
@@ -36,6 +49,8 @@ class Bundle:
         up: The world's up direction (unit vector) when ``scene.json`` states it, else None.
         skipped_poses: ``(id, camera-to-world pose)`` of the capture's frames the importer left out (pose only,
             ``skipped_frames``), in manifest order.
+        computed: Maps computed by the 2D-maps stage that serve the kinds the bundle lacks; a frame's ``masks`` /
+            ``features`` path is then relative to them, not to ``root``. None: every map is the bundle's.
     """
 
     root: Path
@@ -50,6 +65,7 @@ class Bundle:
     has_ground_truth: bool
     up: tuple[float, float, float] | None = None
     skipped_poses: tuple[tuple[str, np.ndarray], ...] = ()
+    computed: ComputedMaps | None = field(default=None, compare=False)
 
     @property
     def feature_frames(self) -> tuple[Frame, ...]:
@@ -85,6 +101,8 @@ class Bundle:
         """
         if frame.features is None:
             raise InputError(f"frame {frame.id}: has no feature map")
+        if self.computed is not None and self.computed.serves("features"):
+            return self.computed.read_features(frame.id)
         return np.load(self.root / frame.features, mmap_mode="r", allow_pickle=False)
 
     def read_masks(self, frame: Frame) -> np.ndarray:  # (Hm, Wm) int32, 0 = no mask
@@ -95,6 +113,8 @@ class Bundle:
         """
         if frame.masks is None:
             raise InputError(f"frame {frame.id}: has no masks")
+        if self.computed is not None and self.computed.serves("masks"):
+            return self.computed.read_masks(frame.id).astype(np.int32)
         return read_image_file(self.root, frame.masks).astype(np.int32)
 
     def read_geometry(self) -> Geometry | None:

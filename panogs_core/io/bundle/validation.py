@@ -56,6 +56,7 @@ class _Header:
     depth_scale: float | None
     feature_dim: int | None
     feature_space: str | None
+    has_features: bool = True  # scene.json declares features (dim and space); False: no feature maps at all
 
 
 def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> Bundle:
@@ -77,16 +78,15 @@ def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> 
     assert manifest is not None
     assert header.camera is not None
     assert header.depth_scale is not None
-    assert header.feature_dim is not None
-    assert header.feature_space is not None
+    assert not header.has_features or (header.feature_dim is not None and header.feature_space is not None)
     name = manifest.get("name")
     return Bundle(
         root=root,
         name=name if isinstance(name, str) and name else root.name,
         camera=header.camera,
         depth_scale=header.depth_scale,
-        feature_dim=header.feature_dim,
-        feature_space=header.feature_space,
+        feature_dim=header.feature_dim or 0,
+        feature_space=header.feature_space or "",
         frames=tuple(frames),
         vocabulary=vocabulary,
         has_geometry=num_vertices is not None,
@@ -152,6 +152,10 @@ def _check_header(doc: dict[str, Any], limits: BundleLimits, problems: list[str]
     features = doc.get("features")
     dim: int | None = None
     space: str | None = None
+    if features is None:
+        # A bundle without feature maps (the 2D-maps stage computes them): no space, no width. A frame that
+        # brings a feature map anyway is refused by the frame checks.
+        return _Header(camera, size, depth_scale, None, None, has_features=False)
     if not isinstance(features, dict):
         problems.append(f"scene.json: features {features!r}, expected an object with dim and space")
     else:
@@ -209,11 +213,23 @@ def _check_frames(
             continue
         frames.append(frame)
         _check_frame_files(root, frame, header, limits, checked, problems)
-    if not any(f.features is not None for f in frames):
-        problems.append("scene.json: no frame has features, expected at least one")
-    if not any(f.masks is not None for f in frames):
-        problems.append("scene.json: no frame has masks, expected at least one")
+    _check_maps_present(frames, header, problems)
     return frames
+
+
+def _check_maps_present(frames: list[Frame], header: _Header, problems: list[str]) -> None:
+    """Maps are optional (the 2D-maps stage computes the missing kind from the colour frames), but a kind the
+    bundle lacks needs a colour image to be computed from, and feature maps need the header that describes them."""
+    with_color = any(f.color is not None for f in frames)
+    has_features = any(f.features is not None for f in frames)
+    if has_features and not header.has_features:
+        problems.append("scene.json: frames have feature maps but no features object (dim and space) describes them")
+    for kind, present in (("feature maps", has_features), ("masks", any(f.masks is not None for f in frames))):
+        if frames and not present and not with_color:
+            problems.append(
+                f"scene.json: no frame has {kind} nor a colour image to compute them from; give maps "
+                "(docs/scene_format.md §2.3) or colour frames for the 2D-maps stage"
+            )
 
 
 def _check_frame_entry(root: Path, i: int, entry: Any, seen: set[str], problems: list[str]) -> Frame | None:

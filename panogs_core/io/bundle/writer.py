@@ -41,7 +41,8 @@ class BundleWriter:
         name: Scene name for ``scene.json``.
         camera: Pinhole model of the depth images.
         depth_scale: Depth PNG value per metre (1000 = millimetres).
-        feature_dim: ``features.dim`` (D) of every feature map.
+        feature_dim: ``features.dim`` (D) of every feature map; None (with ``feature_space`` None): a bundle
+            without feature maps, whose ``scene.json`` has no ``features`` (the 2D-maps stage computes them).
         feature_space: ``features.space`` id, e.g. ``clip-vit-b32``.
         color_format: ``"jpg"`` or ``"png"`` for colour written from arrays.
         jpeg_quality: JPEG quality 0-100 when ``color_format == "jpg"``.
@@ -58,15 +59,17 @@ class BundleWriter:
         name: str,
         camera: Camera,
         depth_scale: float = 1000.0,
-        feature_dim: int,
-        feature_space: str,
+        feature_dim: int | None,
+        feature_space: str | None,
         color_format: Literal["jpg", "png"] = "jpg",
         jpeg_quality: int = 95,
         up: tuple[float, float, float] | None = None,
     ) -> None:
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise InputError(f"BundleWriter: depth_scale must be > 0, got {depth_scale}")
-        if int(feature_dim) <= 0:
+        if (feature_dim is None) != (feature_space is None):
+            raise InputError("BundleWriter: feature_dim and feature_space are given together or not at all")
+        if feature_dim is not None and int(feature_dim) <= 0:
             raise InputError(f"BundleWriter: feature_dim must be > 0, got {feature_dim}")
         if color_format not in ("jpg", "png"):
             raise InputError(f"BundleWriter: color_format must be 'jpg' or 'png', got {color_format!r}")
@@ -77,7 +80,7 @@ class BundleWriter:
         self.name = name
         self.camera = camera
         self.depth_scale = float(depth_scale)
-        self.feature_dim = int(feature_dim)
+        self.feature_dim = None if feature_dim is None else int(feature_dim)
         self.feature_space = feature_space
         self.color_format = color_format
         self.jpeg_quality = int(jpeg_quality)
@@ -294,6 +297,8 @@ class BundleWriter:
             manifest["up"] = self.up
         if self._skipped:
             manifest["skipped_frames"] = self._skipped
+        if self.feature_dim is None:
+            del manifest["features"]
         (self.root / "scene.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
         return self.root
 

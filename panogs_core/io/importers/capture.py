@@ -76,7 +76,9 @@ class MapSources:
         features: Folder of per-frame ``(Hf, Wf, D)`` ``.npy`` feature maps named by the frame's stem or id.
         masks: Folder of per-frame instance-id ``.png`` masks named the same way.
         placeholder_maps: Without feature maps: a constant feature map and one-segment mask on the first frame
-            (as the 7-Scenes importer), enough to fit and render, never meaningful labels.
+            (as the 7-Scenes importer), enough to fit and render, never meaningful labels. Without feature maps
+            and without this, the bundle has no maps of that kind and ``panogs run --masks-model ...
+            --features-model ...`` computes them from the colour frames (docs/method.md §17).
         feature_space: ``features.space`` of the feature maps.
         vocabulary: Label set to write (not with placeholder maps).
     """
@@ -147,6 +149,7 @@ class CaptureReport:
         gravity_up: The world's up direction written as ``scene.json`` ``up``, or None (the pipeline estimates it).
         gravity_note: Where ``gravity_up`` comes from.
         placeholder_maps: Whether the 2D maps are placeholders.
+        maps_to_compute: The kinds of 2D map the bundle lacks (``features``, ``masks``), for the 2D-maps stage.
         has_geometry: Whether ``geometry.ply`` was written.
     """
 
@@ -161,6 +164,7 @@ class CaptureReport:
     gravity_note: str
     placeholder_maps: bool
     has_geometry: bool
+    maps_to_compute: tuple[str, ...] = ()
 
     def summary(self) -> str:
         """A few human-readable lines, for the CLI: kept, dropped and why, depth, size, up, next command."""
@@ -181,7 +185,13 @@ class CaptureReport:
         )
         if self.placeholder_maps:
             lines.append("2D maps: placeholders on the first frame (labels are not meaningful)")
-        lines.append(f"next: panogs run {self.bundle} --out {self.bundle}-run")
+        options = " ".join(f"--{_MODEL_OPTION[kind]} FOLDER_OR_HUB_NAME" for kind in self.maps_to_compute)
+        if self.maps_to_compute:
+            lines.append(
+                f"2D maps: no {' nor '.join(self.maps_to_compute)} given; the maps will be computed from the colour "
+                f"frames by panogs run {options} (README, 'From your own capture')"
+            )
+        lines.append(f"next: panogs run {self.bundle} --out {self.bundle}-run" + (f" {options}" if options else ""))
         return "\n".join(lines)
 
 
@@ -258,12 +268,8 @@ def import_capture(
     chosen = _select(valid, selection)
     feature_files, mask_files = _map_files(chosen, maps)
     _check_maps(capture.source, feature_files, maps)
-    if any(f is not None for f in feature_files) and not any(m is not None for m in mask_files):
-        where = "no masks folder given" if maps.masks is None else f"none in {maps.masks} for the kept frames"
-        raise InputError(
-            f"import {capture.source}: feature maps but no instance masks ({where}); the bundle format needs masks "
-            "on at least one frame: pass --masks DIR with <frame>.png id maps"
-        )
+    placeholder = maps.placeholder_maps and not any(f is not None for f in feature_files)
+    missing = () if placeholder else _missing_maps(feature_files, mask_files)
     chosen_ids = {f.id for f in chosen}
     skipped = [f for f in valid if f.id not in chosen_ids]
     with staged(dst) as stage:
@@ -280,9 +286,20 @@ def import_capture(
         bundle_bytes=sum(p.stat().st_size for p in dst.rglob("*") if p.is_file()),
         gravity_up=capture.gravity_up,
         gravity_note=capture.gravity_note,
-        placeholder_maps=not any(f is not None for f in feature_files),
+        placeholder_maps=placeholder,
         has_geometry=capture.geometry is not None,
+        maps_to_compute=missing,
     )
+
+
+# The ``panogs run`` option that computes each kind of map.
+_MODEL_OPTION = {"features": "features-model", "masks": "masks-model"}
+
+
+def _missing_maps(feature_files: list[Path | None], mask_files: list[Path | None]) -> tuple[str, ...]:
+    """The kinds of map no kept frame brings: the 2D-maps stage of ``panogs run`` computes them."""
+    kinds = (("masks", mask_files), ("features", feature_files))
+    return tuple(kind for kind, files in kinds if not any(f is not None for f in files))
 
 
 def _valid_frames(frames: list[CaptureFrame], dropped: dict[str, list[str]]) -> list[CaptureFrame]:
@@ -331,13 +348,11 @@ def _check_maps(source: str, feature_files: list[Path | None], maps: MapSources)
                 "nothing); leave it out, or pass feature maps of the vocabulary's space"
             )
         return
-    where = "no features folder given" if maps.features is None else f"none in {maps.features} for the kept frames"
-    raise InputError(
-        f"import {source}: the bundle would have no 2D feature maps nor masks ({where}); the bundle format needs "
-        "them on at least one frame. Pass folders of <frame>.npy feature maps and <frame>.png masks "
-        "(--features, --masks), or --placeholder-maps for a bundle that fits and renders but whose labels mean "
-        "nothing. The 2D-maps stage of the pipeline will compute them from the colour frames once it lands."
-    )
+    if maps.vocabulary is not None and maps.vocabulary.embeddings is not None:
+        raise InputError(
+            f"import {source}: the vocabulary has embeddings but the bundle has no feature maps whose space they "
+            "would be in; leave the embeddings out (the run embeds the names with the features model's text tower)"
+        )
 
 
 def _write(
@@ -351,15 +366,21 @@ def _write(
     dropped: dict[str, list[str]],
     on_progress: ProgressFn | None,
 ) -> tuple[int, tuple[float, float, float] | None]:
-    placeholder = not any(f is not None for f in feature_files)
-    dim = PLACEHOLDER_DIM if placeholder else _feature_dim(next(f for f in feature_files if f is not None))
+    given = any(f is not None for f in feature_files)
+    placeholder = maps.placeholder_maps and not given
+    dim: int | None = None
+    space: str | None = None
+    if placeholder:
+        dim, space = PLACEHOLDER_DIM, PLACEHOLDER_SPACE
+    elif given:
+        dim, space = _feature_dim(next(f for f in feature_files if f is not None)), maps.feature_space
     writer = BundleWriter(
         stage,
         name=f"{capture.name} (placeholder maps)" if placeholder else capture.name,
         camera=capture.camera,
         depth_scale=capture.depth_scale,
         feature_dim=dim,
-        feature_space=PLACEHOLDER_SPACE if placeholder else maps.feature_space,
+        feature_space=space,
         up=capture.gravity_up,
     )
     vocabulary = placeholder_vocabulary() if placeholder else maps.vocabulary
@@ -374,8 +395,8 @@ def _write(
         except InputError as exc:
             dropped.setdefault("depth does not decode", []).append(f"{frame.id} ({exc})")
             continue
-        feat, mask = _maps_of(feat_path, mask_path, dim)
-        if placeholder and writer.num_frames == 0:
+        feat, mask = _maps_of(feat_path, mask_path, dim or 0)
+        if placeholder and dim is not None and writer.num_frames == 0:
             feat = np.full((1, 1, dim), 1.0 / np.sqrt(dim), np.float32)
             mask = np.ones((capture.camera.height, capture.camera.width), np.int64)
         writer.add_frame(frame.id, frame.T_world_cam, depth, color=frame.color, features=feat, masks=mask)

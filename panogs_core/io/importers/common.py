@@ -138,9 +138,11 @@ def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
 
 
 def _add_source_frame(writer: BundleWriter, frame: SourceFrame, pose: np.ndarray, depth: Path) -> None:
+    if frame.features is not None and writer.feature_dim is None:
+        raise InputError(f"import: {frame.features}: a feature map in a bundle written without a feature dimension")
     depth_ok = png_info(depth) == (writer.camera.width, writer.camera.height, 16, 0)
     masks_ok = frame.masks is None or png_info(frame.masks)[2:] in ((8, 0), (16, 0))
-    features_ok = frame.features is None or _npy_is_bundle_ready(frame.features, writer.feature_dim)
+    features_ok = frame.features is None or _npy_is_bundle_ready(frame.features, writer.feature_dim or 0)
     if depth_ok and masks_ok and features_ok:
         writer.add_frame_files(
             frame.id,
@@ -161,7 +163,7 @@ def _add_source_frame(writer: BundleWriter, frame: SourceFrame, pose: np.ndarray
         pose,
         raw.astype(np.float64) / writer.depth_scale,  # round(v / s * s) == v: the values survive exactly
         color=frame.color,
-        features=None if frame.features is None else _load_features(frame.features, writer.feature_dim),
+        features=None if frame.features is None else _load_features(frame.features, writer.feature_dim or 0),
         masks=None if frame.masks is None else masks_to_ids(_read_image(frame.masks)),
     )
 

@@ -78,8 +78,9 @@ def import_sevenscenes(
         on_progress: Called with ``(done, total)`` per frame.
 
     Raises:
-        InputError: for a missing intrinsics file, no frames, no feature maps without ``placeholder_maps``,
-            unreadable files, or ``dst`` not empty.
+        InputError: for a missing intrinsics file, no frames, unreadable files, or ``dst`` not empty. Without
+            feature maps nor ``placeholder_maps`` the bundle has no maps: ``panogs run --masks-model ...
+            --features-model ...`` computes them.
     """
     src, dst = Path(src), Path(dst)
     if stride < 1:
@@ -107,21 +108,22 @@ def import_sevenscenes(
                 "nothing); leave it out, or pass feature maps of the vocabulary's space"
             )
         dim, feature_space, vocabulary = PLACEHOLDER_DIM, PLACEHOLDER_SPACE, placeholder_vocabulary()
-    else:
-        where = "no features folder given" if feature_dir is None else f"none in {feature_dir}"
-        raise InputError(
-            f"import_sevenscenes: no feature maps for the selected frames ({where}); a bundle needs at least one: "
-            "pass features, or placeholder maps for a photometric-only bundle"
-        )
+    else:  # no maps: panogs run --masks-model ... --features-model ... computes them from the colour frames
+        if vocabulary is not None and vocabulary.embeddings is not None:
+            raise InputError(
+                "import_sevenscenes: the vocabulary has embeddings but there are no feature maps whose space they "
+                "would be in; leave the embeddings out (the run embeds the names with the features model)"
+            )
+        dim = None
     label = name or src.name
     with staged(dst) as stage:  # a failure part way leaves nothing at dst
         writer = BundleWriter(
             stage,
-            name=f"{label} (placeholder maps)" if not present else label,
+            name=f"{label} (placeholder maps)" if not present and placeholder_maps else label,
             camera=cam,
             depth_scale=SEVENSCENES_DEPTH_SCALE,
             feature_dim=dim,
-            feature_space=feature_space,
+            feature_space=feature_space if dim is not None else None,
         )
         if vocabulary is not None:
             writer.write_vocabulary(vocabulary)
@@ -144,7 +146,7 @@ def import_sevenscenes(
                 feat_path, mask_path = feature_files[index], optional(mask_dir, index, (".png",))
                 feat = None if feat_path is None else np.load(feat_path, allow_pickle=False).astype(np.float32)
                 mask = None if mask_path is None else _read_image(mask_path).astype(np.int64)
-                if not present and placeholder_maps and writer.num_frames == 0:
+                if not present and placeholder_maps and dim is not None and writer.num_frames == 0:
                     feat = np.full((1, 1, dim), 1.0 / np.sqrt(dim), np.float32)
                     mask = np.ones((cam.height, cam.width), np.int64)
                 writer.add_frame(

@@ -65,7 +65,8 @@ SHARED_OPTIONS = (
         "switch",
         False,
         "without --features: a constant feature map and a one-segment mask on the first frame, enough to fit "
-        "and render (labels mean nothing)",
+        "and render (labels mean nothing). Without --features nor this, the bundle has no maps and panogs run "
+        "--masks-model ... --features-model ... computes them",
     ),
     CliOption("--vocabulary", "maps.vocabulary", "str", None, "scannet20 | matterport21 | path to vocabulary.json"),
     CliOption("--name", "name", "str", None, "scene name (default: the source folder's)"),

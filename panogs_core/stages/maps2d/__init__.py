@@ -46,6 +46,7 @@ from panogs_core.stages.maps2d.config import Maps2DConfig
 __all__ = [
     "MANIFEST",
     "FrameImage",
+    "MapModels",
     "Maps2DConfig",
     "Maps2DResult",
     "ModelIdentity",
@@ -57,6 +58,20 @@ __all__ = [
 FORMAT_ID = "panogs-maps2d/1"
 MANIFEST = "manifest.json"
 _FRAME_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+
+
+@dataclass(frozen=True)
+class MapModels:
+    """The models a run computes missing 2D maps with: a folder (Hugging Face layout) or a hub name each.
+
+    None: that kind of map comes from the bundle (a bundle without it then fails the run at once, naming the
+    option to pass). A kind the bundle brings is never recomputed: the bundle's maps are the scene's.
+    ``allow_download`` lets a hub name missing from the local cache be fetched (never a folder).
+    """
+
+    masks: str | None = None
+    features: str | None = None
+    allow_download: bool = False
 
 
 @dataclass(frozen=True)
@@ -99,6 +114,10 @@ class Maps2DResult:
     settings: dict[str, Any]
     frames: tuple[FrameMaps, ...] = field(default_factory=tuple)
     complete: bool = False
+
+    def serves(self, kind: str) -> bool:
+        """Whether these maps hold ``kind`` (``masks`` or ``features``): its model ran."""
+        return (self.masks_model if kind == "masks" else self.features_model) is not None
 
     @property
     def space(self) -> str | None:

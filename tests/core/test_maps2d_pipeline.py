@@ -1,0 +1,232 @@
+"""The 2D-maps stage inside a run: a bundle with colour and depth only (imported from a TUM capture without maps)
+through ``panogs run --masks-model --features-model`` with tiny random SAM and CLIP folders, to labels and a text
+query; the checkpoint reused by a re-run with other clustering settings; masks-only and features-only bundles; the
+errors. Random weights make meaningless maps: these tests assert the wiring, not quality.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+from capture_room import write_tum
+from tiny_models import KEEP_ALL, tiny_clip, tiny_sam
+
+from panogs_core.cli.main import main
+from panogs_core.errors import InputError
+from panogs_core.io.bundle import open_bundle
+from panogs_core.io.importers.capture import MapSources
+from panogs_core.io.importers.tum import TumOptions, import_tum
+from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.run import run_pipeline
+from panogs_core.stages.maps2d import MapModels, ModelLoadError
+
+# Tiny settings: the tiny models' 64 px images, every mask kept, no appearance fit (not what is tested).
+SETTINGS = {
+    **{f"maps2d.{k}": v for k, v in KEEP_ALL.items()},
+    "maps2d.points_per_side": 4,
+    "maps2d.max_masks": 8,
+    "maps2d.mask_long_side": 64,
+    "maps2d.feature_long_side": 16,
+    "maps2d.device": "cpu",
+    "appearance.enabled": False,
+}
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("models2d")
+    return tiny_sam(root / "sam"), tiny_clip(root / "clip")
+
+
+@pytest.fixture(autouse=True)
+def offline(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
+
+
+@pytest.fixture(scope="module")
+def capture_bundle(synth_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny room as a TUM capture, imported without maps: colour and depth only."""
+    root = tmp_path_factory.mktemp("capture")
+    write_tum(synth_tiny, root / "seq")
+    cam = open_bundle(synth_tiny).camera
+    (root / "seq" / "intrinsics.txt").write_text(f"{cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}\n")
+    import_tum(root / "seq", root / "bundle", TumOptions(intrinsics=root / "seq" / "intrinsics.txt", maps=MapSources()))
+    return root / "bundle"
+
+
+def _argv(bundle: Path, out: Path, *extra: str, settings: dict[str, object] | None = None) -> list[str]:
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in (settings or SETTINGS).items()]
+    return ["run", str(bundle), "--out", str(out), "--tiles", "off", "--quiet", *sets, *extra]
+
+
+def _report(out: Path) -> dict[str, object]:
+    return json.loads((out / "report.json").read_text())
+
+
+def _stage(out: Path, name: str) -> dict[str, object]:
+    return next(s for s in _report(out)["stages"] if s["stage"] == name)  # type: ignore[index, union-attr]
+
+
+def _manifests(out: Path) -> list[Path]:
+    return sorted((out / "stages" / "maps_2d").glob("*/manifest.json"))
+
+
+def _without(bundle: Path, dst: Path, kind: str) -> Path:
+    """A copy of ``bundle`` whose frames bring no ``kind`` (``masks`` or ``features``)."""
+    shutil.copytree(bundle, dst)
+    doc = json.loads((dst / "scene.json").read_text())
+    for frame in doc["frames"]:
+        frame.pop(kind, None)
+    if kind == "features":
+        doc.pop("features")
+    (dst / "scene.json").write_text(json.dumps(doc))
+    shutil.rmtree(dst / kind)
+    return dst
+
+
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
+def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
+    capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sam, clip = models
+    out = tmp_path / "run"
+    assert main(_argv(capture_bundle, out, "--masks-model", str(sam), "--features-model", str(clip))) == 0
+    labels = np.load(out / "labels.npz")
+    assert labels["semantic"].size > 0
+    stage = _stage(out, "maps_2d")
+    assert stage["device"] == "cpu"
+    assert stage["wall_s"] > 0
+    (manifest,) = _manifests(out)
+    doc = json.loads(manifest.read_text())
+    assert doc["complete"]
+    assert len(doc["frames"]) == len(open_bundle(capture_bundle).frames)
+    assert doc["feature_dim"] == 12
+    assert doc["features_model"]["space"].startswith("clip-vit-")
+    assert (out / "instances.json").is_file()
+    capsys.readouterr()
+    assert main(["query", str(out), "a soft chair", "--model-path", str(clip), "--min-score", "-1"]) == 0
+    assert "a soft chair" in capsys.readouterr().out
+
+    # Other clustering settings: the maps are reused, no model is loaded.
+    from panogs_core.stages.maps2d import runner
+
+    def no_loading(*_args: object) -> None:
+        raise AssertionError("the maps checkpoint was not reused: a model was loaded")
+
+    before = manifest.stat().st_mtime_ns
+    monkeypatch = pytest.MonkeyPatch()
+    monkeypatch.setattr(runner, "load_models", no_loading)
+    try:
+        argv = _argv(capture_bundle, out, "--masks-model", str(sam), "--features-model", str(clip),
+                     settings={**SETTINGS, "clustering.thresholds": [0.8, 0.6]})  # fmt: skip
+        assert main(argv) == 0
+    finally:
+        monkeypatch.undo()
+    assert _manifests(out) == [manifest]
+    assert manifest.stat().st_mtime_ns == before
+    assert _stage(out, "maps_2d")["wall_s"] < 1.0
+
+
+def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
+    bundle = _without(synth_tiny, tmp_path / "b", "masks")
+    out = tmp_path / "run"
+    result = run_pipeline(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)),
+                          map_models=MapModels(masks=str(models[0]), features=str(models[1])))  # fmt: skip
+    assert result.num_primitives > 0
+    (manifest,) = _manifests(out)
+    doc = json.loads(manifest.read_text())
+    assert doc["masks_model"] is not None
+    assert doc["features_model"] is None  # the bundle's features are its own: never recomputed
+    assert _report(out)["feature_space"] == open_bundle(synth_tiny).feature_space
+
+
+def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
+    bundle = _without(synth_tiny, tmp_path / "b", "features")
+    out = tmp_path / "run"
+    run_pipeline(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)),
+                 map_models=MapModels(features=str(models[1])))  # fmt: skip
+    (manifest,) = _manifests(out)
+    doc = json.loads(manifest.read_text())
+    assert doc["masks_model"] is None
+    assert doc["features_model"] is not None
+    assert all(f["masks"] is None and f["features"] for f in doc["frames"])
+    assert _report(out)["feature_space"] == doc["features_model"]["space"]
+
+
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
+def test_a_tiled_run_computes_the_maps_once_for_every_tile(
+    synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path
+) -> None:
+    from panogs_core.tiling.runner import run_tiled
+
+    bundle = _without(synth_tiny, tmp_path / "b", "masks")
+    out = tmp_path / "run"
+    result = run_tiled(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)), tiles=(2, 1),
+                       map_models=MapModels(masks=str(models[0])))  # fmt: skip
+    assert result.num_primitives > 0
+    assert len(_manifests(out)) == 1  # the scene's, before the plan
+    assert not list((out / "tiles").glob("*/stages/maps_2d"))  # no tile computed maps of its own
+    assert "maps_2d" in [s["stage"] for s in _report(out)["stages"]]
+
+
+# Runs the tiny room's pipeline with model folders (10-40 s here).
+@pytest.mark.slow
+def test_errors_come_before_any_frame(capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
+    cfg = PipelineConfig().with_overrides(_nested(SETTINGS))
+    with pytest.raises(InputError, match=r"no masks nor feature maps; pass --masks-model .* and --features-model"):
+        run_pipeline(capture_bundle, tmp_path / "a", cfg)
+    with pytest.raises(InputError, match="pass --features-model"):
+        run_pipeline(capture_bundle, tmp_path / "b", cfg, map_models=MapModels(masks=str(models[0])))
+    bad = tmp_path / "not-a-model"
+    bad.mkdir()
+    with pytest.raises(ModelLoadError, match=str(bad)):
+        run_pipeline(capture_bundle, tmp_path / "c", cfg, map_models=MapModels(masks=str(bad), features=str(models[1])))
+    assert not list((tmp_path / "c").rglob("masks/*.png"))
+
+
+def _nested(flat: dict[str, object]) -> dict[str, object]:
+    out: dict[str, dict[str, object]] = {}
+    for key, value in flat.items():
+        section, name = key.split(".", 1)
+        out.setdefault(section, {})[name] = value
+    return dict(out)
+
+
+@pytest.mark.parametrize(
+    ("extra", "grid"),
+    [
+        (["--masks-model", "some/sam"], 16),  # the CPU default (docs/method.md §17)
+        (["--masks-model", "some/sam", "--set", "maps2d.points_per_side=8"], 8),  # the user's choice wins
+        (["--features-model", "some/clip"], 32),  # no masks model: the stage's own default, untouched
+        (["--masks-model", "some/sam", "--set", "maps2d.device=cuda"], 32),  # not on the CPU
+    ],
+)
+def test_the_cli_sets_the_cpu_grid_only_for_a_masks_model_on_the_cpu(extra: list[str], grid: int) -> None:
+    import torch
+
+    from panogs_core.cli.commands.run import _map_models, _settings
+    from panogs_core.cli.main import build_parser
+
+    if torch.cuda.is_available():
+        pytest.skip("the CPU default applies where torch sees no CUDA device")
+    args = build_parser().parse_args(["run", "b", "--out", "o", *extra])
+    cfg, _ = _settings(args)
+    assert cfg.maps2d.points_per_side == grid
+    models = _map_models(args)
+    assert models is not None
+    assert (models.masks, models.features, models.allow_download) == (
+        "some/sam" if "--masks-model" in extra else None,
+        "some/clip" if "--features-model" in extra else None,
+        False,
+    )
