@@ -28,7 +28,8 @@ def check_job_maps(settings: Settings, maps: JobMaps | None, scene: Any, tiling:
 
     Raises:
         InvalidInput: a name that is no entry of that kind (listing the known ones), a kind of map the scene's
-            bundle lacks with no entry named for it, or forced tiles on a job that computes maps.
+            bundle lacks with no entry named for it, an entry named for a kind the bundle brings (the run keeps
+            the bundle's), or forced tiles on a job that computes maps.
     """
     asked = {kind: getattr(maps, kind) if maps is not None else None for kind in KINDS}
     problems = []
@@ -44,6 +45,12 @@ def check_job_maps(settings: Settings, maps: JobMaps | None, scene: Any, tiling:
             problems.append(
                 f"maps.{kind}: scene {scene.id}'s bundle has no {_map_word(kind)}; name a {kind} model to compute "
                 f"them (known: {_known(settings, kind)}) or upload a bundle with them"
+            )
+        elif has[kind] and asked[kind] is not None:
+            # The pipeline never recomputes a kind the bundle brings: a model named for it would do nothing.
+            problems.append(
+                f"maps.{kind}: scene {scene.id}'s bundle brings its own {_map_word(kind)}, which the run uses; "
+                f"leave maps.{kind} out"
             )
     if problems:
         raise InvalidInput("the 2D models of the job are not valid", problems=problems)
