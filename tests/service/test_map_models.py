@@ -487,3 +487,88 @@ class TestFreeText:
         response, _out = self._answer(settings, tiny_zip, space, embeddings)
         assert response.status_code == 422, response.text
         assert "holds other weights" in response.json()["message"]
+
+
+# End to end -----------------------------------------------------------------------------------------------------
+
+# The tiny models' settings (tests/core/test_maps2d_pipeline.py): every mask kept, small grids, no appearance fit.
+E2E_CONFIG = {
+    "maps2d": {
+        "pred_iou_thresh": -1.0,
+        "stability_score_thresh": 0.0,
+        "min_mask_fraction": 0.0,
+        "points_per_side": 4,
+        "max_masks": 8,
+        "mask_long_side": 64,
+        "feature_long_side": 16,
+        "device": "cpu",
+    },
+    "appearance": {"enabled": False},
+    "language_field": {"epochs": 1, "min_steps": 1},
+}
+
+
+def _colour_and_depth(bundle: Path, dst: Path) -> bytes:
+    """A zip of ``bundle`` without its feature maps, masks, vocabulary and ground truth: posed RGB-D alone."""
+    import json
+
+    shutil.copytree(bundle, dst)
+    doc = json.loads((dst / "scene.json").read_text())
+    for frame in doc["frames"]:
+        frame.pop("features", None)
+        frame.pop("masks", None)
+    doc.pop("features", None)
+    (dst / "scene.json").write_text(json.dumps(doc))
+    for name in ("features", "masks", "gt"):
+        shutil.rmtree(dst / name)
+    for name in ("vocabulary.json", "vocabulary.npy"):
+        (dst / name).unlink()
+    return Path(shutil.make_archive(str(dst), "zip", dst)).read_bytes()
+
+
+@pytest.mark.slow
+def test_a_bundle_of_colour_and_depth_to_labels_and_a_text_query(
+    make_settings: Callable[..., Settings], synth_tiny: Path, folders: dict[str, Path], tmp_path: Path
+) -> None:
+    """Upload posed RGB-D alone, create a job naming the operator's entries, run the real pipeline in the worker:
+    the 2D maps are computed (a stage with its timing), the job has instances, and free text is embedded by the
+    features entry's text tower."""
+    from panogs_core.stages import maps2d
+
+    if not hasattr(maps2d, "MapModels"):
+        pytest.skip("the core's 2D-maps stage is not wired into run_pipeline in this tree")
+    from panogs_core.language.model_identity import clip_space
+    from panogs_core.pipeline.config import PipelineConfig
+    from panogs_core.pipeline.run import STAGES, run_pipeline
+
+    archive = _colour_and_depth(synth_tiny, tmp_path / "capture")
+    settings = make_settings("sqlite", stand_in=None, map_models=_entries(folders))
+    with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+        auth = new_key(settings)
+        scene = make_scene(client, auth, archive)
+        assert (scene["has_feature_maps"], scene["has_mask_maps"]) == (False, False)
+        refused = _post(client, auth, scene["id"], vocabulary="scannet20", config=E2E_CONFIG)
+        assert refused.status_code == 422
+        assert "maps.masks:" in _message(refused)
+        assert "maps.features:" in _message(refused)
+        maps = {"masks": "slimsam", "features": "clip-b16"}
+        response = _post(client, auth, scene["id"], maps, vocabulary="scannet20", config=E2E_CONFIG)
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        env = leased.JobEnv(
+            settings=settings, session_factory=get_session_factory(settings.database),
+            storage=Storage(settings.storage), pipeline=run_pipeline, make_config=PipelineConfig.from_dict,
+            stages=tuple(STAGES),
+        )  # fmt: skip
+        state = runner.execute_job(uuid.UUID(job_id), lease="t-1", worker="test", env=env)
+        job = client.get(f"/v1/jobs/{job_id}", headers=auth).json()
+        assert state == JobState.SUCCEEDED, job["error"]
+        assert "maps_2d" in job["stage_timings"]
+        assert job["stage_cached"]["maps_2d"] is False
+        assert client.get(f"/v1/jobs/{job_id}/instances", headers=auth).json()["data"]
+        report = client.get(f"/v1/jobs/{job_id}/artifacts/report.json", headers=auth).json()
+        assert report["feature_space"] == clip_space(folders["clip"])
+        body = {"text": "a soft chair", "min_score": 0.0}
+        answer = client.post(f"/v1/jobs/{job_id}/query", json=body, headers=auth)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["query_kind"] == "text"
