@@ -103,7 +103,7 @@ def create_job(
     validate_config(body.config)
     validate_tiling(body.tiling)
     check_vocabulary(body, scene)
-    maps = check_job_maps(settings, body.maps, scene, body.tiling)
+    maps = check_job_maps(settings, body, scene)
     check_job_quota(session, settings, tenant_id)
     job = Job(
         api_key_id=tenant_id,
@@ -134,6 +134,8 @@ def check_vocabulary(body: JobCreate, scene: Scene) -> None:
     """Refuse inline embeddings whose width is not the scene's feature dimension (422), before any row is made."""
     inline = body.vocabulary
     if not isinstance(inline, InlineVocabulary) or inline.embedding_dim in (None, scene.feature_dim):
+        return
+    if not scene.has_feature_maps:  # the job's features model decides the width (service.map_models)
         return
     raise InvalidInput(
         f"vocabulary.classes[*].embedding: {inline.embedding_dim} values per class, but scene {scene.id}'s "

@@ -9,10 +9,11 @@ No torch here: the identities are read from the folders' files (``panogs_core.la
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from service.errors import InvalidInput
-from service.schemas import JobMaps, JobTiling
+from service.schemas import InlineVocabulary, JobCreate
 from service.settings import Settings
 
 KINDS = ("masks", "features")
@@ -23,14 +24,16 @@ def _known(settings: Settings, kind: str) -> str:
     return ", ".join(repr(n) for n in names) if names else "none (the operator declares them in PANOGS_MAP_MODELS)"
 
 
-def check_job_maps(settings: Settings, maps: JobMaps | None, scene: Any, tiling: JobTiling | None) -> dict[str, Any]:
+def check_job_maps(settings: Settings, body: JobCreate, scene: Any) -> dict[str, Any]:
     """The job row's ``maps`` column for a request: the entry names per kind, or None for a kind it leaves.
 
     Raises:
         InvalidInput: a name that is no entry of that kind (listing the known ones), a kind of map the scene's
             bundle lacks with no entry named for it, an entry named for a kind the bundle brings (the run keeps
-            the bundle's), or forced tiles on a job that computes maps.
+            the bundle's), forced tiles on a job that computes maps, or inline embeddings whose width is not
+            the named features model's.
     """
+    maps, tiling = body.maps, body.tiling
     asked = {kind: getattr(maps, kind) if maps is not None else None for kind in KINDS}
     problems = []
     for kind, name in asked.items():
@@ -57,7 +60,27 @@ def check_job_maps(settings: Settings, maps: JobMaps | None, scene: Any, tiling:
     if any(asked.values()) and tiling is not None and tiling.tiles not in ("auto", "off"):
         # The maps of a frame serve every tile that sees it: they are computed once, for the whole scene.
         raise InvalidInput(f"tiling.tiles {tiling.tiles!r}: a job that computes 2D maps runs its scene whole")
+    if asked["features"] is not None and isinstance(body.vocabulary, InlineVocabulary):
+        _check_embedding_width(settings, asked["features"], body.vocabulary.embedding_dim)
     return asked
+
+
+def _check_embedding_width(settings: Settings, name: str, width: int | None) -> None:
+    """Refuse inline embeddings whose width is not the features model's (its config's ``projection_dim``); a
+    folder the API cannot read is left to the worker, which reads it before any frame."""
+    from panogs_core.language.model_identity import ModelLoadError, read_config
+
+    if width is None:
+        return
+    try:
+        dim = read_config(Path(settings.map_models[name].path)).get("projection_dim")
+    except ModelLoadError:
+        return
+    if isinstance(dim, int) and dim != width:
+        raise InvalidInput(
+            f"vocabulary.classes[*].embedding: {width} values per class, but the features model {name!r} "
+            f"writes {dim}-d features; give {dim}-d embeddings or leave them out to have the names embedded"
+        )
 
 
 def _map_word(kind: str) -> str:

@@ -256,6 +256,29 @@ class TestJobsNameEntries:
         assert "maps.masks:" not in message
 
 
+@pytest.mark.slow
+def test_inline_embeddings_take_the_features_models_width(
+    make_settings: Callable[..., Settings], tiny_zip: bytes, folders: dict[str, Path]
+) -> None:
+    """A scene without feature maps has no width of its own (0): inline embeddings are checked against the width
+    of the features model the job names (8 for the tiny CLIP), read from its folder's config."""
+    settings = make_settings("postgres", map_models=_entries(folders))
+    with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+        auth = new_key(settings)
+        scene = make_scene(client, auth, tiny_zip)
+        _scene_lacks(settings, scene["id"], features=True)
+
+        def inline(width: int) -> dict[str, Any]:
+            return {"classes": [{"name": "chair", "embedding": [1.0] + [0.0] * (width - 1)}]}
+
+        wrong = _post(client, auth, scene["id"], {"features": "clip-b16"}, vocabulary=inline(3))
+        assert wrong.status_code == 422, wrong.text
+        assert "3 values per class" in _message(wrong)
+        assert "'clip-b16' writes 8-d features" in _message(wrong)
+        right = _post(client, auth, scene["id"], {"features": "clip-b16"}, vocabulary=inline(8))
+        assert right.status_code == 202, right.text
+
+
 # The worker ---------------------------------------------------------------------------------------------------
 
 
