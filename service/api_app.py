@@ -22,6 +22,7 @@ from service.encoder import EncoderProcess
 from service.errors import install_error_handlers
 from service.job_results import ResultCache
 from service.json_body import BoundedJsonBody, body_limits
+from service.map_models import features_folders
 from service.queue import Sender, celery_sender
 from service.reaper import Reaper
 from service.security_headers import SecurityHeaders
@@ -55,7 +56,7 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     factory = get_session_factory(settings.database)
     storage = open_storage(settings)
     sender = sender or celery_sender(settings)
-    encoder = EncoderProcess(settings.text_model_path)
+    encoder = EncoderProcess(settings.text_model_path, features_folders(settings))
     reaper = Reaper(settings, factory, sender, storage) if run_reaper else None
 
     @asynccontextmanager

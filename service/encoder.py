@@ -5,6 +5,10 @@ The child is spawned (not forked) on the first free-text query and keeps its enc
 after the first is warm. Requests are serialised over a pipe; an encoder error in the child comes back as the
 same exception type where it is known (``EncoderUnavailableError``), otherwise as ``EncoderFailed``.
 A class-name or vector query never reaches the child.
+
+A scene whose features the 2D-maps stage computed (space ``clip-vit-...@<hash>``) is embedded by the text tower of
+the operator's features entry whose folder holds those weights (``service.map_models.text_model_for``), never by
+another model.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ class EncoderFailed(RuntimeError):
     """The encoder process failed or died."""
 
 
-def _serve(conn: Connection, model_path: str | None) -> None:  # pragma: no cover - runs in the child
+def _serve(conn: Connection, model_path: str | None, folders: dict[str, str]) -> None:  # pragma: no cover - child
     # One sentence is a tiny forward pass: one thread answers it fastest, and several threads spin against the
     # API and the workers on a busy machine (measured: 30 ms with one thread, 250-500 ms with two).
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -36,7 +40,9 @@ def _serve(conn: Connection, model_path: str | None) -> None:  # pragma: no cove
     import numpy as np
 
     from panogs_core.language.text_encoders import get_text_encoder
+    from service.map_models import text_model_for
 
+    spaces: dict[str, str] = {}  # features entry -> its folder's space, read once
     while True:
         try:
             request = conn.recv()
@@ -46,7 +52,8 @@ def _serve(conn: Connection, model_path: str | None) -> None:  # pragma: no cove
             return
         space, texts = request
         try:
-            encoder = get_text_encoder(space, model_path=model_path)
+            path = text_model_for(space, model_path, folders, spaces)
+            encoder = get_text_encoder(space, model_path=path)
             vectors = np.asarray(encoder.encode(list(texts)), dtype=np.float32)
             conn.send(("ok", vectors))
         except Exception as exc:  # every failure goes back to the API process, typed by name
@@ -61,8 +68,9 @@ class EncoderProcess:
 
     CACHE_SIZE = 1024
 
-    def __init__(self, model_path: str | None = None) -> None:
+    def __init__(self, model_path: str | None = None, features_folders: dict[str, str] | None = None) -> None:
         self._model_path = model_path
+        self._folders = dict(features_folders or {})  # PANOGS_MAP_MODELS' features entries: name -> folder
         self._lock = threading.Lock()
         self._conn: Connection | None = None
         self._proc: Any = None
@@ -73,7 +81,9 @@ class EncoderProcess:
             return self._conn
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, self._model_path), name="panogs-text-encoder", daemon=True)
+        self._proc = ctx.Process(
+            target=_serve, args=(child, self._model_path, self._folders), name="panogs-text-encoder", daemon=True
+        )
         self._proc.start()
         child.close()
         self._conn = parent

@@ -16,12 +16,14 @@ from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
 from service.lifecycle import check_job_quota
+from service.map_models import check_job_maps, job_queue
 from service.schemas import (
     FitPublic,
     InlineVocabulary,
     InlineVocabularyPublic,
     JobCreate,
     JobError,
+    JobMaps,
     JobPublic,
     JobTiling,
     TilePublic,
@@ -73,8 +75,9 @@ def validate_tiling(tiling: JobTiling | None) -> None:
 def request_hash(body: JobCreate) -> str:
     """Fingerprint of a creation request, to tell a retry from a reuse of its Idempotency-Key."""
     fields = body.model_dump(mode="json")
-    if fields.get("tiling") is None:
-        fields.pop("tiling", None)  # a request without tiling keeps the fingerprint it had before tiling existed
+    for optional in ("tiling", "maps"):  # a request without one keeps the fingerprint it had before it existed
+        if fields.get(optional) is None:
+            fields.pop(optional, None)
     canonical = json.dumps(fields, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -100,6 +103,7 @@ def create_job(
     validate_config(body.config)
     validate_tiling(body.tiling)
     check_vocabulary(body, scene)
+    maps = check_job_maps(settings, body, scene)
     check_job_quota(session, settings, tenant_id)
     job = Job(
         api_key_id=tenant_id,
@@ -108,7 +112,8 @@ def create_job(
         config=body.config,
         tiling=None if body.tiling is None else body.tiling.model_dump(mode="json"),
         **vocabulary_columns(body),
-        queue=settings.job_queue,
+        maps=maps if any(maps.values()) else None,
+        queue=job_queue(settings, maps),
         idempotency_key=idempotency_key,
         request_hash=fingerprint,
         stage_timings={},
@@ -129,6 +134,8 @@ def check_vocabulary(body: JobCreate, scene: Scene) -> None:
     """Refuse inline embeddings whose width is not the scene's feature dimension (422), before any row is made."""
     inline = body.vocabulary
     if not isinstance(inline, InlineVocabulary) or inline.embedding_dim in (None, scene.feature_dim):
+        return
+    if not scene.has_feature_maps:  # the job's features model decides the width (service.map_models)
         return
     raise InvalidInput(
         f"vocabulary.classes[*].embedding: {inline.embedding_dim} values per class, but scene {scene.id}'s "
@@ -193,6 +200,7 @@ def to_public(job: Job | Row[Any], tiles: Sequence[Row[Any]] = ()) -> JobPublic:
         config=job.config or {},
         vocabulary=public_vocabulary(job.vocabulary, job.vocabulary_classes),
         tiling=None if job.tiling is None else JobTiling.model_validate(job.tiling),
+        maps=None if job.maps is None else JobMaps.model_validate(job.maps),
         tiles=[tile_public(t) for t in tiles],
         cancel_requested=job.cancel_requested,
         attempts=job.attempts,

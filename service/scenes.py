@@ -157,6 +157,8 @@ def _validated(
         num_frames=len(bundle.frames),
         has_vocabulary=bundle.vocabulary is not None,
         has_ground_truth=bundle.has_ground_truth,
+        has_feature_maps=bool(bundle.feature_frames),
+        has_mask_maps=bool(bundle.mask_frames),
         bundle_path=extraction.bundle_key(Path(bundle.root)),
         bundle_sha256=upload.sha256,
         size_bytes=dir_size(workdir),

@@ -101,6 +101,8 @@ class ScenePublic(BaseModel):
     num_frames: int
     has_vocabulary: bool
     has_ground_truth: bool
+    has_feature_maps: bool = Field(description="the bundle brings language feature maps; else a job names a model")
+    has_mask_maps: bool = Field(description="the bundle brings instance mask maps; else a job names a model")
     bundle_sha256: str | None
     size_bytes: int
     created_at: datetime
@@ -247,6 +249,22 @@ class JobTiling(BaseModel):
     )
 
 
+class JobMaps(BaseModel):
+    """The operator's 2D models a job computes its scene's missing maps with (docs/service.md, "2D maps"): entry
+    names of ``PANOGS_MAP_MODELS``, never paths."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    masks: str | None = Field(
+        default=None, max_length=64, description="entry name of a masks (SAM-family) model; null: the bundle's masks"
+    )
+    features: str | None = Field(
+        default=None,
+        max_length=64,
+        description="entry name of a features (CLIP) model; null: the bundle's feature maps",
+    )
+
+
 class JobCreate(BaseModel):
     """Run the pipeline on a scene."""
 
@@ -264,6 +282,12 @@ class JobCreate(BaseModel):
     )
     tiling: JobTiling | None = Field(
         default=None, description="split the scene into tiles run on several workers; default: not tiled"
+    )
+    maps: JobMaps | None = Field(
+        default=None,
+        description="compute 2D masks and/or feature maps with models the operator declared "
+        "(PANOGS_MAP_MODELS entry names; an unknown name is refused with the known ones); required for each kind "
+        "of map the scene's bundle lacks",
     )
 
 
@@ -333,6 +357,7 @@ class JobPublic(BaseModel):
         description="the built-in label set asked for, the inline classes, or null: the bundle's own"
     )
     tiling: JobTiling | None = Field(default=None, description="the tiling asked for; null: not tiled")
+    maps: JobMaps | None = Field(default=None, description="the 2D models asked for; null: the bundle's maps")
     tiles: list[TilePublic] = Field(
         default_factory=list, description="a tiled job's tiles, then its merge; empty when the scene ran whole"
     )

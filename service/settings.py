@@ -12,11 +12,13 @@ Placeholder secrets (``changethis``) and the embedded defaults are refused when
 from __future__ import annotations
 
 import functools
-from pathlib import Path
-from typing import Any, Literal
+import json
+import re
+from pathlib import Path, PurePosixPath
+from typing import Annotated, Any, Literal
 
-from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from panogs_core.threads import available_cores, threads_per_process
 
@@ -24,6 +26,23 @@ PLACEHOLDER_SECRET = "changethis"
 # Where an operator sets a secret: the compose stack reads .env (POSTGRES_PASSWORD feeds PANOGS_DATABASE_URL).
 _SET_YOUR_OWN = "set your own secret (docker compose: in .env, e.g. POSTGRES_PASSWORD; else the environment)"
 GIB = 1024**3
+
+
+MAP_MODEL_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+
+class MapModelEntry(BaseModel):
+    """One 2D model the operator lets jobs name (``PANOGS_MAP_MODELS``): its kind and its local folder."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["masks", "features"]  # masks: a SAM-family model; features: a CLIP model
+    path: str  # absolute path of a folder in the Hugging Face layout, on the worker (and the API, for text)
+
+
+# Read from the environment as JSON by the field's own validator, so that an empty value (what docker compose passes
+# for an unset variable) means no entries.
+MapModelTable = Annotated[dict[str, MapModelEntry], NoDecode]
 
 
 class Settings(BaseSettings):
@@ -91,13 +110,36 @@ class Settings(BaseSettings):
     bundle_max_json_bytes: int = Field(default=16 * 1024**2, gt=0, le=64 * 1024**2)  # scene.json, vocabulary.json
     max_image_pixels: int = Field(default=40_000_000, gt=0, le=100_000_000)  # per image (and feature map) of a bundle
 
+    # The 2D-maps stage: the models jobs may name, and where their jobs run (docs/service.md, "2D maps").
+    map_models: MapModelTable = {}  # JSON: entry name -> {"kind": masks | features, "path": absolute folder}
+    maps_queue: Literal["cpu", "gpu"] | None = None  # queue of jobs that compute maps; unset or empty: job_queue
+
     # The app and the data lifecycle.
     session_ttl_s: int = Field(default=8 * 3600, gt=0)  # an app sign-in (HttpOnly cookie) lasts this long
     quota_bytes: int | None = Field(default=100 * GIB, gt=0)  # per tenant: uploads + scenes + results; None: none
     quota_concurrent_jobs: int | None = Field(default=4, gt=0)  # per tenant: queued + running jobs; None: none
     retention_days: float | None = Field(default=None, gt=0)  # finished jobs older than this are deleted
     min_free_disk_bytes: int = Field(default=1 * GIB, ge=0)  # an extraction leaves at least this much free
+
     log_level: str = "INFO"
+
+    @field_validator("maps_queue", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: Any) -> Any:
+        return None if value == "" else value  # docker compose passes an unset ${PANOGS_MAPS_QUEUE:-} as ""
+
+    @field_validator("map_models", mode="before")
+    @classmethod
+    def _json_object(cls, value: Any) -> Any:
+        """The environment's JSON text (empty: no entries); a dict as given in code."""
+        if not isinstance(value, str):
+            return value
+        if not value.strip():
+            return {}
+        try:
+            return json.loads(value)
+        except ValueError as exc:
+            raise ValueError(f"PANOGS_MAP_MODELS is not JSON ({exc}); expected an object of entries") from exc
 
     @model_validator(mode="after")
     def _check(self) -> Settings:
@@ -109,6 +151,7 @@ class Settings(BaseSettings):
             )
         if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
             raise ValueError("heartbeat_timeout_s must exceed heartbeat_interval_s")
+        check_map_models(self.map_models)
         if self.storage_url is not None and not self.storage_url.startswith("s3://"):
             raise ValueError(f"PANOGS_STORAGE_URL must be s3://bucket[/prefix], not {self.storage_url!r}")
         secret = self.s3_secret_access_key or ""
@@ -178,6 +221,10 @@ class Settings(BaseSettings):
             options["global_keyprefix"] = self.broker_key_prefix
         return options
 
+    def map_model_names(self, kind: str) -> list[str]:
+        """The entries of ``map_models`` of one kind (``masks`` or ``features``), sorted."""
+        return sorted(name for name, entry in self.map_models.items() if entry.kind == kind)
+
     def ensure_dirs(self) -> None:
         """Create the local folders this configuration writes to."""
         self.storage.mkdir(parents=True, exist_ok=True)
@@ -186,6 +233,25 @@ class Settings(BaseSettings):
         if self.is_embedded_broker:
             for key in ("data_folder_in", "control_folder", "processed_folder"):
                 Path(self.broker_transport_options()[key]).mkdir(parents=True, exist_ok=True)
+
+
+def check_map_models(entries: dict[str, MapModelEntry]) -> None:
+    """Refuse an entry whose name is not a plain word or whose path is not absolute, naming the entry.
+
+    A relative path would resolve against whichever folder a process started in, so the API and the workers could
+    read different folders under one name.
+    """
+    for name, entry in entries.items():
+        if not MAP_MODEL_NAME.fullmatch(name):
+            raise ValueError(
+                f"PANOGS_MAP_MODELS: entry name {name!r}: letters, digits, '.', '_' or '-' (at most 64), "
+                "starting with a letter or digit"
+            )
+        if not PurePosixPath(entry.path).is_absolute():
+            raise ValueError(
+                f"PANOGS_MAP_MODELS: entry {name!r} ({entry.kind}): path {entry.path!r} is not absolute; give the "
+                "model folder's absolute path on the worker"
+            )
 
 
 @functools.cache

@@ -11,12 +11,16 @@ stop becomes an outcome) is ``worker/leased.py``'s, shared with the tile runner;
   through, between and inside stages.
 - **Resume**: the pipeline runs with ``resume=True`` in the job's own folder, so a job claimed again after its
   worker died reuses the checkpoints of the stages that finished.
+- **2D maps**: a job that names the operator's models gets their folders from this worker's settings, checked
+  (files present, identities read) before the pipeline starts, so a broken folder fails the job before any frame,
+  naming the entry (:func:`job_map_models`). Such a job runs its scene whole (its maps serve every tile).
 - **Vocabulary**: the pipeline gets a built-in label-set name or the job's inline classes, never a string that
   could name a file (:func:`worker.leased.job_vocabulary`, docs/service.md "Which request fields reach the host").
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import time
 import uuid
@@ -37,6 +41,9 @@ from service.db import crud
 from service.db.base import utcnow
 from service.db.models import FitState, Job, JobState, Scene
 from service.db.session import session_scope
+from service.errors import InvalidInput
+from service.map_models import KINDS, computes_maps, entry_folders
+from service.settings import Settings
 from service.storage.workspace import Workspace
 from worker import tiles
 from worker.job_io import collect_artifacts, job_vocabulary
@@ -226,8 +233,13 @@ def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, wor
     tracker.shared = shared
     work.push.skip = shared.kept  # a checkpoint the scene's store keeps is not stored again with the job
     config = env.make_config(job.config or {})
-    if tiles.tiles_asked(job) != TILES_OFF and tiles.plan_and_fan_out(job, tracker, work, config):
+    map_models = job_map_models(job.maps, env.settings)
+    if map_models is not None:
+        extra: dict[str, Any] = {"map_models": map_models}
+    elif tiles.tiles_asked(job) != TILES_OFF and tiles.plan_and_fan_out(job, tracker, work, config):
         return JobState.RUNNING  # its tiles' tasks run it now, and its merge ends it
+    else:
+        extra = {}  # a pipeline without the 2D-maps keyword (the tests' stand-ins) still runs jobs that name none
     with tracker.beating():
         result = env.pipeline(
             work.bundle,
@@ -238,9 +250,40 @@ def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, wor
             resume=True,
             on_results=stopping_on_storage_errors(lambda _result: _record_results(job.id, tracker, work.out)),
             shared=_CheckpointsThroughStops(shared),
+            **extra,
         )
     tracker.push_outputs()
     return _succeeded(job, tracker, work, result)
+
+
+def job_map_models(maps: dict[str, Any] | None, settings: Settings) -> Any:
+    """The ``MapModels`` of a job's named entries (their folders from this worker's settings), or None when it
+    names none; each folder is checked first (config and weights present, identity readable), without torch.
+
+    Raises:
+        ModelLoadError: an entry this worker does not hold, or whose folder cannot be loaded, naming the entry,
+            its folder and what is missing.
+    """
+    if not computes_maps(maps):
+        return None
+    from panogs_core.stages.maps2d import ModelLoadError, identify_models
+
+    try:
+        folders = entry_folders(settings, maps)
+    except InvalidInput as exc:
+        raise ModelLoadError(exc.message) from exc
+    assert maps is not None
+    for kind in KINDS:
+        folder = folders[kind]
+        if folder is None:
+            continue
+        try:
+            identify_models(folder if kind == "masks" else None, folder if kind == "features" else None)
+        except ModelLoadError as exc:
+            raise ModelLoadError(f"map model entry {maps[kind]!r} ({kind} model): {exc}") from exc
+    # Looked up at run time: the keyword's dataclass comes with the stage's pipeline wiring.
+    maps2d = importlib.import_module("panogs_core.stages.maps2d")
+    return maps2d.MapModels(masks=folders["masks"], features=folders["features"])
 
 
 def _succeeded(job: Job, tracker: Tracker, work: Workspace, result: Any) -> JobState | None:

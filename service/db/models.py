@@ -11,7 +11,7 @@ import uuid
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, Integer, String, Text
+from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, Integer, String, Text, true
 from sqlalchemy import UniqueConstraint as Unique
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -121,6 +121,10 @@ class Scene(IdMixin, TimestampedMixin, Base):
     bundle_path: Mapped[str] = mapped_column(String(512))
     bundle_sha256: Mapped[str | None] = mapped_column(String(64))
     size_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
+    # Whether the bundle brings its own 2D maps (some frame has one); a kind it lacks needs a job that names a model
+    # to compute it (service.map_models). Rows from before bundles could lack maps had both.
+    has_feature_maps: Mapped[bool] = mapped_column(Boolean, default=True, server_default=true())
+    has_mask_maps: Mapped[bool] = mapped_column(Boolean, default=True, server_default=true())
 
 
 class Job(IdMixin, TimestampedMixin, Base):
@@ -171,6 +175,9 @@ class Job(IdMixin, TimestampedMixin, Base):
     # How the job asked to be tiled (``JobTiling``: tiles auto | off | NxM, planner settings); NULL: not tiled. Whether
     # it was is told by its ``job_tile`` rows (docs/service.md, "Tiled jobs").
     tiling: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    # The operator's 2D models the job computes maps with: entry names of PANOGS_MAP_MODELS per kind ({"masks": name
+    # or null, "features": name or null}), never paths; NULL: the bundle's maps (docs/service.md, "2D maps").
+    maps: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
 
     artifacts: Mapped[list[Artifact]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Artifact.name"
