@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-import panogs_core.io.bundle.validation
+import panogs_core.io.bundle.file_checks
 from panogs_core.bounded_json import JsonLimits
 from panogs_core.errors import BundleError, InputError
 from panogs_core.io.bundle import FORMAT_ID, Bundle, BundleLimits, open_bundle
@@ -723,13 +723,13 @@ def test_images_over_a_limit_are_refused_without_being_read(bundle_dir: Path, mo
     (bundle_dir / "masks/000000.png").write_bytes(_declared_png(20_000, 20_000))
     (bundle_dir / "depth/000001.png").write_bytes(_declared_png(640, 480))
     read: list[str] = []
-    real_check = panogs_core.io.bundle.validation._data_problem
+    real_check = panogs_core.io.bundle.file_checks.data_problem
 
     def recording_check(root: Path, rel: str) -> str | None:
         read.append(rel)
         return real_check(root, rel)
 
-    monkeypatch.setattr(panogs_core.io.bundle.validation, "_data_problem", recording_check)
+    monkeypatch.setattr(panogs_core.io.bundle.file_checks, "data_problem", recording_check)
     problems = _problems(bundle_dir)
     assert "masks/000000.png: 20000x20000 (400,000,000 pixels), over the pixel limit of 100,000,000" in problems
     assert "depth/000001.png: 640x480, expected 64x48 (camera)" in problems
@@ -791,7 +791,7 @@ def test_no_problem_names_where_the_bundle_lies(bundle_dir: Path, monkeypatch: p
     def failing_header(path: Path, *, name: str | None = None) -> None:
         raise InputError(f"{name}: cannot be read ({path}: input/output error)")
 
-    monkeypatch.setattr(panogs_core.io.bundle.validation, "read_image_header", failing_header)
+    monkeypatch.setattr(panogs_core.io.bundle.file_checks, "read_image_header", failing_header)
     problems = _problems(bundle_dir)
     assert "depth/000000.png: cannot be read (depth/000000.png: input/output error)" in problems
     assert not any(str(bundle_dir) in p or str(bundle_dir.resolve()) in p for p in problems)
@@ -1041,13 +1041,13 @@ class TestValidationBudgets:
             frame["depth"] = doc["frames"][0]["depth"]
         _save(bundle_dir, doc)
         calls: list[int] = []
-        walk = panogs_core.io.bundle.validation._png_framing_problem
+        walk = panogs_core.io.bundle.file_checks.png_framing_problem
 
         def counted(data: bytes, max_chunks: int) -> str | None:
             calls.append(len(data))
             return walk(data, max_chunks)
 
-        monkeypatch.setattr(panogs_core.io.bundle.validation, "_png_framing_problem", counted)
+        monkeypatch.setattr(panogs_core.io.bundle.file_checks, "png_framing_problem", counted)
         open_bundle(bundle_dir)
         pngs = {f[k] for f in doc["frames"] for k in ("depth", "masks", "color") if f.get(k, "").endswith(".png")}
         assert len(calls) == len(pngs)
