@@ -11,7 +11,8 @@ from typing import Any
 
 from panogs_core.errors import ConfigError
 
-# The only pipeline setting that names a torch device (PipelineConfig.language_field.device).
+# The pipeline setting the worker decides: the language field's torch device (PipelineConfig.language_field.device).
+# The 2D-maps stage has its own, ``maps2d.device``, whose default ``auto`` already takes the GPU when torch sees one.
 DEVICE_SECTION = "language_field"
 DEVICE_KEY = "device"
 

@@ -20,14 +20,13 @@ stop becomes an outcome) is ``worker/leased.py``'s, shared with the tile runner;
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, update
 from sqlalchemy.orm import Session
@@ -43,6 +42,9 @@ from service.db.models import FitState, Job, JobState, Scene
 from service.db.session import session_scope
 from service.errors import InvalidInput
 from service.map_models import KINDS, computes_maps, entry_folders
+
+if TYPE_CHECKING:
+    from panogs_core.stages.maps2d import MapModels
 from service.settings import Settings
 from service.storage.workspace import Workspace
 from worker import tiles
@@ -256,7 +258,7 @@ def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, wor
     return _succeeded(job, tracker, work, result)
 
 
-def job_map_models(maps: dict[str, Any] | None, settings: Settings) -> Any:
+def job_map_models(maps: dict[str, Any] | None, settings: Settings) -> MapModels | None:
     """The ``MapModels`` of a job's named entries (their folders from this worker's settings), or None when it
     names none; each folder is checked first (config and weights present, identity readable), without torch.
 
@@ -266,7 +268,7 @@ def job_map_models(maps: dict[str, Any] | None, settings: Settings) -> Any:
     """
     if not computes_maps(maps):
         return None
-    from panogs_core.stages.maps2d import ModelLoadError, identify_models
+    from panogs_core.stages.maps2d import MapModels, ModelLoadError, identify_models
 
     try:
         folders = entry_folders(settings, maps)
@@ -281,9 +283,7 @@ def job_map_models(maps: dict[str, Any] | None, settings: Settings) -> Any:
             identify_models(folder if kind == "masks" else None, folder if kind == "features" else None)
         except ModelLoadError as exc:
             raise ModelLoadError(f"map model entry {maps[kind]!r} ({kind} model): {exc}") from exc
-    # Looked up at run time: the keyword's dataclass comes with the stage's pipeline wiring.
-    maps2d = importlib.import_module("panogs_core.stages.maps2d")
-    return maps2d.MapModels(masks=folders["masks"], features=folders["features"])
+    return MapModels(masks=folders["masks"], features=folders["features"])
 
 
 def _succeeded(job: Job, tracker: Tracker, work: Workspace, result: Any) -> JobState | None:
