@@ -30,8 +30,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.db.faults import DatabaseFault, classify
 from service.security_headers import API_HEADERS
+from service.storage.objects import StorageUnavailable
 
 logger = logging.getLogger(__name__)
+STORAGE_RETRY_AFTER_S = 5  # a storage outage: when the client should try again (/readyz re-probes as often)
+STORAGE_OUTAGE_MESSAGE = "the object storage is unavailable; retry shortly (GET /readyz says when it is back)"
 
 
 class ServiceError(Exception):
@@ -126,6 +129,16 @@ class InsufficientStorage(ServiceError):
 
     status_code = 507
     type = "insufficient_storage"
+
+
+class StorageOutage(ServiceError):
+    """The object storage did not answer (or answered that it is busy): the request may succeed once it is back."""
+
+    status_code = 503
+    type = "storage_unavailable"
+
+    def __init__(self, message: str = STORAGE_OUTAGE_MESSAGE) -> None:
+        super().__init__(message, headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
 
 
 class UnsupportedMediaType(ServiceError):
@@ -330,6 +343,13 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(PoolTimeoutError)
     async def _database_error(request: Request, exc: DBAPIError | PoolTimeoutError) -> JSONResponse:
         return database_error_response(request, exc)
+
+    @app.exception_handler(StorageUnavailable)
+    async def _storage_outage(request: Request, exc: StorageUnavailable) -> JSONResponse:
+        # What the store said stays in the log: its host and bucket are the operator's, not the client's.
+        logger.warning("storage unavailable on %s %s: %s", request.method, request.url.path, exc)
+        outage = StorageOutage()
+        return error_response(request, outage.body(), outage.status_code, outage.headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

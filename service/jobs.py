@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from service.db import crud
 from service.db.models import Job, JobState, Scene
 from service.errors import InvalidInput, NotFound
-from service.lifecycle import check_job_quota
+from service.lifecycle import reserve_job_slots
 from service.map_models import check_job_maps, job_queue
 from service.schemas import (
     FitPublic,
@@ -72,6 +72,32 @@ def validate_tiling(tiling: JobTiling | None) -> None:
         raise InvalidInput("the tiling settings are not valid", problems=[_shortened(str(exc))]) from exc
 
 
+MIN_TILE_CAP = 8  # tiles any scene may be split into, however few its frames
+
+
+def tile_cap(settings: Settings, scene: Scene) -> int:
+    """The most tiles a job on ``scene`` may ask for: ``max_tiles_per_job``, and no more than one per frame of the
+    scene (a tile no frame of its own sees is work without gain) with ``MIN_TILE_CAP`` for any scene."""
+    return min(settings.max_tiles_per_job, max(MIN_TILE_CAP, scene.num_frames))
+
+
+def check_tile_cap(settings: Settings, scene: Scene, tiling: JobTiling | None) -> int:
+    """Refuse (422) an ``NxM`` tiling past :func:`tile_cap`; returns the concurrent-job slots the job holds (one per
+    tile asked, ``crud.job_slots``; an ``auto`` job is counted by its planned tiles once planned)."""
+    if tiling is None or "x" not in tiling.tiles:
+        return 1
+    columns, _, rows = tiling.tiles.partition("x")
+    tiles = int(columns) * int(rows)
+    cap = tile_cap(settings, scene)
+    if tiles > cap:
+        raise InvalidInput(
+            f"tiling.tiles {tiling.tiles!r} makes {tiles} tiles; a job on scene {scene.id} ({scene.num_frames} "
+            f"frames) may have at most {cap} (one per frame, at least {MIN_TILE_CAP}, at most "
+            f"{settings.max_tiles_per_job}: PANOGS_MAX_TILES_PER_JOB)"
+        )
+    return tiles
+
+
 def request_hash(body: JobCreate) -> str:
     """Fingerprint of a creation request, to tell a retry from a reuse of its Idempotency-Key."""
     fields = body.model_dump(mode="json")
@@ -102,9 +128,10 @@ def create_job(
         raise NotFound("scene", body.scene_id)
     validate_config(body.config)
     validate_tiling(body.tiling)
+    slots = check_tile_cap(settings, scene, body.tiling)
     check_vocabulary(body, scene)
     maps = check_job_maps(settings, body, scene)
-    check_job_quota(session, settings, tenant_id)
+    reserve_job_slots(session, settings, tenant_id, slots)  # held until the job's row is committed
     job = Job(
         api_key_id=tenant_id,
         scene_id=body.scene_id,

@@ -4,12 +4,15 @@
   which :func:`sweep_orphans` removes later; a retry of a DELETE whose rows are gone answers 204 again (safe to
   retry). A running job is asked to cancel first; its worker finds the row gone at its next progress step (a lost
   lease) and stops, and any file it wrote after the delete is an orphan for the sweep.
-- **Quotas** per tenant: stored bytes (unconsumed uploads + scenes + job results) and concurrent jobs (queued or
-  running), as ``service.db.crud.keys`` counts them. A request that would pass one is refused with 413 / 429 and
-  a message naming the limit and its setting. Each stored byte counts once: an upload being made into a scene
-  stops counting as its scene is measured.
+- **Quotas** per tenant: stored bytes (unconsumed uploads + scenes + job results) and concurrent job slots (queued
+  or running jobs; a tiled job holds one per tile, up to the whole limit), as ``service.db.crud.keys`` counts them.
+  A request that would pass one is refused with 413 / 429 and a message naming the limit and its setting. The
+  check and the insert it guards run in one transaction under the tenant's lock (:func:`reserve_upload`,
+  :func:`reserve_job_slots`), so N requests at once accept exactly what fits. Each stored byte counts once: an
+  upload being made into a scene stops counting as its scene is measured.
 - **Free disk**: an upload is created, and each PATCH accepted, only when the bytes it still needs fit on the
-  storage volume with ``min_free_disk_bytes`` left free (507 otherwise); an extraction is bounded the same way.
+  storage volume with ``min_free_disk_bytes`` left free, less what every other open upload has reserved and not
+  yet written (507 otherwise); an extraction is bounded the same way.
 - **Retention**: finished jobs older than ``retention_days`` are deleted with their results.
 """
 
@@ -25,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from service.db import crud
 from service.db.base import utcnow
-from service.db.models import Artifact, Job, JobState, Scene
+from service.db.models import Artifact, Job, JobState, Scene, Upload
 from service.errors import InsufficientStorage, QuotaExceeded
 from service.settings import Settings
 from service.storage import Storage
@@ -61,8 +64,9 @@ def disk_room(settings: Settings, storage: Storage) -> int:
     return max(0, shutil.disk_usage(storage.root).free - settings.min_free_disk_bytes)
 
 
-def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str) -> None:
-    """Refuse (507) when ``needed`` bytes do not fit on the storage volume with ``min_free_disk_bytes`` left free.
+def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str, reserved: int = 0) -> None:
+    """Refuse (507) when ``needed`` bytes do not fit on the storage volume with ``min_free_disk_bytes`` left free,
+    once ``reserved`` bytes (promised to other open uploads, not yet written) are set aside.
 
     An object storage (S3) has no free space to ask: only the local backend is checked (an extraction's scratch
     folder is, through :func:`extraction_limit`).
@@ -70,13 +74,33 @@ def check_disk_room(settings: Settings, storage: Storage, needed: int, what: str
     free = storage.volume_free_bytes()
     if free is None:
         return
-    room = max(0, free - settings.min_free_disk_bytes)
+    room = max(0, free - settings.min_free_disk_bytes - reserved)
     if needed > room:
+        others = f", {reserved:,} of them promised to open uploads," if reserved else ""
         raise InsufficientStorage(
             f"not enough free disk: {what} needs {needed:,} more bytes, the storage volume can take {room:,} "
-            f"while keeping {settings.min_free_disk_bytes:,} bytes free (PANOGS_MIN_FREE_DISK_BYTES); retry later "
-            "or ask the operator to free space"
+            f"while keeping {settings.min_free_disk_bytes:,} bytes free (PANOGS_MIN_FREE_DISK_BYTES){others}; "
+            "retry later or ask the operator to free space"
         )
+
+
+def reserve_upload(session: Session, settings: Settings, storage: Storage, tenant_id: uuid.UUID, length: int) -> None:
+    """Check the tenant's quota and the volume's room for a new upload of ``length`` bytes under the tenant's lock
+    (and the volume's), which the caller's transaction holds until it commits the upload's row."""
+    crud.lock_tenant(session, tenant_id, volume=storage.volume_free_bytes() is not None)
+    check_storage_quota(session, settings, tenant_id, length)
+    reserved = crud.reserved_upload_bytes(session)
+    check_disk_room(settings, storage, length, f"an upload of Upload-Length {length:,}", reserved)
+
+
+def check_upload_room(session: Session, settings: Settings, storage: Storage, upload: Upload) -> None:
+    """Before a PATCH: the tenant within its quota (this upload counts at its full length already), and the bytes
+    the upload still needs on the volume, beside what the other open uploads have reserved."""
+    check_storage_quota(session, settings, upload.api_key_id, 0)
+    remaining = upload.length - upload.offset
+    reserved = crud.reserved_upload_bytes(session, excluding=upload.id) if storage.volume_free_bytes() else 0
+    what = f"upload {upload.id} ({upload.offset:,} of {upload.length:,} bytes)"
+    check_disk_room(settings, storage, remaining, what, reserved)
 
 
 def extraction_limit(
@@ -98,18 +122,30 @@ def extraction_limit(
     return min(candidates, key=lambda c: c[0])
 
 
-def check_job_quota(session: Session, settings: Settings, tenant_id: uuid.UUID) -> None:
-    """Refuse (429) a new job when the tenant already has ``quota_concurrent_jobs`` queued or running."""
+def check_job_quota(session: Session, settings: Settings, tenant_id: uuid.UUID, slots: int = 1) -> None:
+    """Refuse (429) a new job of ``slots`` slots when it would take the tenant's queued and running jobs past
+    ``quota_concurrent_jobs`` slots (a tiled job holds one per tile, up to the whole limit)."""
     limit = settings.quota_concurrent_jobs
     if limit is None:
         return
-    live = crud.live_jobs(session, tenant_id)
-    if live >= limit:
+    live = crud.live_job_slots(session, tenant_id, limit)
+    if live + min(slots, limit) > limit:
+        asks = f"; this job asks {slots} (one per tile)" if slots > 1 else ""
         raise QuotaExceeded(
-            f"concurrent job quota reached: {live} job(s) queued or running; the limit is {limit} "
-            "(PANOGS_QUOTA_CONCURRENT_JOBS); wait for one to finish or cancel one",
+            f"concurrent job quota reached: the queued and running jobs hold {live} slot(s){asks}; the limit is "
+            f"{limit} (PANOGS_QUOTA_CONCURRENT_JOBS; a tiled job holds one per tile); wait for one to finish or "
+            "cancel one",
             status_code=429,
         )
+
+
+def reserve_job_slots(session: Session, settings: Settings, tenant_id: uuid.UUID, slots: int) -> None:
+    """:func:`check_job_quota` under the tenant's lock, which the caller's transaction holds until it commits the
+    job's row: concurrent creations take the slots one after another."""
+    if settings.quota_concurrent_jobs is None:
+        return
+    crud.lock_tenant(session, tenant_id)
+    check_job_quota(session, settings, tenant_id, slots)
 
 
 def delete_job(session: Session, storage: Storage, job: Job) -> None:

@@ -122,6 +122,9 @@ class Settings(BaseSettings):
     min_free_disk_bytes: int = Field(default=1 * GIB, ge=0)  # an extraction leaves at least this much free
 
     log_level: str = "INFO"
+    max_tiles_per_job: int = Field(default=64, gt=0, le=9801)  # NxM tiles one job may ask (and one per frame)
+    storage_probe_timeout_s: float = Field(default=2.0, gt=0, le=30)  # /readyz: how long the object store has to answer
+    storage_probe_cache_s: float = Field(default=5.0, ge=0, le=60)  # /readyz: how long one storage probe's answer holds
 
     @field_validator("maps_queue", mode="before")
     @classmethod

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import errno
 import uuid
 from typing import Any
 
@@ -28,12 +29,15 @@ from service.db.models import Upload, UploadState
 from service.errors import (
     ChecksumMismatch,
     Conflict,
+    InsufficientStorage,
     InvalidInput,
     PayloadTooLarge,
     PreconditionFailed,
     ServiceError,
     UnsupportedMediaType,
 )
+from service.lifecycle import reserve_upload
+from service.settings import Settings
 from service.storage import BLOCK, HashStates, Storage, upload_folder
 from service.storage.chunks import UploadWriter
 from service.storage.objects import StorageError
@@ -43,6 +47,7 @@ TUS_VERSION = "1.0.0"
 TUS_EXTENSIONS = "creation,creation-with-upload,termination,checksum"
 TUS_CHECKSUMS = "sha256"
 OCTET = "application/offset+octet-stream"
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)  # a write that fails for room is the volume's 507, not the server's 500
 
 
 def tus_headers(**extra: Any) -> dict[str, str]:
@@ -90,42 +95,43 @@ def parse_checksum(header: str | None) -> tuple[str, bytes] | None:
     return "sha256", digest
 
 
+MAX_FILENAME_CHARS = 255  # the upload's filename column, and the scene name made from it
+
+
 def create_upload(
     session: Session,
+    settings: Settings,
     storage: Storage,
     tenant_id: uuid.UUID,
     length: int,
     metadata: dict[str, str],
-    limit: int,
 ) -> Upload:
-    """A new empty upload of ``length`` bytes."""
-    if length > limit:
-        raise PayloadTooLarge(f"Upload-Length {length} exceeds the limit of {limit} bytes")
+    """A new empty upload of ``length`` bytes, its bytes and disk room reserved against the tenant's quota and the
+    volume under the tenant's lock (``service.lifecycle.reserve_upload``) in the transaction that adds its row."""
+    if length > settings.max_upload_bytes:
+        raise PayloadTooLarge(f"Upload-Length {length} exceeds the limit of {settings.max_upload_bytes} bytes")
     expected = metadata.get("sha256")
     if expected is not None:
         expected = expected.strip().lower()
         if len(expected) != 64 or any(c not in "0123456789abcdef" for c in expected):
             raise InvalidInput("Upload-Metadata: sha256 must be 64 hex digits")
-    filename = metadata.get("filename") or None
-    if filename is not None:
-        printable_text(filename, "Upload-Metadata: filename")
+    filename = check_filename(metadata.get("filename") or None)
+    reserve_upload(session, settings, storage, tenant_id, length)  # refused here: nothing stored yet
     upload_id = uuid.uuid4()
     key = storage.upload_key(upload_id)
-    multipart = storage.begin_upload(upload_id)
-    upload = Upload(
-        id=upload_id,
-        api_key_id=tenant_id,
-        filename=filename,
-        length=length,
-        offset=0,
-        expected_sha256=expected,
-        path=key,
-        multipart=multipart,
-    )
-    if upload.filename is not None:
-        upload.filename = upload.filename[:255]
-    session.add(upload)
     try:
+        multipart = storage.begin_upload(upload_id)
+        upload = Upload(
+            id=upload_id,
+            api_key_id=tenant_id,
+            filename=filename,
+            length=length,
+            offset=0,
+            expected_sha256=expected,
+            path=key,
+            multipart=multipart,
+        )
+        session.add(upload)
         session.commit()
     except BaseException:
         # The row was not made (database refused or away): its empty file must not outlive it.
@@ -133,6 +139,20 @@ def create_upload(
         storage.delete_prefix(upload_folder(key))
         raise
     return upload
+
+
+def check_filename(filename: str | None) -> str | None:
+    """The ``filename`` of ``Upload-Metadata``: printable, and short enough to be the scene's name (422 otherwise,
+    before any byte is sent)."""
+    if filename is None:
+        return None
+    printable_text(filename, "Upload-Metadata: filename")
+    if len(filename) > MAX_FILENAME_CHARS:
+        raise InvalidInput(
+            f"Upload-Metadata: filename has {len(filename)} characters; at most {MAX_FILENAME_CHARS} (it names the "
+            "scene)"
+        )
+    return filename
 
 
 def has_body(request: Request) -> bool:
@@ -200,8 +220,13 @@ async def receive_body(
             return None
         if buffer:
             await anyio.to_thread.run_sync(writer.write, buffer)
-    except (ServiceError, OSError, StorageError):
+    except (ServiceError, OSError, StorageError) as exc:
         await anyio.to_thread.run_sync(_discard, writer, hashes, upload.id)
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL:
+            raise InsufficientStorage(
+                f"the storage volume filled up while upload {upload.id} was written; the chunk was discarded, the "
+                f"upload resumes at offset {upload.offset:,}: retry later or ask the operator to free space"
+            ) from None
         raise
     if checksum is not None and writer.chunk_hash is not None and writer.chunk_hash.digest() != checksum[1]:
         await anyio.to_thread.run_sync(_discard, writer, hashes, upload.id)

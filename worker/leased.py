@@ -19,6 +19,7 @@ shares, so that each runner keeps only what is its own:
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 import uuid
@@ -420,6 +421,7 @@ def in_workspace(
         TransientError: the object storage was unavailable.
     """
     env = tracker.env
+    sweep_scratch_once(env)
     try:
         with env.storage.workspace(tracker.row.job_id, plan) as work:
             tracker.push = work.push
@@ -430,6 +432,26 @@ def in_workspace(
         raise TransientError(f"object storage unavailable: {exc}") from exc
     except StorageError as exc:  # refused keys, a missing bucket: waiting cannot help
         return ending.failed("StorageError", without_host_paths(str(exc), env)[:10_000], in_run=False)
+
+
+_SWEPT: set[int] = set()  # the processes (by pid: a forked child is another) that swept the scratch folders
+_SWEEP_LOCK = threading.Lock()
+
+
+def sweep_scratch_once(env: JobEnv) -> None:
+    """At this process's first task: remove the scratch folders a killed worker left on this data folder (their
+    owner process is gone; a live sibling's stay)."""
+    with _SWEEP_LOCK:
+        if os.getpid() in _SWEPT:
+            return
+        _SWEPT.add(os.getpid())
+    try:
+        removed = env.storage.sweep_scratch()
+    except OSError:
+        logger.warning("the stale scratch folders were not swept", exc_info=True)
+        return
+    if removed:
+        logger.info("removed %d scratch folder(s) of a worker that is gone: %s", len(removed), ", ".join(removed))
 
 
 def write_hand_back(tracker: Tracker, ending: Ending[Any]) -> None:

@@ -14,7 +14,12 @@ fetches those checkpoints instead of computing them: ``scenes/<scene id>/stages/
 - **One copy.** A checkpoint is kept once: with the local backend the job's file and the scene's object are two
   names of the same bytes (hard links; both sides only ever replace a checkpoint by a rename), and with object
   storage the job's own folder does not store the checkpoints kept here (:attr:`SceneCheckpoints.kept`: the
-  output folder's push skips them; a retry fetches them from here again).
+  output folder's push skips them; a retry fetches them from here again). A checkpoint this job will compute is
+  in ``kept`` from the moment its lease is taken, before the file exists: the pipeline renames it into place and
+  stores it from its writer thread while the next stage's progress pushes the output folder, and a path added
+  only once its upload ended was pushed under the job's prefix in between (every job wrote a copy of its last
+  stored checkpoint). Should the job end without storing it, the path leaves ``kept`` and the folder's last push
+  stores it with the job.
 - **Counted and deleted with the scene.** Each stored checkpoint's bytes are added to the scene's ``size_bytes``
   (the tenant's quota); deleting the scene deletes its prefix, checkpoints included.
 - **The bundle's hash once.** The keys hash the bundle (2 GB at ScanNet size, about half of a re-run's time): the
@@ -73,6 +78,7 @@ class SceneCheckpoints:
         self.reused: list[str] = []  # the stages fetched from another job's checkpoint
         self.kept: set[Path] = set()  # the run folder's files that are checkpoints of this store (fetched, stored)
         self._held: set[tuple[str, str]] = set()
+        self._computing: dict[tuple[str, str], Path] = {}  # leased keys not stored yet, and where their file goes
         self._lock = threading.Lock()
 
     def _object(self, stage: str, key: str) -> str:
@@ -117,6 +123,8 @@ class SceneCheckpoints:
                 continue
             with self._lock:
                 self._held.add((stage, key))
+                self._computing[(stage, key)] = dest
+                self.kept.add(dest)  # before the file exists: see "One copy" above
             return False
 
     def _reused(self, stage: str, key: str, dest: Path, where: str) -> bool:
@@ -160,11 +168,13 @@ class SceneCheckpoints:
         return bool(time.time() - float(holder.get("at", 0)) > self.lease_s)
 
     def store(self, stage: str, key: str, path: Path) -> None:
+        self.kept.add(path)  # before the upload, which the folder's push must not race (see "One copy" above)
         info = self.storage.put_linked(self._object(stage, key), path)
+        with self._lock:
+            self._computing.pop((stage, key), None)
         copy = self._copy(stage, key)
         if copy is not None:
             _keep_copy(path, copy)
-        self.kept.add(path)
         if self.on_stored is not None:
             self.on_stored(info.size)
         self._release(stage, key)
@@ -184,9 +194,13 @@ class SceneCheckpoints:
                     logger.warning("stage %s: could not renew the lease of key %s", stage, key)
 
     def release_all(self) -> None:
-        """Give up every lease still held (the job ended, failed or stopped before storing)."""
+        """Give up every lease still held (the job ended, failed or stopped before storing); a checkpoint it did
+        not store goes back to the job's own folder's push."""
         with self._lock:
             held = list(self._held)
+            for path in self._computing.values():
+                self.kept.discard(path)
+            self._computing.clear()
         for stage, key in held:
             try:
                 self._release(stage, key)

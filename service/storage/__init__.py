@@ -45,6 +45,7 @@ from service.storage.files import (
 )
 from service.storage.local import LocalStorage
 from service.storage.objects import ObjectInfo, ObjectStorage
+from service.storage.scratch import owner_tag, sweep_stale
 from service.storage.workspace import InPlace, WorkPlan, Workspace
 
 if TYPE_CHECKING:
@@ -131,13 +132,18 @@ class Storage:
 
     @contextmanager
     def scratch(self, what: str) -> Iterator[Path]:
-        """A fresh local folder for one task (an extraction, a job), removed after it whatever happens."""
-        folder = self.root / "work" / "scratch" / f"{what}-{uuid.uuid4().hex[:12]}"
+        """A fresh local folder for one task (an extraction, a job), removed after it whatever happens (and, if this
+        process is killed, by the next one that sweeps: :meth:`sweep_scratch`)."""
+        folder = self.root / "work" / "scratch" / f"{what}-{owner_tag()}-{uuid.uuid4().hex[:12]}"
         folder.mkdir(parents=True)
         try:
             yield folder
         finally:
             shutil.rmtree(folder, ignore_errors=True)
+
+    def sweep_scratch(self) -> list[str]:
+        """Remove the scratch folders of processes that are gone (killed mid-task); returns their names."""
+        return sweep_stale(self.root / "work" / "scratch")
 
     def run_folder(self, job_id: uuid.UUID) -> Path:
         """A local folder with a job's result files: the job's own folder with the local backend; else a cache of

@@ -18,7 +18,7 @@ from service.db.session import get_session_factory, session_scope
 from service.jobs import to_public
 from service.lifecycle import delete_scene
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, TreePush
 from worker import leased, runner
 from worker.shared_checkpoints import SceneCheckpoints
 
@@ -140,3 +140,53 @@ def test_the_bundle_hash_is_kept_once_and_read_only_when_made_by_the_same_rule(s
         objects.delete(key)
         objects.put_bytes(key, json.dumps(kept).encode())
         assert later.known_input_hash() is None, kept  # another rule's hash, or not a hash: computed again
+
+
+def test_a_checkpoint_being_stored_is_not_pushed_with_the_job(settings: Settings, tmp_path: Path) -> None:
+    """The pipeline renames a checkpoint into place and stores it from its writer thread while the next stage's
+    progress pushes the job's folder: a push that falls between the rename and the end of the upload must not
+    store a copy under the job's prefix."""
+    scene_id, job_id = uuid.uuid4(), uuid.uuid4()
+    out = tmp_path / "out"
+    (out / "stages").mkdir(parents=True)
+    shared = _shared(settings, scene_id, "job")
+    storage = shared.storage
+    push = TreePush(storage, out, storage.job_prefix(job_id))
+    push.skip = shared.kept
+    path = out / "stages" / "language_field.npz"
+    assert shared.fetch("language_field", "k1", path) is False  # a miss: this job computes it
+    pushed_while_storing: list[int] = []
+    put_linked = storage.put_linked
+
+    def slow_upload(key: str, source: Path) -> Any:
+        pushed_while_storing.append(push.push())  # the next stage's progress, during the upload
+        return put_linked(key, source)
+
+    storage.put_linked = slow_upload  # type: ignore[method-assign]
+    path.write_bytes(b"the field")  # renamed into place by the writer thread
+    push.push()  # the progress step between the rename and the store
+    shared.store("language_field", "k1", path)
+    assert pushed_while_storing == [0]
+    assert list(storage.objects.list_objects(storage.job_prefix(job_id))) == []
+    assert [i.key for i in storage.objects.list_objects(f"scenes/{scene_id}/stages/")] == [
+        f"scenes/{scene_id}/stages/language_field/k1.ckpt"
+    ]
+
+
+def test_a_checkpoint_never_stored_is_pushed_with_the_job(settings: Settings, tmp_path: Path) -> None:
+    storage = Storage(settings.storage)
+    job_id = uuid.uuid4()
+    out = tmp_path / "out"
+    out.mkdir()
+    shared = _shared(settings, uuid.uuid4(), "job")
+    push = TreePush(storage, out, storage.job_prefix(job_id))
+    push.skip = shared.kept
+    path = out / "fusion.npz"
+    assert shared.fetch("fusion", "k1", path) is False
+    path.write_bytes(b"fused")
+    assert push.push() == 0  # on its way to the scene's store
+    shared.release_all()  # the job stopped before storing it: the job's folder keeps it
+    assert push.push() == len(b"fused")
+    assert [i.key for i in storage.objects.list_objects(storage.job_prefix(job_id))] == [
+        f"{storage.job_prefix(job_id)}fusion.npz"
+    ]

@@ -17,7 +17,7 @@ from service.db import crud
 from service.db.models import Upload, UploadState
 from service.db.session import session_scope
 from service.errors import Conflict, NotFound, PayloadTooLarge, ServiceError
-from service.lifecycle import check_disk_room, check_storage_quota
+from service.lifecycle import check_upload_room
 from service.schemas import UploadPublic, error_responses
 from service.settings import Settings
 from service.storage import Storage
@@ -134,7 +134,7 @@ async def append(
         raise Conflict(f"Upload-Offset {upload_offset} does not match the server's offset {upload.offset}")
     if upload.state != UploadState.RECEIVING:
         raise Conflict(f"upload {upload.id} is {upload.state.value}; it takes no more bytes")
-    await run_in_threadpool(_in_session, factory, _check_room_to_continue, settings, storage, upload)
+    await run_in_threadpool(_in_session, factory, check_upload_room, settings, storage, upload)
     upload = await _write(request, factory, storage, upload, checksum)
     return Response(status_code=204, headers=up.tus_headers(Upload_Offset=upload.offset))
 
@@ -154,18 +154,8 @@ def _create_within_quota(
     length: int,
     metadata: dict[str, str],
 ) -> Upload:
-    if length > settings.max_upload_bytes:  # the size limit first: it is what the client must change
-        raise PayloadTooLarge(f"Upload-Length {length} exceeds the limit of {settings.max_upload_bytes} bytes")
-    check_storage_quota(session, settings, tenant_id, length)
-    check_disk_room(settings, storage, length, f"an upload of Upload-Length {length:,}")
-    return up.create_upload(session, storage, tenant_id, length, metadata, settings.max_upload_bytes)
-
-
-def _check_room_to_continue(session: Session, settings: Settings, storage: Storage, upload: Upload) -> None:
-    """The quota (this upload counts at its full length already) and the free disk for the bytes still to come."""
-    check_storage_quota(session, settings, upload.api_key_id, 0)
-    remaining = upload.length - upload.offset
-    check_disk_room(settings, storage, remaining, f"upload {upload.id} ({upload.offset:,} of {upload.length:,} bytes)")
+    # The size limit first (it is what the client must change), then the quota and the disk under the tenant's lock.
+    return up.create_upload(session, settings, storage, tenant_id, length, metadata)
 
 
 def _discard_by_id(session: Session, storage: Storage, upload_id: uuid.UUID) -> None:

@@ -25,7 +25,16 @@ from service.db.crud.jobs import (
     undispatched_jobs,
     update_running,
 )
-from service.db.crud.keys import get_owned, list_owned, live_jobs, stored_bytes
+from service.db.crud.keys import (
+    get_owned,
+    job_slots,
+    list_owned,
+    live_job_slots,
+    live_jobs,
+    lock_tenant,
+    reserved_upload_bytes,
+    stored_bytes,
+)
 from service.db.crud.scenes import get_scene
 from service.db.crud.tiles import (
     claim_tile,
@@ -60,13 +69,17 @@ __all__ = [
     "get_owned",
     "get_scene",
     "job_queue",
+    "job_slots",
     "list_owned",
+    "live_job_slots",
     "live_jobs",
+    "lock_tenant",
     "read_job_row",
     "record_results",
     "release_job",
     "release_tile",
     "request_cancel",
+    "reserved_upload_bytes",
     "set_upload_state",
     "stale_cutoff",
     "stale_uploads",
