@@ -27,11 +27,11 @@ def write_or_check(
     parser = argparse.ArgumentParser(description=description)
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--write", action="store_true", help=f"rewrite {what}")
-    mode.add_argument("--check", action="store_true", help=f"fail when {what} differ(s) from {source}")
+    mode.add_argument("--check", action="store_true", help=f"fail when {what} and {source} differ")
     args = parser.parse_args(argv)
     if args.write:
         changed = write()
-        sys.stdout.write(f"wrote {', '.join(changed)}\n" if changed else f"{what} already match(es) {source}\n")
+        sys.stdout.write(f"wrote {', '.join(changed)}\n" if changed else f"nothing to write: {what} and {source} agree\n")
         problems = after_write()
     else:
         problems = differences()

@@ -117,7 +117,7 @@ def test_api_install_serves(api_server: str, tmp_path: Path) -> None:
     with urllib.request.urlopen(f"{api_server}/healthz", timeout=5) as response:
         assert json.loads(response.read())["status"] == "ok"
     with urllib.request.urlopen(f"{api_server}/readyz", timeout=5) as response:
-        assert json.loads(response.read())["checks"] == {"database": "ok", "broker": "ok"}
+        assert json.loads(response.read())["checks"] == {"database": "ok", "broker": "ok", "storage": "ok"}
     assert (tmp_path / "data" / "panogs.db").is_file()
 
 
