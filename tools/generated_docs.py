@@ -31,7 +31,9 @@ def write_or_check(
     args = parser.parse_args(argv)
     if args.write:
         changed = write()
-        sys.stdout.write(f"wrote {', '.join(changed)}\n" if changed else f"nothing to write: {what} and {source} agree\n")
+        sys.stdout.write(
+            f"wrote {', '.join(changed)}\n" if changed else f"nothing to write: {what} and {source} agree\n"
+        )
         problems = after_write()
     else:
         problems = differences()
