@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_models import tiny_clip
 
 from panogs_core.errors import EncoderUnavailableError
 from panogs_core.language.text_encoders import encode_labels, get_text_encoder
@@ -17,62 +17,6 @@ def offline(monkeypatch: pytest.MonkeyPatch) -> None:
     """No network: loading must work from local files only."""
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
-
-
-def _byte_alphabet() -> list[str]:
-    """The 256 printable stand-ins of the bytes used by byte-level BPE (GPT-2 / CLIP convention)."""
-    printable = {*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1), *range(ord("®"), ord("ÿ") + 1)}
-    shifted = iter(range(256, 512))
-    return [chr(b) if b in printable else chr(next(shifted)) for b in range(256)]
-
-
-def _tiny_clip(folder: Path) -> int:
-    """Save a random tiny CLIP model and a tiny BPE tokenizer to ``folder``; returns projection_dim."""
-    from transformers import CLIPConfig, CLIPModel
-
-    alphabet = _byte_alphabet()
-    merges = ["c h", "ch a", "cha i", "chai r</w>"]
-    tokens = [
-        *alphabet,
-        *(c + "</w>" for c in alphabet),
-        "ch",
-        "cha",
-        "chai",
-        "chair</w>",
-        "<|startoftext|>",
-        "<|endoftext|>",
-    ]
-    vocab = {t: i for i, t in enumerate(tokens)}
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "vocab.json").write_text(json.dumps(vocab))
-    (folder / "merges.txt").write_text("#version: 0.2\n" + "\n".join(merges) + "\n")
-    special = {
-        "bos_token_id": vocab["<|startoftext|>"],
-        "eos_token_id": vocab["<|endoftext|>"],
-        "pad_token_id": vocab["<|endoftext|>"],
-    }
-    config = CLIPConfig(
-        text_config={
-            "vocab_size": len(vocab),
-            "hidden_size": 16,
-            "intermediate_size": 32,
-            "num_hidden_layers": 1,
-            "num_attention_heads": 2,
-            "max_position_embeddings": 16,
-            **special,
-        },
-        vision_config={
-            "hidden_size": 16,
-            "intermediate_size": 32,
-            "num_hidden_layers": 1,
-            "num_attention_heads": 2,
-            "image_size": 8,
-            "patch_size": 4,
-        },
-        projection_dim=12,
-    )
-    CLIPModel(config).save_pretrained(folder)
-    return 12
 
 
 @pytest.mark.slow
@@ -95,7 +39,8 @@ def test_minilm_loads_offline() -> None:
 def test_clip_loads_local_folder(tmp_path: Path) -> None:
     pytest.importorskip("transformers")
     pytest.importorskip("torch")
-    dim = _tiny_clip(tmp_path / "clip")
+    dim = 12
+    tiny_clip(tmp_path / "clip", projection_dim=dim)
     enc = get_text_encoder("clip-vit-b32", model_path=str(tmp_path / "clip"))
     long_text = "a chair in a scene " * 10  # longer than the 16-token context: truncated, not an error
     emb = enc.encode(["a chair in a scene", "a table in a scene", long_text])
