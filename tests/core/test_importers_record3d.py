@@ -155,6 +155,6 @@ class TestImportR3D:
         missing = dict(report.dropped)["missing file"]
         assert len(missing) == 1
         assert missing[0].startswith("000003 (")
-        assert missing[0].endswith("3.exr)")
+        assert missing[0].endswith("has no depth image)")
         assert report.frames_source == poses
         assert report.frames_written == poses - 1

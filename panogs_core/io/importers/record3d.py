@@ -137,7 +137,9 @@ def import_record3d(
 
     # Poses whose frame has no depth image (a user who pruned the export, as real captures show): named, not silent.
     present = {n for n, _ in depths}
-    no_depth = [f"{n:06d} ({src / 'depth' / f'{n}.exr'})" for n in range(len(poses)) if n not in present]
+    no_depth = [
+        f"{n:06d} (pose {n} of {meta_path.name} has no depth image)" for n in range(len(poses)) if n not in present
+    ]
 
     def read(frame: CaptureFrame) -> np.ndarray:
         return _read_depth(frame, camera, meta, opts.min_confidence)
