@@ -88,7 +88,9 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.state.hashes = HashStates()
     app.state.active_uploads = ActiveUploads()
     app.state.results = ResultCache(settings.result_cache_size)
-    app.state.bundle_opener = BundleOpener(settings.validation_slots, settings.validation_cpu_s)
+    app.state.bundle_opener = BundleOpener(
+        settings.validation_slots, settings.validation_cpu_s, settings.validation_memory_bytes
+    )
     app.state.encoder = encoder
     install_error_handlers(app)
     app.include_router(health.router)

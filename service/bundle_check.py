@@ -13,6 +13,8 @@ stalled for 20 s, and enough concurrent uploads could take every thread. So:
   a little later (``RLIMIT_CPU``) in case one check runs long (a 422 naming the upload and the budget). A child
   still alive after several times its budget in wall time (a host too loaded to give it its CPU) is killed and
   the request is a 503: the upload is kept, to try again;
+- the child's address space is capped (``PANOGS_VALIDATION_MEMORY_BYTES``, ``RLIMIT_AS``): an allocation past it
+  fails in the child, a 422 naming the upload and the limit, and the host's memory is never at stake;
 - at most ``PANOGS_VALIDATION_SLOTS`` bundles are opened at once per API process; the next request is a 503 with
   ``Retry-After`` at once, so waiting requests never hold the API's threads.
 """
@@ -49,6 +51,7 @@ WALL_SLACK_S = 10.0
 VALIDATION_RETRY_AFTER_S = 5
 MAX_PROBLEMS_SENT = 1000  # problem lines the child sends back (the answer lists fewer; the rest is a count)
 BUDGET_SETTING = "PANOGS_VALIDATION_CPU_S"
+MEMORY_SETTING = "PANOGS_VALIDATION_MEMORY_BYTES"
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,9 @@ def open_in_child(request: OpenRequest, conn: Connection) -> None:
     limits = {k: v for k, v in (("max_bytes", request.max_bytes), ("max_files", request.max_files)) if v is not None}
     try:
         bundle = open_bundle(request.archive, workdir=request.workdir, limits=request.limits, **limits)
+    except MemoryError:  # over the address-space limit the parent set (RLIMIT_AS)
+        conn.send(("memory", None))
+        return
     except BundleError as exc:
         problems = list(exc.problems)
         if len(problems) > MAX_PROBLEMS_SENT:
@@ -129,9 +135,10 @@ class BundleOpener:
     ``target`` is what the child runs (:func:`open_in_child`; a module-level function, found by name in the child).
     """
 
-    def __init__(self, slots: int, cpu_s_per_gib: float) -> None:
+    def __init__(self, slots: int, cpu_s_per_gib: float, memory_bytes: int | None = None) -> None:
         self.slots = slots
         self.cpu_s_per_gib = cpu_s_per_gib
+        self.memory_bytes = memory_bytes
         self.target: Callable[[OpenRequest, Connection], None] = open_in_child
         self.grace_s = HARD_LIMIT_GRACE_S
         self._running = 0
@@ -172,6 +179,7 @@ class BundleOpener:
         sender.close()
         try:
             _limit_cpu(child.pid, budget + self.grace_s)
+            _limit_memory(child.pid, self.memory_bytes)
             message = _receive(receiver, WALL_FACTOR * budget + WALL_SLACK_S)
         finally:
             receiver.close()
@@ -183,6 +191,14 @@ class BundleOpener:
         kind, value = message
         if kind == "invalid":
             raise BundleError(value, source=filename)
+        if kind == "memory":
+            raise BundleError(
+                [
+                    f"{filename}: validation needed more than its memory limit of {self.memory_bytes or 0:,} bytes "
+                    f"of address space ({MEMORY_SETTING}) and was stopped"
+                ],
+                source=filename,
+            )
         opened: OpenedBundle = value
         return opened
 
@@ -220,6 +236,13 @@ def _with_budget(limits: Any, budget: float) -> Any:
     from dataclasses import replace
 
     return replace(limits, max_cpu_s=budget)
+
+
+def _limit_memory(pid: int | None, max_bytes: int | None) -> None:
+    """The kernel's address-space limit on the child: past it an allocation fails (MemoryError), never the host."""
+    if pid is not None and max_bytes is not None and hasattr(resource, "prlimit"):
+        with contextlib.suppress(ProcessLookupError):
+            resource.prlimit(pid, resource.RLIMIT_AS, (max_bytes, max_bytes))
 
 
 def _limit_cpu(pid: int | None, seconds: float) -> None:

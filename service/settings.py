@@ -113,6 +113,8 @@ class Settings(BaseSettings):
     # process (the next request is a 503 with Retry-After), each within this many CPU seconds per GiB of archive.
     validation_slots: int = Field(default=2, ge=1, le=64)
     validation_cpu_s: float = Field(default=10.0, gt=0, le=3600)
+    # Address space of one validation child (the fork server's ~0.3 GB included; gt/labels.npz may be 1 GiB read whole).
+    validation_memory_bytes: int = Field(default=2 * GIB, ge=512 * 1024**2)
 
     # The 2D-maps stage: the models jobs may name, and where their jobs run (docs/service.md, "2D maps").
     map_models: MapModelTable = {}  # JSON: entry name -> {"kind": masks | features, "path": absolute folder}

@@ -32,6 +32,14 @@ def spin_forever(request: OpenRequest, conn: Connection) -> None:
         pass
 
 
+def allocate_too_much(request: OpenRequest, conn: Connection) -> None:
+    """What a check that reads a huge declared size whole looks like: one allocation past the limit."""
+    try:
+        bytearray(4 * 1024**3)
+    except MemoryError:
+        conn.send(("memory", None))
+
+
 def open_when_released(request: OpenRequest, conn: Connection) -> None:
     """Say it started, wait for the test's release (at most 30 s), then open the bundle as the service does.
 
@@ -104,6 +112,21 @@ def test_a_check_that_never_ends_is_stopped_by_the_kernel(make_settings: Callabl
         assert "PANOGS_VALIDATION_CPU_S" in body["problems"][0]
         assert client.get(f"/v1/uploads/{upload_id}", headers=auth).status_code == 404
     assert not any((settings.storage / "scenes").glob("*/*"))
+
+
+def test_a_validation_past_its_memory_limit_is_a_422_naming_it(make_settings: Callable[..., Settings]) -> None:
+    settings = make_settings("sqlite", validation_memory_bytes=1024**3)
+    data = pack(write_tiny_bundle(settings.data_dir / "bundle"))
+    auth = new_key(settings)
+    with _app_client(settings)() as client:
+        client.app.state.bundle_opener.target = allocate_too_much  # type: ignore[attr-defined]
+        upload_id, response = _scene_request(client, auth, data)
+        assert response.status_code == 422, response.text
+        assert response.json()["problems"][0] == (
+            "hostile.zip: validation needed more than its memory limit of 1,073,741,824 bytes of address space "
+            "(PANOGS_VALIDATION_MEMORY_BYTES) and was stopped"
+        )
+        assert client.get(f"/v1/uploads/{upload_id}", headers=auth).status_code == 404
 
 
 def test_validations_past_the_slots_are_a_503_and_keep_the_upload(make_settings: Callable[..., Settings]) -> None:
