@@ -16,6 +16,7 @@ import pytest
 from sqlalchemy import select, update
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the language field on a shared host)
 
+from panogs_core.errors import PanoGSError
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.run import STAGES, run_pipeline
 from panogs_core.synthetic import make_building
@@ -201,3 +202,26 @@ def test_a_plan_that_leaves_the_scene_whole_runs_the_job_as_before(
     for name in COMPARED:
         assert (out / name).read_bytes() == (plain / name).read_bytes(), name
     assert "tiling" not in json.loads((out / "report.json").read_text())
+
+
+def test_an_auto_plan_over_the_tile_cap_fails_the_job_naming_the_cap(settings: Settings, building: Path) -> None:
+    # A memory target just above a run's fixed cost makes the planner split as finely as it can; the API cannot
+    # know the count of an auto job, so the worker refuses the plan before it publishes a tile.
+    capped = settings.model_copy(update={"max_tiles_per_job": 2})
+    sender = Recorder()
+    env = _env(capped, sender)
+    job_id = _job(capped, building, {"tiles": "auto", "memory_target_bytes": 0.81e9, "whole_limit_bytes": 1e6})
+    assert runner.execute_job(job_id, lease="job-1", worker="w/1", env=env) == JobState.FAILED
+    job = _job_row(env, job_id)
+    assert job.error_type == "InputError"
+    message = job.error_message or ""
+    assert "tiles; a job may have at most 2" in message
+    assert "PANOGS_MAX_TILES_PER_JOB" in message
+    assert _rows(env, job_id) == []
+    assert sender.sent == []
+
+
+def test_tile_cap_check_passes_a_plan_within_the_cap(settings: Settings) -> None:
+    tiles.check_planned_tiles(settings, num_frames=28, planned=8)  # the cap is one per frame, at least 8
+    with pytest.raises(PanoGSError, match="into 9 tiles; a job may have at most 8"):
+        tiles.check_planned_tiles(settings, num_frames=3, planned=9)
