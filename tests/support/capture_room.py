@@ -63,6 +63,11 @@ def tilted_world(axis: tuple[float, float, float], degrees: float) -> np.ndarray
     return T
 
 
+# The tilted world of the up-direction tests (tests/conftest.py's tilted_tum_run): the room's z-up ends up 55
+# degrees from every world axis it had.
+TILTED_55 = tilted_world((1.0, 0.4, 0.0), 55.0)
+
+
 def write_tum(
     room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray | None = None, decimals: int = 9
 ) -> list[float]:
