@@ -5,7 +5,7 @@ Usage:
 
 Starts the API as a real process (``panogs serve --no-worker``: uvicorn on the embedded SQLite database and the
 local storage, what a new user runs), then, one class at a time, uploads a bundle of that class (the tiny test
-bundle of tests/service with one file replaced; the classes of issue 29's items 2 and 3 and the image bomb) and
+bundle of tests/service with one file replaced; the boundary's file-size and CPU classes and the image bomb) and
 asks for a scene of it. Throughout, a sampler reads the RSS of the API process and of its children (the bundle
 validation children and their fork server) from /proc every 20 ms, and a second client asks ``/healthz`` every
 50 ms. Prints one table: the class, its archive size, the answer's status and first problem, the API process's
