@@ -206,8 +206,8 @@ def _nested(flat: dict[str, object]) -> dict[str, object]:
 @pytest.mark.parametrize(
     ("extra", "grid"),
     [
-        (["--masks-model", "some/sam"], 16),  # the CPU default (docs/method.md §17)
-        (["--masks-model", "some/sam", "--set", "maps2d.points_per_side=8"], 8),  # the user's choice wins
+        (["--masks-model", "some/sam"], 8),  # the CPU default (docs/method.md §17)
+        (["--masks-model", "some/sam", "--set", "maps2d.points_per_side=12"], 12),  # the user's choice wins
         (["--features-model", "some/clip"], 32),  # no masks model: the stage's own default, untouched
         (["--masks-model", "some/sam", "--set", "maps2d.device=cuda"], 32),  # not on the CPU
     ],

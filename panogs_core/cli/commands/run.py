@@ -70,7 +70,7 @@ def add_command(sub: Any) -> None:
         metavar="PATH_OR_HUB",
         help="a Segment Anything model (folder or hub name, e.g. Zigeng/SlimSAM-uniform-77) that computes the "
         "masks of a bundle that has none, from its colour frames (docs/method.md §17); on a CPU its grid is "
-        "maps2d.points_per_side=16 unless --config/--set says otherwise",
+        "maps2d.points_per_side=8 unless --config/--set says otherwise",
     )
     p.add_argument(
         "--features-model",
@@ -149,13 +149,13 @@ def _settings(args: argparse.Namespace) -> tuple[PipelineConfig, str | Vocabular
     if overrides:
         cfg = cfg.with_overrides(overrides)
     if args.masks_model and not _sets_grid(args.config, overrides) and _on_cpu(cfg.maps2d.device):
-        # docs/method.md §17: the CPU default is a 16 x 16 prompt grid (a quarter of SAM's decoder cost).
+        # docs/method.md §17: the CPU default is an 8 x 8 prompt grid (a sixteenth of SAM's decoder cost).
         cfg = cfg.with_overrides({"maps2d": {"points_per_side": CPU_POINTS_PER_SIDE}})
     return cfg, vocabulary
 
 
 # The masks' prompt grid on a CPU when the user sets none (docs/method.md §17, "CPU costs and the CPU default").
-CPU_POINTS_PER_SIDE = 16
+CPU_POINTS_PER_SIDE = 8
 
 
 def _map_models(args: argparse.Namespace) -> Any:
