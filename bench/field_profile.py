@@ -1,7 +1,7 @@
 """Where one language-field step goes, part by part, and what a whole fit costs and decodes.
 
 Usage:
-    python bench/field_profile.py RUN [--bundle BUNDLE] [--steps 150] [--fit] [--set KEY=VALUE ...]
+    python bench/field_profile.py RUN [--bundle BUNDLE] [--steps 150] [--fit] [--dtypes] [--set KEY=VALUE ...]
     ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 python bench/field_profile.py RUN   # AVX2 kernels only
 
 ``RUN`` is a ``panogs run`` output directory of ``BUNDLE`` (its ``stages/primitives.npz`` and
@@ -11,7 +11,8 @@ and corners, the plane sampling, the targets' rows, the decoder and loss forward
 hand), the planes' gradient scatter, Adam over the planes and over the decoder. ``--fit`` also times a whole
 ``fit_language_field`` (wall and CPU seconds) and, with ``--bundle``, scores its decoded features: the share of
 annotated primitives whose nearest class text is the true class (seen / unseen by a key frame) and the mean
-cosine to the fused rows. ``--set`` overrides ``LanguageFieldConfig`` (JSON values: ``basis_dims=null``).
+cosine to the fused rows. ``--dtypes`` times the step's largest product in float32 and bfloat16. ``--set``
+overrides ``LanguageFieldConfig`` (JSON values: ``basis_dims=null``).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from panogs_core.stages.fusion import FusedFeatures  # noqa: E402
 from panogs_core.stages.language_field import field_bounds, fit_language_field, plane_resolutions  # noqa: E402
 from panogs_core.stages.language_field import triplane as tp  # noqa: E402
 from panogs_core.stages.language_field.config import LanguageFieldConfig  # noqa: E402
+from panogs_core.stages.language_field.corners import BatchCorners, plane_table  # noqa: E402
 
 
 class Timer:
@@ -61,13 +63,13 @@ def profile_steps(points: np.ndarray, fused: FusedFeatures, cfg: LanguageFieldCo
         basis_dims=cfg.basis_dims, seed=cfg.seed,
     )  # fmt: skip
     setup = time.perf_counter() - t0
-    table = tp.plane_table([p.detach() for p in model.planes])
+    table = plane_table([p.detach() for p in model.planes])
     mlp = [w.detach() for w in model.mlp]
     if data.basis is not None:
         mlp[-1] = data.basis.t() @ mlp[-1]
     planes_adam = tp._Adam([table], lr=cfg.plane_lr, betas=cfg.betas, eps=1e-15, weight_decay=0.0)
     mlp_adam = tp._Adam(mlp, lr=cfg.lr, betas=cfg.betas, eps=1e-8, weight_decay=cfg.weight_decay)
-    grad = torch.zeros_like(table)
+    corners = BatchCorners(table)
     gen = torch.Generator().manual_seed(1)
     timer = Timer()
     done = 0
@@ -80,13 +82,13 @@ def profile_steps(points: np.ndarray, fused: FusedFeatures, cfg: LanguageFieldCo
                 idx = order[start : start + cfg.batch_size]
                 cells = timer("batch rows and corners", data.cells.index_select, 0, idx)
                 cw = timer("batch rows and corners", data.corner_weights.index_select, 0, idx)
-                latent = timer("plane sampling", tp._gathered_latent, table, cells, cw)
+                latent = timer("plane sampling", corners.latent, cells, cw)
                 targets = timer("target rows", data.targets, idx)
                 inv, sw = data.inverse_norms[idx], data.weights[idx]
                 _, latent_grad, mlp_grads = timer(
                     "decoder + loss, fwd and bwd", tp._cosine_loss_and_gradients, mlp, latent, targets, inv, sw
                 )
-                timer("plane gradient scatter", tp._add_table_gradient, grad, cells, cw, latent_grad)
+                grad = timer("plane gradient scatter", corners.table_gradient, latent_grad)
                 timer("Adam, planes", planes_adam.step, [grad])
                 timer("Adam, decoder", mlp_adam.step, mlp_grads)
                 done += 1
@@ -126,12 +128,27 @@ def fit_and_score(points: np.ndarray, fused: FusedFeatures, cfg: LanguageFieldCo
     print(line)
 
 
+def product_dtypes(batch: int, dim: int, hidden: int, reps: int = 20) -> None:
+    """CPU ms of the step's largest product, ``(B, D) @ (D, H)``, in float32 and in bfloat16 (a CPU without bf16
+    units, e.g. AVX2 only, converts in software)."""
+    gen = torch.Generator().manual_seed(0)
+    for dtype in (torch.float32, torch.bfloat16):
+        a = torch.randn(batch, dim, generator=gen).to(dtype)
+        b = torch.randn(dim, hidden, generator=gen).to(dtype)
+        a @ b
+        t0 = time.thread_time()
+        for _ in range(reps):
+            a @ b
+        print(f"({batch}, {dim}) @ ({dim}, {hidden}) in {dtype}: {1e3 * (time.thread_time() - t0) / reps:.2f} CPU ms")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a panogs run directory (its stages/primitives.npz, fusion.npz)")
     parser.add_argument("--bundle", type=Path, default=None, help="the run's bundle, to score a --fit")
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--fit", action="store_true")
+    parser.add_argument("--dtypes", action="store_true", help="also time the largest product in float32 and bf16")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     overrides = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.sets)}
@@ -144,6 +161,8 @@ def main() -> None:
           f"MKL_ENABLE_INSTRUCTIONS={os.environ.get('MKL_ENABLE_INSTRUCTIONS', '-')}, {torch.get_num_threads()} "
           f"thread(s); load {os.getloadavg()[0]:.2f}")  # fmt: skip
     profile_steps(points, fused, cfg, args.steps)
+    if args.dtypes:
+        product_dtypes(cfg.batch_size, fused.features.shape[1], cfg.hidden_dims[-1])
     if args.fit:
         fit_and_score(points, fused, cfg, args.bundle)
 

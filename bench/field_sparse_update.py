@@ -27,6 +27,7 @@ sys.path.insert(0, str(REPO))
 from panogs_core.stages.language_field import field_bounds, plane_resolutions  # noqa: E402
 from panogs_core.stages.language_field import triplane as tp  # noqa: E402
 from panogs_core.stages.language_field.config import LanguageFieldConfig  # noqa: E402
+from panogs_core.stages.language_field.corners import add_table_gradient, bilinear_corners  # noqa: E402
 
 
 def cpu_ms(fn, reps: int) -> float:
@@ -49,7 +50,7 @@ def main() -> None:
     bounds = field_bounds(points, cfg.bound_padding)
     resolutions = plane_resolutions(bounds, cfg)
     coords = tp._to_unit_cube(torch.from_numpy(points[seen]), torch.from_numpy(bounds))
-    all_cells, all_weights = tp.bilinear_corners(coords, resolutions)
+    all_cells, all_weights = bilinear_corners(coords, resolutions)
     pick = torch.randperm(all_cells.shape[0], generator=torch.Generator().manual_seed(0))[: cfg.batch_size]
     cells, corner_weights = all_cells[pick], all_weights[pick]
     flat = cells.reshape(-1)
@@ -61,7 +62,7 @@ def main() -> None:
     beta1, beta2 = cfg.betas
 
     def dense() -> None:
-        tp._add_table_gradient(grad, cells, corner_weights, latent_grad)
+        add_table_gradient(grad, cells, corner_weights, latent_grad)
         steps.add_(1)
         torch._fused_adam_(
             [table], [grad], [exp_avg], [exp_avg_sq], [], [steps], lr=cfg.plane_lr, beta1=beta1, beta2=beta2,

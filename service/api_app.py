@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from service.api.routes import artifacts, health, instances, jobs, renders, scenes, uploads, viewer_scene, web_app
 from service.auth import KeyVerifier
 from service.body_limit import BodyLimit
+from service.bundle_check import BundleOpener
 from service.cache import TTLCache
 from service.db.session import get_session_factory
 from service.encoder import EncoderProcess
@@ -87,6 +88,9 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.state.hashes = HashStates()
     app.state.active_uploads = ActiveUploads()
     app.state.results = ResultCache(settings.result_cache_size)
+    app.state.bundle_opener = BundleOpener(
+        settings.validation_slots, settings.validation_cpu_s, settings.validation_memory_bytes
+    )
     app.state.encoder = encoder
     install_error_handlers(app)
     app.include_router(health.router)

@@ -75,10 +75,16 @@ def validate_tiling(tiling: JobTiling | None) -> None:
 MIN_TILE_CAP = 8  # tiles any scene may be split into, however few its frames
 
 
-def tile_cap(settings: Settings, scene: Scene) -> int:
-    """The most tiles a job on ``scene`` may ask for: ``max_tiles_per_job``, and no more than one per frame of the
-    scene (a tile no frame of its own sees is work without gain) with ``MIN_TILE_CAP`` for any scene."""
-    return min(settings.max_tiles_per_job, max(MIN_TILE_CAP, scene.num_frames))
+def tile_cap(settings: Settings, num_frames: int) -> int:
+    """The most tiles a job on a scene of ``num_frames`` frames may have: ``max_tiles_per_job``, and no more than one
+    per frame (a tile no frame of its own sees is work without gain) with ``MIN_TILE_CAP`` for any scene."""
+    return min(settings.max_tiles_per_job, max(MIN_TILE_CAP, num_frames))
+
+
+def tile_cap_rule(settings: Settings, cap: int) -> str:
+    """How :func:`tile_cap` came to ``cap``, for the messages that refuse a job over it."""
+    return f"at most {cap} (one per frame, at least {MIN_TILE_CAP}, at most {settings.max_tiles_per_job}: " \
+        "PANOGS_MAX_TILES_PER_JOB)"  # fmt: skip
 
 
 def check_tile_cap(settings: Settings, scene: Scene, tiling: JobTiling | None) -> int:
@@ -88,12 +94,11 @@ def check_tile_cap(settings: Settings, scene: Scene, tiling: JobTiling | None) -
         return 1
     columns, _, rows = tiling.tiles.partition("x")
     tiles = int(columns) * int(rows)
-    cap = tile_cap(settings, scene)
+    cap = tile_cap(settings, scene.num_frames)
     if tiles > cap:
         raise InvalidInput(
             f"tiling.tiles {tiling.tiles!r} makes {tiles} tiles; a job on scene {scene.id} ({scene.num_frames} "
-            f"frames) may have at most {cap} (one per frame, at least {MIN_TILE_CAP}, at most "
-            f"{settings.max_tiles_per_job}: PANOGS_MAX_TILES_PER_JOB)"
+            f"frames) may have {tile_cap_rule(settings, cap)}"
         )
     return tiles
 

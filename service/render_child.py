@@ -96,7 +96,15 @@ class RenderCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    T_world_cam: list[list[float]] = Field(description="4x4 camera-to-world, OpenCV axes (x right, y down, z forward)")
+    # The shape is in the schema; that the matrix is rigid is checked by the validator below (JSON Schema cannot).
+    T_world_cam: list[list[float]] = Field(
+        description="4x4 camera-to-world, OpenCV axes (x right, y down, z forward); a rigid transform",
+        json_schema_extra={
+            "minItems": 4,
+            "maxItems": 4,
+            "items": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+        },
+    )
     camera: RenderCamera | None = Field(default=None, description="default: the job's camera")
     width: int | None = Field(default=None, ge=1, le=8192, description="render size; with height")
     height: int | None = Field(default=None, ge=1, le=8192)

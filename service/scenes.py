@@ -2,10 +2,11 @@
 
 ``panogs_core.io.bundle.reader.open_bundle`` extracts the archive safely (paths that leave the root, links, archive
 bombs) and checks every rule of docs/scene_format.md, reporting every problem at once, within the limits of the
-settings (JSON depth, size and integers; pixels per image: each image's header is read before it is decoded). A
-refused bundle leaves nothing behind: the extraction folder, the archive and the upload are deleted. Problems
-name files relative to the bundle, never where the service stores it; one that passes a limit is followed by a
-line naming the limit's setting.
+settings (JSON depth, size and integers; pixels per image: each image's header is read before it is decoded; a
+CPU budget per bundle). It runs in a child process, a few at a time (``service.bundle_check``). A refused bundle
+leaves nothing behind: the extraction folder, the archive and the upload are deleted. Problems name files
+relative to the bundle, never where the service stores it; one that passes a limit is followed by a line naming
+the limit's setting.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING, NoReturn
 from sqlalchemy.orm import Session
 
 from panogs_core.errors import BundleError
+from service.bundle_check import BundleOpener, OpenedBundle, OpenRequest
 from service.db import crud
 from service.db.models import Scene, Upload, UploadState
 from service.errors import Conflict, InvalidBundle
@@ -35,6 +37,7 @@ LIMIT_SETTINGS = {
     "JSON size limit": "PANOGS_BUNDLE_MAX_JSON_BYTES",
     "JSON integer limit": "PANOGS_MAX_JSON_INT_DIGITS",
     "pixel limit": "PANOGS_MAX_IMAGE_PIXELS",
+    "CPU budget": "PANOGS_VALIDATION_CPU_S (per GiB of archive)",
 }
 
 
@@ -65,21 +68,36 @@ def create_scene(
     storage: Storage,
     upload: Upload,
     name: str | None,
+    opener: BundleOpener,
     *,
     max_bytes: int | None = None,
     max_files: int | None = None,
     settings: Settings | None = None,
 ) -> Scene:
-    """Validate and extract ``upload`` into a new scene of the upload's tenant.
+    """Validate and extract ``upload`` into a new scene of the upload's tenant, in one of ``opener``'s children.
 
     ``settings`` gives the limits of the bundle's JSON files and images (default: the core's).
 
     Raises:
         Conflict: the upload is not complete, or was already made into a scene.
         InvalidBundle: the bundle breaks the format; ``problems`` lists every problem. Nothing is kept.
+        ServiceUnavailable: every validation slot is taken, or the host too busy to finish it; the upload is kept.
     """
     if name is not None:
         printable_text(name, "name")
+    with opener.slot():
+        return _create(session, storage, upload, name, opener, _limits(max_bytes, max_files), settings)
+
+
+def _create(
+    session: Session,
+    storage: Storage,
+    upload: Upload,
+    name: str | None,
+    opener: BundleOpener,
+    limits: dict[str, int],
+    settings: Settings | None,
+) -> Scene:
     if upload.state != UploadState.COMPLETE or not crud.set_upload_state(
         session, upload.id, UploadState.COMPLETE, UploadState.CONSUMED
     ):
@@ -92,7 +110,7 @@ def create_scene(
         if extraction is None:
             _refuse_not_an_archive(session, storage, upload)
         try:
-            scene = _validated(session, upload, name, extraction, scene_id, settings, _limits(max_bytes, max_files))
+            scene = _validated(upload, name, extraction, scene_id, opener, settings, limits)
             extraction.keep()
             session.add(scene)
             session.commit()
@@ -131,21 +149,26 @@ def _invalid(exc: BundleError) -> InvalidBundle:
 
 
 def _validated(
-    session: Session,
     upload: Upload,
     name: str | None,
     extraction: Extraction,
     scene_id: uuid.UUID,
+    opener: BundleOpener,
     settings: Settings | None,
     limits: dict[str, int],
 ) -> Scene:
     """Extract and check the archive into the extraction's folder; the scene's row (``bundle_path``: the bundle's
     folder, as stored)."""
-    from panogs_core.io.bundle import open_bundle
+    from panogs_core.io.bundle import BundleLimits
 
-    checks = bundle_limits(settings) if settings is not None else None
-    workdir = extraction.workdir
-    bundle = open_bundle(extraction.archive, workdir=workdir, limits=checks, **limits)
+    request = OpenRequest(
+        archive=str(extraction.archive),
+        workdir=str(extraction.workdir),
+        limits=bundle_limits(settings) if settings is not None else BundleLimits(),
+        max_bytes=limits.get("max_bytes"),
+        max_files=limits.get("max_files"),
+    )
+    bundle: OpenedBundle = opener.open(request, upload.filename or "upload")
     if name is None:  # the bundle's own name; a refusal keeps the upload, to retry with a "name"
         printable_text(bundle.name, 'scene.json: name (give a printable "name" in the request instead)')
     return Scene(
@@ -154,12 +177,12 @@ def _validated(
         name=(name or bundle.name)[:255],
         feature_dim=bundle.feature_dim,
         feature_space=bundle.feature_space,
-        num_frames=len(bundle.frames),
-        has_vocabulary=bundle.vocabulary is not None,
+        num_frames=bundle.num_frames,
+        has_vocabulary=bundle.has_vocabulary,
         has_ground_truth=bundle.has_ground_truth,
-        has_feature_maps=bool(bundle.feature_frames),
-        has_mask_maps=bool(bundle.mask_frames),
+        has_feature_maps=bundle.has_feature_maps,
+        has_mask_maps=bundle.has_mask_maps,
         bundle_path=extraction.bundle_key(Path(bundle.root)),
         bundle_sha256=upload.sha256,
-        size_bytes=dir_size(workdir),
+        size_bytes=dir_size(extraction.workdir),
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import uuid
 from datetime import datetime
 from typing import Annotated, Any, Literal
@@ -128,11 +129,22 @@ def _builtin_name(value: str) -> str:
     return value.strip().lower()
 
 
+def _any_case(name: str) -> str:
+    """A JSON-Schema (ECMA) pattern of ``name`` in any letter case: ``[sS][cC]...``."""
+    return "".join(f"[{c.lower()}{c.upper()}]" if c.isalpha() else re.escape(c) for c in name)
+
+
+# The names as a pattern in the schema, so that a schema-valid request names a label set that exists; the
+# validator says which exist when one does not.
+BUILTIN_NAME_PATTERN = r"^\s*(" + "|".join(_any_case(n) for n in BUILTIN_VOCABULARIES) + r")\s*$"
 BuiltinVocabularyName = Annotated[
     str,
     StringConstraints(min_length=1, max_length=64),
     AfterValidator(_builtin_name),
-    Field(description=f"a shipped label set: {' | '.join(BUILTIN_VOCABULARIES)} (case-insensitive)"),
+    Field(
+        description=f"a shipped label set: {' | '.join(BUILTIN_VOCABULARIES)} (case-insensitive)",
+        json_schema_extra={"pattern": BUILTIN_NAME_PATTERN},
+    ),
 ]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -422,7 +434,16 @@ class ArtifactsPublic(BaseModel):
 class QueryCreate(BaseModel):
     """A text or a vector; exactly one."""
 
-    model_config = ConfigDict(extra="forbid")
+    # "exactly one" in the schema as well: one of the two is a string / an array, the other absent or null.
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "oneOf": [
+                {"required": ["text"], "properties": {"text": {"type": "string", "pattern": r"\S"}}},
+                {"required": ["vector"], "properties": {"vector": {"type": "array"}}},
+            ]
+        },
+    )
 
     text: str | None = Field(default=None, min_length=1, max_length=MAX_QUERY_CHARS)
     vector: list[float] | None = Field(

@@ -109,6 +109,12 @@ class Settings(BaseSettings):
     max_json_int_digits: int = Field(default=20, ge=1, le=20)  # digits of one integer (20 holds any 64-bit one)
     bundle_max_json_bytes: int = Field(default=16 * 1024**2, gt=0, le=64 * 1024**2)  # scene.json, vocabulary.json
     max_image_pixels: int = Field(default=40_000_000, gt=0, le=100_000_000)  # per image (and feature map) of a bundle
+    # A bundle's validation runs in a child process (docs/service.md, "Validation budget"): this many at once per API
+    # process (the next request is a 503 with Retry-After), each within this many CPU seconds per GiB of archive.
+    validation_slots: int = Field(default=2, ge=1, le=64)
+    validation_cpu_s: float = Field(default=10.0, gt=0, le=3600)
+    # Address space of one validation child (the fork server's ~0.3 GB included; gt/labels.npz may be 1 GiB read whole).
+    validation_memory_bytes: int = Field(default=2 * GIB, ge=512 * 1024**2)
 
     # The 2D-maps stage: the models jobs may name, and where their jobs run (docs/service.md, "2D maps").
     map_models: MapModelTable = {}  # JSON: entry name -> {"kind": masks | features, "path": absolute folder}

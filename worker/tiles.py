@@ -25,14 +25,16 @@ from typing import Any, cast
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from panogs_core.errors import PanoGSError
+from panogs_core.errors import InputError, PanoGSError
 from panogs_core.tiling.choice import TILES_OFF
 from panogs_core.types import Vocabulary
 from service.db import crud
 from service.db.base import utcnow
 from service.db.models import FitState, Job, JobState, JobTile, TileKind, TileState
 from service.db.session import session_scope
+from service.jobs import tile_cap, tile_cap_rule
 from service.queue import Sender, celery_sender, dispatch_tile
+from service.settings import Settings
 from service.storage.workspace import Workspace
 from worker.job_io import collect_artifacts, job_vocabulary
 from worker.leased import (
@@ -86,6 +88,24 @@ def _sender(env: JobEnv) -> Sender:
     return _SENDERS[key]
 
 
+def check_planned_tiles(settings: Settings, num_frames: int, planned: int) -> None:
+    """Fail an ``auto`` job whose plan has more tiles than an ``NxM`` job may ask for (``service.jobs.tile_cap``).
+
+    The API caps ``NxM`` when the job is created; an ``auto`` job's count is known only here, after the plan, and a
+    small ``memory_target_bytes`` can make it as fine as the planner allows (one job holding the worker for tens
+    of minutes while other tenants wait).
+
+    Raises:
+        InputError: the plan has more tiles than the cap; the message names the cap and the setting to raise.
+    """
+    cap = tile_cap(settings, num_frames)
+    if planned > cap:
+        raise InputError(
+            f"tiling: the automatic plan splits the scene ({num_frames} frames) into {planned} tiles; a job may have "
+            f"{tile_cap_rule(settings, cap)}; raise tiling.memory_target_bytes for fewer, larger tiles"
+        )
+
+
 def plan_and_fan_out(job: Job, tracker: Tracker, work: Workspace, config: Any) -> bool:
     """Plan the job; when the plan tiles the scene, record its tiles and publish them and return True (the job's
     task is done); False when the scene stays whole (the caller runs it as an untiled job).
@@ -105,6 +125,7 @@ def plan_and_fan_out(job: Job, tracker: Tracker, work: Workspace, config: Any) -
     if not plan.tiled:
         logger.info("job %s: the plan leaves the scene whole (%s)", job.id, plan.reason)
         return False
+    check_planned_tiles(env.settings, len(scene.frames), len(plan.tiles))
     path = plan_path(work.out)
     path.parent.mkdir(parents=True, exist_ok=True)
     plan.save(path)

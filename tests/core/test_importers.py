@@ -128,6 +128,11 @@ class TestImportScannet:
         assert report.frames_written == 3  # 0, 4, 8
         scene = open_bundle(report.bundle)
         assert [f.id for f in scene.frames] == ["000000", "000004", "000008"]
+        # the frames the stride left out keep their pose (frame 3's -inf pose is not one), as the capture importers'
+        left_out = [fid for fid, _ in scene.skipped_poses]
+        assert left_out == [f"{i:06d}" for i in (1, 2, 5, 6, 7, 9, 10, 11)]
+        np.testing.assert_allclose(dict(scene.skipped_poses)["000005"], _pose(5), atol=1e-12)
+        assert scene.up is None  # the export does not say where gravity is: the pipeline estimates it
         geometry = scene.read_geometry()
         assert geometry is not None
         np.testing.assert_array_equal(geometry.points, pts)
@@ -191,6 +196,9 @@ class TestImportReplica:
         assert (scene.camera.width, scene.camera.height) == (20, 10)
         assert scene.camera.fx == pytest.approx(600.0 * 20 / 1200)
         assert [f.id for f in scene.frames] == ["000000", "000003"]
+        # left out by the stride: 1 and 4 by their pose; 2 has a NaN pose and is not recorded
+        assert [fid for fid, _ in scene.skipped_poses] == ["000001", "000004"]
+        np.testing.assert_allclose(dict(scene.skipped_poses)["000004"], _pose(4), atol=1e-7)
 
     def test_exception(self, tmp_path: Path) -> None:
         src = _replica(tmp_path / "r")

@@ -142,3 +142,19 @@ class TestImportR3D:
         with pytest.raises(InputError, match=r"bad\.r3d"):
             import_record3d(tmp_path / "bad.r3d", tmp_path / "c", Record3DOptions(maps=PLACEHOLDER))
         assert not (tmp_path / "c").exists()
+
+    def test_a_pruned_export_names_the_poses_left_without_frames(self, export: Path, tmp_path: Path) -> None:
+        """A real export whose owner deleted a few frames (rgb and depth) keeps their poses in metadata.json: the
+        report names each, instead of counting the capture as shorter than it is."""
+        src = tmp_path / "capture"
+        shutil.copytree(export, src)
+        poses = len(json.loads((src / "metadata.json").read_text())["poses"])
+        for path in (src / "rgb" / "3.jpg", src / "depth" / "3.exr", src / "conf" / "3.png"):
+            path.unlink(missing_ok=True)
+        report = import_record3d(src, tmp_path / "b", Record3DOptions(maps=PLACEHOLDER))
+        missing = dict(report.dropped)["missing file"]
+        assert len(missing) == 1
+        assert missing[0].startswith("000003 (")
+        assert missing[0].endswith("has no depth image)")
+        assert report.frames_source == poses
+        assert report.frames_written == poses - 1

@@ -259,14 +259,15 @@ class TestGeometry:
         # Both must give the same latent, on the box's faces and corners too, and the table must map back.
         import torch
 
-        from panogs_core.stages.language_field.triplane import (
-            _add_table_gradient,
-            _gathered_latent,
+        from panogs_core.stages.language_field.corners import (
+            BatchCorners,
+            add_table_gradient,
             bilinear_corners,
-            init_model,
+            gathered_latent,
             plane_table,
             planes_from_table,
         )
+        from panogs_core.stages.language_field.triplane import init_model
 
         resolutions = [3, 7]
         model = init_model(resolutions, 4, LanguageFieldConfig(channels=5, hidden_dims=(8,)))
@@ -284,7 +285,7 @@ class TestGeometry:
         np.testing.assert_allclose(weights.sum(dim=1).numpy(), 6.0, atol=1e-5)  # 4 corners x 3 planes x 2 levels
         with torch.no_grad():
             expected = model.encode(coords_t).numpy()
-            gathered = _gathered_latent(table, cells, weights).numpy()
+            gathered = gathered_latent(table, cells, weights).numpy()
         np.testing.assert_allclose(gathered, expected, atol=1e-5)
         for plane, back in zip(model.planes, planes_from_table(table, resolutions), strict=True):
             assert torch.equal(plane.detach(), back)
@@ -292,11 +293,17 @@ class TestGeometry:
         # The table's gradient written by hand is autograd's gradient of the gathered latent.
         upstream = torch.from_numpy(rng.normal(size=(300, 5)).astype(np.float32))
         leaf = table.detach().clone().requires_grad_(True)
-        (_gathered_latent(leaf, cells, weights) * upstream).sum().backward()
+        (gathered_latent(leaf, cells, weights) * upstream).sum().backward()
         by_hand = torch.full_like(table, 7.0)  # stale values: the buffer is overwritten, not added to
-        _add_table_gradient(by_hand, cells, weights, upstream)
+        add_table_gradient(by_hand, cells, weights, upstream)
         assert leaf.grad is not None
         np.testing.assert_allclose(by_hand.numpy(), leaf.grad.numpy(), atol=1e-5)
+
+        # The CPU training path (sparse products of the corner weights) gives the same latent and gradient.
+        batch = BatchCorners(table)
+        assert batch.on_cpu
+        np.testing.assert_allclose(batch.latent(cells, weights).numpy(), expected, atol=1e-5)
+        np.testing.assert_allclose(batch.table_gradient(upstream).numpy(), leaf.grad.numpy(), atol=1e-5)
 
 
 class TestTraining:

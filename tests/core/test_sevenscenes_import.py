@@ -50,6 +50,7 @@ def test_a_sequence_imports_with_placeholder_maps(tmp_path: Path) -> None:
     assert np.allclose(depth[1:], 1.5)
     assert np.allclose(np.asarray(scene.frames[1].T_world_cam)[0, 3], 0.2)
     assert scene.read_color(scene.frames[0]) is not None
+    assert [(fid, round(pose[0, 3], 9)) for fid, pose in scene.skipped_poses] == [("000001", 0.1), ("000003", 0.3)]
 
 
 def test_features_and_masks_come_from_their_folders(tmp_path: Path) -> None:

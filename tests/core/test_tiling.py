@@ -4,19 +4,20 @@ end on a small synthetic building (docs/method.md §16)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_runs import BUILDING_SPACE, BUILDING_TILED_ARGV
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the language field on a shared host)
 
 from panogs_core.cli import main as cli_main
 from panogs_core.errors import ConfigError, InputError
 from panogs_core.io.bundle import open_bundle
 from panogs_core.pipeline.config import PipelineConfig
-from panogs_core.pipeline.run import run_pipeline
 from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
-from panogs_core.synthetic import make_building, make_scene
+from panogs_core.synthetic import make_scene
 from panogs_core.tiling.choice import parse_tiles
 from panogs_core.tiling.merge import TileLabels, merge_tiles
 from panogs_core.tiling.plan import TilePlan, TilingConfig, plan_tiles
@@ -24,15 +25,15 @@ from panogs_core.tiling.runner import run_tiled
 from panogs_core.tiling.view import tile_bundle
 from panogs_core.types import InstanceInfo, Vocabulary
 
-SPACE = "clip-vit-b32"  # the label-set space needs no text encoder
+SPACE = BUILDING_SPACE  # the label-set space needs no text encoder
 NO_FIT = PipelineConfig().with_overrides({"appearance": {"enabled": False}})
 EXACT = TilingConfig(sample_points=10**9)  # no sampling: the planner's counts are exact
 
 
 @pytest.fixture(scope="module")
-def building(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Two tiny rooms side by side, joined by a doorway (about 17k points, 28 frames)."""
-    return make_building(tmp_path_factory.mktemp("building") / "b", rooms=(2, 1), room="tiny", feature_space=SPACE)
+def building(tiny_building: Path) -> Path:
+    """Two tiny rooms side by side, joined by a doorway (about 17k points, 28 frames; the session's: only read)."""
+    return tiny_building
 
 
 @pytest.fixture(scope="module")
@@ -219,13 +220,23 @@ def test_a_small_overlap_is_no_join() -> None:
 # --- end to end ---------------------------------------------------------------------------------------------------
 
 
+TILED_ARGV = list(BUILDING_TILED_ARGV)  # --tiles 2x1, no appearance fit
+
+
+@pytest.fixture(scope="module")
+def tiled_run(tiny_building_tiled_run: Path) -> Path:
+    """``panogs run --tiles 2x1`` of the building, tiles one after another (the default; the session's, shared
+    with tests/worker/test_tiled_jobs.py): only read here, copied by the test that runs it again."""
+    return tiny_building_tiled_run
+
+
 @pytest.mark.slow
-def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(building: Path, tmp_path: Path) -> None:
-    runs = [tmp_path / "a", tmp_path / "b"]
-    for out, workers in zip(runs, ("1", "2"), strict=True):  # one after another, then side by side
-        argv = ["run", str(building), "--out", str(out), "--tiles", "2x1", "-q", "--set", "appearance.enabled=false",
-                "--tile-workers", workers]  # fmt: skip
-        assert cli_main(argv) == 0
+def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(
+    building: Path, tiled_run: Path, tmp_path: Path
+) -> None:
+    runs = [tiled_run, tmp_path / "b"]  # one after another (the fixture's), then side by side
+    argv = ["run", str(building), "--out", str(runs[1]), *TILED_ARGV, "--tile-workers", "2"]
+    assert cli_main(argv) == 0
     for name in ("labels.npz", "instances.json", "instance_features.npy", "panoptic.ply"):
         assert (runs[0] / name).read_bytes() == (runs[1] / name).read_bytes(), name
     report = json.loads((runs[0] / "report.json").read_text())
@@ -251,10 +262,12 @@ def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(build
     assert metrics["standard"]["miou"] > 0.6
 
 
-def test_a_finished_tile_keeps_only_what_the_merge_reads_and_is_not_run_again(building: Path, tmp_path: Path) -> None:
+def test_a_finished_tile_keeps_only_what_the_merge_reads_and_is_not_run_again(
+    building: Path, tiled_run: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "run"
-    argv = ["run", str(building), "--out", str(out), "--tiles", "2x1", "-q", "--set", "appearance.enabled=false"]
-    assert cli_main(argv) == 0
+    shutil.copytree(tiled_run, out)  # the same argv's run, finished (a tile's files name nothing outside it)
+    argv = ["run", str(building), "--out", str(out), *TILED_ARGV]
     plan = TilePlan.load(out / "tiles" / "plan.json")
     folders = [out / "tiles" / t.name for t in plan.tiles]
     for folder in folders:  # the (N, D) features of the fusion and the field are gone, the primitives stay
@@ -270,12 +283,12 @@ def test_a_finished_tile_keeps_only_what_the_merge_reads_and_is_not_run_again(bu
 
 
 @pytest.mark.slow
-def test_untiled_path_is_unchanged(building: Path, tmp_path: Path) -> None:
+def test_untiled_path_is_unchanged(building: Path, tiny_building_plain_run: Path, tmp_path: Path) -> None:
     tiled = run_tiled(building, tmp_path / "auto", NO_FIT, tiles="auto")
-    plain = run_pipeline(building, tmp_path / "plain", NO_FIT)
-    assert tiled.num_primitives == plain.num_primitives
+    plain = tiny_building_plain_run  # run_pipeline(building, ..., NO_FIT), the session's
+    assert tiled.num_primitives == json.loads((plain / "report.json").read_text())["num_primitives"]
     for name in ("labels.npz", "instances.json", "instance_features.npy"):
-        assert (tmp_path / "auto" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes(), name
+        assert (tmp_path / "auto" / name).read_bytes() == (plain / name).read_bytes(), name
     assert "tiling" not in json.loads((tmp_path / "auto" / "report.json").read_text())
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from capture_room import export_maps, import_tilted_tum, tilted_world, write_record3d
+from capture_room import TILTED_55, export_maps, tilted_world, write_record3d
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from panogs_core.cli import main as cli_main
@@ -26,7 +26,7 @@ from panogs_core.pipeline.run import run_pipeline
 from panogs_core.stages.up_direction import UpDirection, camera_up, floor_normal, run_up
 from panogs_core.types import Camera
 
-TILT = tilted_world((1.0, 0.4, 0.0), 55.0)  # the room's z-up ends up 55 degrees from every world axis it had
+TILT = TILTED_55  # the room's z-up ends up 55 degrees from every world axis it had
 NO_FIT = PipelineConfig(appearance=AppearanceConfig(enabled=False))
 CAMERA = Camera(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5)
 
@@ -41,12 +41,11 @@ def _cameras(run: Path) -> dict:
     return json.loads((run / "cameras.json").read_text())
 
 
-@pytest.fixture(scope="module")
-def tilted_run(synth_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The room as a TUM sequence in the tilted world (TUM records no gravity), every 2nd frame imported, run."""
-    root = tmp_path_factory.mktemp("tilted")
-    run_pipeline(import_tilted_tum(synth_tiny, root, TILT), root / "run", NO_FIT)
-    return root
+@pytest.fixture
+def tilted_run(tilted_tum_run: Path) -> Path:
+    """The room as a TUM sequence in the tilted world (TUM records no gravity), every 2nd frame imported, run
+    (the session's, shared with the viewer's test: only read)."""
+    return tilted_tum_run
 
 
 def test_a_tilted_capture_without_gravity_gets_the_floor_as_up(tilted_run: Path) -> None:
@@ -58,7 +57,7 @@ def test_a_tilted_capture_without_gravity_gets_the_floor_as_up(tilted_run: Path)
     assert abs(np.linalg.norm(cameras["up"]) - 1.0) < 1e-5
 
 
-def test_render_from_a_frame_the_stride_left_out(tilted_run: Path, synth_tiny: Path) -> None:
+def test_render_from_a_frame_the_stride_left_out(tilted_run: Path, synth_tiny: Path, tmp_path: Path) -> None:
     root = tilted_run
     bundle = open_bundle(root / "bundle")
     skipped = dict(bundle.skipped_poses)
@@ -72,14 +71,14 @@ def test_render_from_a_frame_the_stride_left_out(tilted_run: Path, synth_tiny: P
     frame_id = next(i for i in order if i in skipped)
     room_frame = room.frames[order.index(frame_id)]
     np.testing.assert_allclose(skipped[frame_id], TILT @ room_frame.T_world_cam, atol=1e-6)
-    assert cli_main(["render", str(root / "run"), "--frame", frame_id, "--out", str(root / "by-frame")]) == 0
-    pose = root / "pose.json"
+    assert cli_main(["render", str(root / "run"), "--frame", frame_id, "--out", str(tmp_path / "by-frame")]) == 0
+    pose = tmp_path / "pose.json"
     pose.write_text(json.dumps({"T_world_cam": (TILT @ room_frame.T_world_cam).tolist()}))
-    assert cli_main(["render", str(root / "run"), "--pose", str(pose), "--out", str(root / "by-pose")]) == 0
+    assert cli_main(["render", str(root / "run"), "--pose", str(pose), "--out", str(tmp_path / "by-pose")]) == 0
     for name in ("color.png", "depth.png", "semantic.png"):
-        assert (root / "by-frame" / name).read_bytes() == (root / "by-pose" / name).read_bytes()
+        assert (tmp_path / "by-frame" / name).read_bytes() == (tmp_path / "by-pose" / name).read_bytes()
     # The render sees what the capture's own frame saw: its depth agrees with the frame's depth image.
-    rendered = cv2.imread(str(root / "by-frame" / "depth.png"), cv2.IMREAD_UNCHANGED) / 1000.0
+    rendered = cv2.imread(str(tmp_path / "by-frame" / "depth.png"), cv2.IMREAD_UNCHANGED) / 1000.0
     truth = room.read_depth(room_frame)
     both = (rendered > 0) & (truth > 0)
     assert both.mean() > 0.5

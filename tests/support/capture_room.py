@@ -63,9 +63,17 @@ def tilted_world(axis: tuple[float, float, float], degrees: float) -> np.ndarray
     return T
 
 
-def write_tum(room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray | None = None) -> list[float]:
+# The tilted world of the up-direction tests (tests/conftest.py's tilted_tum_run): the room's z-up ends up 55
+# degrees from every world axis it had.
+TILTED_55 = tilted_world((1.0, 0.4, 0.0), 55.0)
+
+
+def write_tum(
+    room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray | None = None, decimals: int = 9
+) -> list[float]:
     """The room as a TUM RGB-D sequence: depth * 5000, timestamps of the streams off by ``jitter`` seconds; the
-    poses in ``world`` (a (4, 4) applied to the room's world; ``tilted_world``) when given.
+    poses in ``world`` (a (4, 4) applied to the room's world; ``tilted_world``) when given; the ground truth's numbers
+    with ``decimals`` decimals (the benchmark's own files have 4).
 
     Returns the depth timestamps, one per room frame. The ground truth has a row near each frame (off by
     ``jitter / 2``) and rows between frames with other poses, so only the nearest-in-time row is right.
@@ -85,7 +93,7 @@ def write_tum(room: Path, dst: Path, *, jitter: float = 0.007, world: np.ndarray
         rgb_lines.append(f"{t + jitter:.6f} rgb/{t + jitter:.6f}.png")
         T = (np.eye(4) if world is None else world) @ np.asarray(frame.T_world_cam)
         q = quaternion_xyzw(T[:3, :3])
-        gt_lines.append(f"{t + jitter / 2:.4f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)))
+        gt_lines.append(f"{t + jitter / 2:.4f} " + " ".join(f"{v:.{decimals}f}" for v in (*T[:3, 3], *q)))
         gt_lines.append(f"{t + 1 / 60:.4f} 9 9 9 0 0 0 1")  # between frames: a pose no frame may take
     (dst / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
     (dst / "depth.txt").write_text("\n".join(depth_lines) + "\n")

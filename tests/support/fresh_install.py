@@ -74,7 +74,10 @@ def install(base: Path, extras: str) -> FreshInstall:
     wheel = build_wheel(out)
     venv = FreshInstall(out / "venv", extras)
     subprocess.run([sys.executable, "-m", "venv", str(venv.root)], check=True, timeout=300)
-    argv = [str(venv.python), "-m", "pip", "install", "-q", "-c", str(REPO / "constraints.txt"), f"{wheel}[{extras}]"]
+    # --no-compile: pip would byte-compile every module of every installed package, most of which no test imports;
+    # Python compiles what the tests import when they import it.
+    argv = [str(venv.python), "-m", "pip", "install", "-q", "--no-compile", "--disable-pip-version-check",
+            "-c", str(REPO / "constraints.txt"), f"{wheel}[{extras}]"]  # fmt: skip
     done = subprocess.run(argv, env=venv.env(), capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S)
     if done.returncode != 0:
         raise RuntimeError(f"pip install {wheel.name}[{extras}] failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")

@@ -14,17 +14,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from capture_room import import_tilted_tum, tilted_world
+from capture_room import TILTED_55
 from service_harness import REPO
 from viewer_page import canvas_pixels
 
-from panogs_core.gaussians.config import AppearanceConfig
-from panogs_core.pipeline.config import PipelineConfig
-from panogs_core.pipeline.run import run_pipeline
-
 pytestmark = pytest.mark.slow
 
-TILT = tilted_world((1.0, 0.4, 0.0), 55.0)
+TILT = TILTED_55
 
 # The camera's axes in world coordinates (three.js: x right, y up on the screen, looking down -z).
 CAMERA_AXES = """() => {
@@ -37,11 +33,9 @@ CAMERA_AXES = """() => {
 
 
 @pytest.fixture(scope="module")
-def tilted_run(synth_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("viewer-up")
-    no_fit = PipelineConfig(appearance=AppearanceConfig(enabled=False))
-    run_pipeline(import_tilted_tum(synth_tiny, root, TILT), root / "run", no_fit)
-    return root / "run"
+def tilted_run(tilted_tum_run: Path) -> Path:
+    """The tilted capture's run (the session's, shared with tests/core/test_up_direction.py: only read)."""
+    return tilted_tum_run / "run"
 
 
 @pytest.fixture(scope="module")

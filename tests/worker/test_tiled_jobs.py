@@ -13,13 +13,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from shared_runs import BUILDING_NO_FIT, BUILDING_SPACE
 from sqlalchemy import select, update
 from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the language field on a shared host)
 
-from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.errors import PanoGSError
 from panogs_core.pipeline.run import STAGES, run_pipeline
-from panogs_core.synthetic import make_building
-from panogs_core.tiling.runner import run_tiled
 from service import jobs
 from service.broker import TaskName
 from service.db import crud
@@ -33,8 +32,8 @@ from worker import leased, runner, tasks, tiles
 
 pytestmark = pytest.mark.slow
 
-SPACE = "clip-vit-b32"  # the label-set space needs no text encoder
-NO_FIT = {"appearance": {"enabled": False}}
+SPACE = BUILDING_SPACE  # the label-set space needs no text encoder
+NO_FIT = BUILDING_NO_FIT  # as the session's runs of the building (shared_runs.py)
 COMPARED = ("labels.npz", "instances.json", "instance_features.npy", "panoptic.ply")
 
 
@@ -50,9 +49,9 @@ class Recorder:
 
 
 @pytest.fixture(scope="module")
-def building(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Two tiny rooms side by side, joined by a doorway (about 17k points, 28 frames)."""
-    return make_building(tmp_path_factory.mktemp("building") / "b", rooms=(2, 1), room="tiny", feature_space=SPACE)
+def building(tiny_building: Path) -> Path:
+    """Two tiny rooms side by side, joined by a doorway (about 17k points, 28 frames; the session's: only read)."""
+    return tiny_building
 
 
 def _env(settings: Settings, sender: Recorder) -> leased.JobEnv:
@@ -98,7 +97,7 @@ def _job_row(env: leased.JobEnv, job_id: uuid.UUID) -> Job:
 
 
 def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
-    settings: Settings, building: Path, tmp_path: Path
+    settings: Settings, building: Path, tiny_building_tiled_run: Path
 ) -> None:
     sender = Recorder()
     env = _env(settings, sender)
@@ -158,10 +157,10 @@ def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
         (0, "tile", "succeeded", 1.0), (1, "tile", "succeeded", 1.0), (2, "merge", "succeeded", 1.0),
     ]  # fmt: skip
 
-    # The same plan, tiles and merge in one process (the CLI's path) write the same files.
+    # The same plan, tiles and merge in one process (the CLI's path) write the same files: ``panogs run --tiles
+    # 2x1`` without the fit, the session's run (tests/conftest.py).
     out = env.storage.job_dir(job_id)
-    cli = tmp_path / "cli"
-    run_tiled(building, cli, PipelineConfig.from_dict(NO_FIT), tiles=(2, 1))
+    cli = tiny_building_tiled_run
     for name in COMPARED:
         assert (out / name).read_bytes() == (cli / name).read_bytes(), name
     report = json.loads((out / "report.json").read_text())
@@ -187,7 +186,7 @@ def test_a_failed_tile_fails_the_job_and_stops_its_siblings(settings: Settings, 
 
 
 def test_a_plan_that_leaves_the_scene_whole_runs_the_job_as_before(
-    settings: Settings, building: Path, tmp_path: Path
+    settings: Settings, building: Path, tiny_building_plain_run: Path
 ) -> None:
     sender = Recorder()
     env = _env(settings, sender)
@@ -195,9 +194,31 @@ def test_a_plan_that_leaves_the_scene_whole_runs_the_job_as_before(
     assert runner.execute_job(job_id, lease="job-1", worker="w/1", env=env) == JobState.SUCCEEDED
     assert _rows(env, job_id) == []
     assert sender.sent == []
-    plain = tmp_path / "plain"
-    run_pipeline(building, plain, PipelineConfig.from_dict(NO_FIT))
+    plain = tiny_building_plain_run  # run_pipeline(building, ..., NO_FIT), the session's (tests/conftest.py)
     out = env.storage.job_dir(job_id)
     for name in COMPARED:
         assert (out / name).read_bytes() == (plain / name).read_bytes(), name
     assert "tiling" not in json.loads((out / "report.json").read_text())
+
+
+def test_an_auto_plan_over_the_tile_cap_fails_the_job_naming_the_cap(settings: Settings, building: Path) -> None:
+    # A memory target just above a run's fixed cost makes the planner split as finely as it can; the API cannot
+    # know the count of an auto job, so the worker refuses the plan before it publishes a tile.
+    capped = settings.model_copy(update={"max_tiles_per_job": 2})
+    sender = Recorder()
+    env = _env(capped, sender)
+    job_id = _job(capped, building, {"tiles": "auto", "memory_target_bytes": 0.81e9, "whole_limit_bytes": 1e6})
+    assert runner.execute_job(job_id, lease="job-1", worker="w/1", env=env) == JobState.FAILED
+    job = _job_row(env, job_id)
+    assert job.error_type == "InputError"
+    message = job.error_message or ""
+    assert "tiles; a job may have at most 2" in message
+    assert "PANOGS_MAX_TILES_PER_JOB" in message
+    assert _rows(env, job_id) == []
+    assert sender.sent == []
+
+
+def test_tile_cap_check_passes_a_plan_within_the_cap(settings: Settings) -> None:
+    tiles.check_planned_tiles(settings, num_frames=28, planned=8)  # the cap is one per frame, at least 8
+    with pytest.raises(PanoGSError, match="into 9 tiles; a job may have at most 8"):
+        tiles.check_planned_tiles(settings, num_frames=3, planned=9)

@@ -62,18 +62,16 @@ def add_geometry_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _shared_arguments(args: argparse.Namespace, vocabulary: Vocabulary | None) -> dict[str, Any]:
+    """The keyword arguments every research importer takes: the options the command adds to every source."""
+    return {"stride": args.stride, "vocabulary": vocabulary, "feature_space": args.feature_space}
+
+
 def _run_scannet(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
     from panogs_core.io.importers.scannet import import_scannet
 
-    return import_scannet(
-        args.src,
-        args.dst,
-        stride=args.stride,
-        vocabulary=vocabulary,
-        geometry=args.geometry,
-        ground_truth=args.gt,
-        feature_space=args.feature_space,
-    )
+    shared = _shared_arguments(args, vocabulary)
+    return import_scannet(args.src, args.dst, geometry=args.geometry, ground_truth=args.gt, **shared)
 
 
 def _add_replica_options(p: argparse.ArgumentParser) -> None:
@@ -90,15 +88,9 @@ def _add_replica_options(p: argparse.ArgumentParser) -> None:
 def _run_replica(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
     from panogs_core.io.importers.replica import import_replica
 
+    shared = _shared_arguments(args, vocabulary)
     return import_replica(
-        args.src,
-        args.dst,
-        stride=args.stride,
-        vocabulary=vocabulary,
-        geometry=args.geometry,
-        ground_truth=args.gt,
-        feature_space=args.feature_space,
-        depth_scale=args.depth_scale,
+        args.src, args.dst, geometry=args.geometry, ground_truth=args.gt, depth_scale=args.depth_scale, **shared
     )
 
 
@@ -116,16 +108,9 @@ def _add_sevenscenes_options(p: argparse.ArgumentParser) -> None:
 def _run_sevenscenes(args: argparse.Namespace, vocabulary: Vocabulary | None) -> ImportReport:
     from panogs_core.io.importers.sevenscenes import import_sevenscenes
 
-    return import_sevenscenes(
-        args.src,
-        args.dst,
-        stride=args.stride,
-        vocabulary=vocabulary,
-        feature_space=args.feature_space,
-        features=args.features,
-        masks=args.masks,
-        placeholder_maps=args.placeholder_maps,
-    )
+    shared = _shared_arguments(args, vocabulary)
+    maps = {"features": args.features, "masks": args.masks, "placeholder_maps": args.placeholder_maps}
+    return import_sevenscenes(args.src, args.dst, **maps, **shared)
 
 
 # The options ``panogs import`` adds to every source itself (import_.add_command): a capture source's entry for

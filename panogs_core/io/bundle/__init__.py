@@ -17,6 +17,7 @@ from pathlib import Path
 from panogs_core.errors import BundleError
 from panogs_core.io.bundle.archive import DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES, extract_archive, is_archive
 from panogs_core.io.bundle.format import FORMAT_ID, BundleLimits
+from panogs_core.io.bundle.problems import CpuBudget
 from panogs_core.io.bundle.reader import Bundle
 from panogs_core.io.bundle.validation import relative_to_root, validate
 
@@ -50,8 +51,9 @@ def open_bundle(
     """
     path = Path(path)
     limits = limits or BundleLimits()
+    budget = CpuBudget(limits.max_cpu_s)  # the extraction counts in the budget too
     if path.is_dir():
-        return validate(path, limits=limits)
+        return validate(path, limits=limits, budget=budget)
     if not path.exists():
         raise BundleError([f"{path.name}: does not exist"], source=path.name)
     if not is_archive(path):
@@ -61,7 +63,7 @@ def open_bundle(
     dest = Path(tempfile.mkdtemp(prefix="bundle-", dir=workdir))
     try:
         root = extract_archive(path, dest, max_bytes=max_bytes, max_files=max_files)
-        bundle = validate(root, source=path.name, limits=limits)
+        bundle = validate(root, source=path.name, limits=limits, budget=budget)
     except BundleError as exc:
         shutil.rmtree(dest, ignore_errors=True)
         raise BundleError(relative_to_root(exc.problems, dest), source=exc.source) from exc

@@ -15,6 +15,9 @@ FORMAT_ID = "panogs-scene/1"
 
 # Frame ids become file names: keep them to a portable alphabet, never a path.
 FRAME_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
+# What validation requires of any frame id (the writer's alphabet above is stricter): printable text of at most
+# this many characters, since ids reach logs, file names of computed maps and the viewer's lists.
+MAX_FRAME_ID_CHARS = 128
 FRAME_FILES: dict[str, tuple[str, ...]] = {  # frame key -> allowed extensions
     "depth": (".png",),
     "color": (".png", ".jpg", ".jpeg"),
@@ -58,6 +61,9 @@ class BundleLimits:
             are checked before any is decompressed).
         max_feature_dim: Largest ``features.dim``.
         max_classes: Most classes in ``vocabulary.json``.
+        max_cpu_s: CPU seconds (of the validating thread, from the start of :func:`open_bundle`: the extraction
+            counts) after which validation stops at the next file and refuses the bundle; None: no budget. The
+            checks are bounded one by one; this bounds their sum, whatever the bundle holds.
     """
 
     json: JsonLimits = field(default_factory=JsonLimits)
@@ -65,6 +71,7 @@ class BundleLimits:
     max_ground_truth_bytes: int = DEFAULT_MAX_GROUND_TRUTH_BYTES
     max_feature_dim: int = DEFAULT_MAX_FEATURE_DIM
     max_classes: int = DEFAULT_MAX_CLASSES
+    max_cpu_s: float | None = None
 
 
 def max_png_chunks(file_bytes: int) -> int:

@@ -1,9 +1,37 @@
-"""Small helpers the bundle's checks share: numbers read from JSON values, and problem text kept short."""
+"""Small helpers the bundle's checks share: numbers read from JSON values, problem text kept short, and the
+CPU budget of one validation."""
 
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
+
+
+class OverBudget(Exception):
+    """Validation spent its CPU budget; the message is the problem line, naming the file it stopped at."""
+
+
+class CpuBudget:
+    """CPU seconds of the calling thread since it was made, against a budget (None: unbounded).
+
+    Thread time, not process time: a worker validates in one of its threads while others run.
+    """
+
+    def __init__(self, max_cpu_s: float | None) -> None:
+        self.max_cpu_s = max_cpu_s
+        self._start = time.thread_time()
+
+    def spent(self) -> float:
+        return time.thread_time() - self._start
+
+    def check(self, where: str) -> None:
+        """Raise :class:`OverBudget` naming ``where`` (the file or entry about to be checked) once spent."""
+        if self.max_cpu_s is not None and self.spent() > self.max_cpu_s:
+            raise OverBudget(
+                f"{where}: validation stopped here, over its CPU budget of {self.max_cpu_s:g} s per bundle "
+                f"({self.spent():.2f} s spent on the files before it)"
+            )
 
 
 def number(value: Any) -> float | None:

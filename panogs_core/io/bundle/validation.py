@@ -26,15 +26,16 @@ from panogs_core.io.bundle.format import (
     FRAME_FILES,
     FRAME_KEYS,
     LAST_ROW_TOL,
+    MAX_FRAME_ID_CHARS,
     ROTATION_TOL,
     SKIPPED_FRAME_KEYS,
     TOP_KEYS,
     BundleLimits,
 )
-from panogs_core.io.bundle.problems import integer, number, short
+from panogs_core.io.bundle.problems import CpuBudget, OverBudget, integer, number, short
 from panogs_core.io.bundle.reader import Bundle
 from panogs_core.io.bundle.scene_checks import check_geometry, check_ground_truth, check_vocabulary
-from panogs_core.types import Camera, Frame
+from panogs_core.types import Camera, Frame, Vocabulary
 
 logger = logging.getLogger(__name__)
 
@@ -51,21 +52,65 @@ class _Header:
     has_features: bool = True  # scene.json declares features (dim and space); False: no feature maps at all
 
 
-def validate(root: Path, *, limits: BundleLimits, source: str | None = None) -> Bundle:
-    """Check every rule of docs/scene_format.md; return the Bundle or raise one BundleError listing all problems."""
+def validate(root: Path, *, limits: BundleLimits, source: str | None = None, budget: CpuBudget | None = None) -> Bundle:
+    """Check every rule of docs/scene_format.md; return the Bundle or raise one BundleError listing all problems.
+
+    ``budget`` is the CPU clock of the whole opening (default: one started here, of ``limits.max_cpu_s``); it is
+    looked at before each frame entry and each distinct file, and once spent the problems found so far are
+    reported with one more naming where validation stopped.
+    """
+    budget = budget or CpuBudget(limits.max_cpu_s)
     problems: list[str] = []
+    try:
+        checked = _check_all(root, limits, budget, problems)
+    except OverBudget as exc:
+        problems.append(str(exc))
+    if problems:
+        raise BundleError(relative_to_root(problems, root), source=source or root.name)
+    return _bundle(root, *checked)
+
+
+def _check_all(root: Path, limits: BundleLimits, budget: CpuBudget, problems: list[str]) -> _Checked:
     manifest = _load_manifest(root, limits.json, problems)
     header = (
         _check_header(manifest, limits, problems) if manifest is not None else _Header(None, None, None, None, None)
     )
-    frames = _check_frames(root, manifest, header, limits, problems) if manifest is not None else []
+    frames = _check_frames(root, manifest, header, limits, budget, problems) if manifest is not None else []
     up = _check_up(manifest, problems) if manifest is not None else None
     skipped = _check_skipped_frames(manifest, {f.id for f in frames}, problems) if manifest is not None else ()
+    budget.check("geometry.ply")
     num_vertices = check_geometry(root, problems)
+    budget.check("vocabulary.json")
     vocabulary = check_vocabulary(root, header.feature_dim, limits.json, limits.max_classes, problems)
+    budget.check("gt/labels.npz")
     has_gt = check_ground_truth(root, vocabulary, num_vertices, limits, problems)
-    if problems:
-        raise BundleError(relative_to_root(problems, root), source=source or root.name)
+    return manifest, header, frames, up, skipped, num_vertices, vocabulary, has_gt
+
+
+# What the checks found, in the order _bundle takes it.
+_Checked = tuple[
+    dict[str, Any] | None,
+    _Header,
+    list[Frame],
+    tuple[float, float, float] | None,
+    tuple[tuple[str, np.ndarray], ...],
+    int | None,
+    Vocabulary | None,
+    bool,
+]
+
+
+def _bundle(
+    root: Path,
+    manifest: dict[str, Any] | None,
+    header: _Header,
+    frames: list[Frame],
+    up: tuple[float, float, float] | None,
+    skipped: tuple[tuple[str, np.ndarray], ...],
+    num_vertices: int | None,
+    vocabulary: Vocabulary | None,
+    has_gt: bool,
+) -> Bundle:
     # No problem implies every header field parsed; the asserts only narrow the types.
     assert manifest is not None
     assert header.camera is not None
@@ -190,7 +235,7 @@ def _check_camera(cam: Any, problems: list[str]) -> tuple[Camera | None, tuple[i
 
 
 def _check_frames(
-    root: Path, doc: dict[str, Any], header: _Header, limits: BundleLimits, problems: list[str]
+    root: Path, doc: dict[str, Any], header: _Header, limits: BundleLimits, budget: CpuBudget, problems: list[str]
 ) -> list[Frame]:
     entries = doc.get("frames")
     if not isinstance(entries, list) or not entries:
@@ -200,11 +245,12 @@ def _check_frames(
     seen: set[str] = set()
     checked: set[tuple[str, str]] = set()  # (kind, path): frames may share a file, which is checked once
     for i, entry in enumerate(entries):
+        budget.check(f"scene.json: frames[{i}]")
         frame = _check_frame_entry(root, i, entry, seen, problems)
         if frame is None:
             continue
         frames.append(frame)
-        _check_frame_files(root, frame, header, limits, checked, problems)
+        _check_frame_files(root, frame, header, limits, budget, checked, problems)
     _check_maps_present(frames, header, problems)
     return frames
 
@@ -233,9 +279,8 @@ def _check_frame_entry(root: Path, i: int, entry: Any, seen: set[str], problems:
     unknown = sorted(set(entry) - FRAME_KEYS)
     if unknown:
         logger.warning("%s: ignoring unknown keys %s", where, unknown)
-    frame_id = entry.get("id")
-    if not isinstance(frame_id, str) or not frame_id:
-        problems.append(f"{where}.id: {frame_id!r}, expected a non-empty string")
+    frame_id = _frame_id(entry.get("id"), where, problems)
+    if frame_id is None:
         frame_id = f"#{i}"
     elif frame_id in seen:
         problems.append(f"{where}.id: {frame_id!r} used by an earlier frame, expected unique ids")
@@ -251,6 +296,22 @@ def _check_frame_entry(root: Path, i: int, entry: Any, seen: set[str], problems:
     if pose is None or paths["depth"] is None:
         return None
     return Frame(frame_id, pose, paths["depth"], paths["color"], paths["features"], paths["masks"])  # type: ignore[arg-type]
+
+
+def _frame_id(value: Any, where: str, problems: list[str]) -> str | None:
+    """A frame's id: a non-empty printable string of at most ``MAX_FRAME_ID_CHARS``; else a problem and None."""
+    if not isinstance(value, str) or not value:
+        problems.append(f"{where}.id: {short(value)}, expected a non-empty string")
+        return None
+    if len(value) > MAX_FRAME_ID_CHARS:
+        problems.append(
+            f"{where}.id: {short(value)} has {len(value):,} characters, expected at most {MAX_FRAME_ID_CHARS}"
+        )
+        return None
+    if not value.isprintable():
+        problems.append(f"{where}.id: {value!r} holds control or non-printable characters, expected printable text")
+        return None
+    return value
 
 
 def _check_up(doc: dict[str, Any], problems: list[str]) -> tuple[float, float, float] | None:
@@ -289,9 +350,8 @@ def _check_skipped_frames(
         unknown = sorted(set(entry) - SKIPPED_FRAME_KEYS)
         if unknown:
             logger.warning("%s: ignoring unknown keys %s", where, unknown)
-        frame_id = entry.get("id")
-        if not isinstance(frame_id, str) or not frame_id:
-            problems.append(f"{where}.id: {frame_id!r}, expected a non-empty string")
+        frame_id = _frame_id(entry.get("id"), where, problems)
+        if frame_id is None:
             continue
         if frame_id in seen:
             problems.append(f"{where}.id: {frame_id!r} used by another frame, expected unique ids")
@@ -328,13 +388,21 @@ def _check_pose(value: Any, where: str, problems: list[str]) -> np.ndarray | Non
 
 
 def _check_frame_files(
-    root: Path, frame: Frame, header: _Header, limits: BundleLimits, checked: set[tuple[str, str]], problems: list[str]
+    root: Path,
+    frame: Frame,
+    header: _Header,
+    limits: BundleLimits,
+    budget: CpuBudget,
+    checked: set[tuple[str, str]],
+    problems: list[str],
 ) -> None:
     """Check each file of one frame not checked yet, one at a time: the image's header, then its data's framing."""
     for kind, rel in (("depth", frame.depth), ("color", frame.color), ("masks", frame.masks)):
         if rel is not None and (kind, rel) not in checked:
+            budget.check(rel)
             checked.add((kind, rel))
             check_image(root, rel, kind, header.size, limits, problems)
     if frame.features is not None and ("features", frame.features) not in checked:
+        budget.check(frame.features)
         checked.add(("features", frame.features))
         check_features(root, frame.features, header.feature_dim, limits, problems)

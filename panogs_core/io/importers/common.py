@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -80,6 +80,7 @@ def write_source_frames(
     writer: BundleWriter,
     frames: list[SourceFrame],
     *,
+    skipped: Sequence[SourceFrame] = (),
     on_progress: ProgressFn | None = None,
 ) -> ImportReport:
     """Add dataset frames to a bundle, converting only what the format requires; then close the bundle.
@@ -92,6 +93,9 @@ def write_source_frames(
     Args:
         writer: An open writer whose camera is the target camera.
         frames: Source frames in manifest order.
+        skipped: Source frames the stride left out: those with a valid pose are recorded by their pose only
+            (``skipped_frames``, docs/scene_format.md §2.6), so that ``panogs render RUN --frame ID`` reaches every
+            frame of the capture, as the capture importers do; their depth is not read.
         on_progress: Called with ``(done, total)`` after each frame.
 
     Returns:
@@ -114,6 +118,9 @@ def write_source_frames(
         report(on_progress, done, len(frames))
     if writer.num_frames == 0:
         raise InputError(f"import: no usable frame among {len(frames)} (all lack a valid pose or depth)")
+    for frame in skipped:
+        if frame.T_world_cam is not None and is_rigid(frame.T_world_cam):
+            writer.add_skipped_frame(frame.id, frame.T_world_cam)
     return ImportReport(
         bundle=writer.close(),
         frames_written=writer.num_frames,
@@ -311,6 +318,7 @@ def write_import(
     geometry: str | Path | None = None,
     vocabulary: Vocabulary | None = None,
     ground_truth: str | Path | None = None,
+    skipped: Sequence[SourceFrame] = (),
     on_progress: ProgressFn | None = None,
 ) -> ImportReport:
     """The end every importer shares: a bundle with optional geometry, vocabulary and ground truth, then frames.
@@ -348,7 +356,7 @@ def write_import(
             writer.write_vocabulary(vocabulary)
         if gt is not None:
             writer.write_ground_truth(gt.semantic, gt.instance, gt.points)
-        result = write_source_frames(writer, frames, on_progress=on_progress)
+        result = write_source_frames(writer, frames, skipped=skipped, on_progress=on_progress)
     return replace(result, bundle=dst)
 
 

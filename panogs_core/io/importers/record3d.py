@@ -135,6 +135,12 @@ def import_record3d(
             )
         )
 
+    # Poses whose frame has no depth image (a user who pruned the export, as real captures show): named, not silent.
+    present = {n for n, _ in depths}
+    no_depth = [
+        f"{n:06d} (pose {n} of {meta_path.name} has no depth image)" for n in range(len(poses)) if n not in present
+    ]
+
     def read(frame: CaptureFrame) -> np.ndarray:
         return _read_depth(frame, camera, meta, opts.min_confidence)
 
@@ -147,7 +153,7 @@ def import_record3d(
         depth_scale=RECORD3D_DEPTH_SCALE,
         gravity_up=ARKIT_UP,
         gravity_note="ARKit's gravity-aligned world",
-        dropped={"no pose in metadata": no_pose} if no_pose else {},
+        dropped={reason: ids for reason, ids in (("no pose in metadata", no_pose), ("missing file", no_depth)) if ids},
     )
     result = import_capture(dst, capture, opts.selection, opts.maps, on_progress=on_progress)
     logger.info("import record3d: %s", result.summary())

@@ -93,7 +93,9 @@ def import_replica(
     depth_by_digits = _depth_files(src / "results")
     if not depth_by_digits:
         raise InputError(f"import_replica: {src / 'results'} has no depthXXXXXX.png images")
-    digits = sorted(depth_by_digits, key=int)[::stride]
+    every = sorted(depth_by_digits, key=int)
+    digits = every[::stride]
+    chosen = set(digits)
     params = _cam_params(src)
     source_cam = camera or params[0] or NICE_SLAM_REPLICA_CAMERA
     scale = depth_scale or params[1] or NICE_SLAM_DEPTH_SCALE
@@ -112,6 +114,7 @@ def import_replica(
         geometry=geometry,
         vocabulary=vocabulary,
         ground_truth=ground_truth,
+        skipped=[_pose_only(d, poses) for d in every if d not in chosen],
         on_progress=on_progress,
     )
     logger.info("import_replica: %s", result.summary())
@@ -146,6 +149,13 @@ def _depth_files(results: Path) -> dict[str, Path]:
         if match:
             found[match.group(1)] = path
     return found
+
+
+def _pose_only(digits: str, poses: list[np.ndarray | None]) -> SourceFrame:
+    """A frame the stride left out, by its pose only (``skipped_frames``). No gravity ``up`` is written: NICE-SLAM's
+    trajectory does not document its world's up, so the pipeline estimates it."""
+    index = int(digits)
+    return SourceFrame(id=digits, T_world_cam=poses[index] if index < len(poses) else None, depth=None)
 
 
 def _source_frame(src: Path, digits: str, depth: Path, poses: list[np.ndarray | None]) -> SourceFrame:

@@ -83,7 +83,8 @@ def import_scannet(
     depth_by_index = _indexed_files(src / "depth", ".png")
     if not depth_by_index:
         raise InputError(f"import_scannet: {src / 'depth'} has no <i>.png depth images")
-    indices = sorted(depth_by_index)[::stride]
+    every = sorted(depth_by_index)
+    indices = every[::stride]
     first_depth = depth_by_index[indices[0]]
     cam = camera if camera is not None else _read_intrinsics(src, first_depth)
     frames = [_source_frame(src, i, depth_by_index[i]) for i in indices]
@@ -99,6 +100,7 @@ def import_scannet(
         geometry=geometry,
         vocabulary=vocabulary,
         ground_truth=ground_truth,
+        skipped=_left_out(src, every, set(indices), depth_by_index),
         on_progress=on_progress,
     )
     logger.info("import_scannet: %s", result.summary())
@@ -114,6 +116,16 @@ def _source_frame(src: Path, index: int, depth: Path) -> SourceFrame:
         features=_first_existing(src / "features", depth.stem, index, (".npy",)),
         masks=_first_existing(src / "masks", depth.stem, index, (".png",)),
     )
+
+
+def _left_out(src: Path, every: list[int], chosen: set[int], depth_by_index: dict[int, Path]) -> list[SourceFrame]:
+    """The frames the stride left out, by their pose only (``skipped_frames``); no gravity ``up`` is written: the
+    SensReader poses are in the reconstruction's frame, which the export does not document as gravity-aligned."""
+    return [
+        SourceFrame(id=f"{i:06d}", T_world_cam=_read_pose(src / "pose" / f"{depth_by_index[i].stem}.txt"), depth=None)
+        for i in every
+        if i not in chosen
+    ]
 
 
 def _indexed_files(folder: Path, ext: str) -> dict[int, Path]:

@@ -157,6 +157,7 @@ def import_sevenscenes(
             report(on_progress, done, len(picked))
         if writer.num_frames == 0:
             raise InputError(f"import_sevenscenes: no usable frame among {len(picked)} (all lack a valid pose)")
+        _record_left_out(writer, src, found, {index for index, _ in picked})
         writer.close()
     result = ImportReport(
         bundle=dst,
@@ -168,6 +169,18 @@ def import_sevenscenes(
     )
     logger.info("import_sevenscenes: %s", result.summary())
     return result
+
+
+def _record_left_out(writer: BundleWriter, src: Path, found: list[tuple[int, Path]], picked: set[int]) -> None:
+    """The frames the stride left out, by their pose only (``skipped_frames``), so that ``panogs render RUN --frame
+    ID`` reaches every frame of the sequence. No gravity ``up``: 7-Scenes' world (KinectFusion's) is not documented as
+    gravity-aligned, so the pipeline estimates it."""
+    for index, _ in found:
+        if index in picked:
+            continue
+        pose = read_matrix(src / f"frame-{index:06d}.pose.txt")
+        if pose is not None and pose.shape == (4, 4) and is_rigid(pose):
+            writer.add_skipped_frame(f"{index:06d}", pose)
 
 
 def _read_intrinsics(src: Path, first_depth: Path) -> Camera:

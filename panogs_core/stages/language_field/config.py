@@ -45,6 +45,9 @@ class LanguageFieldConfig:
     # torch intra-op threads during a CPU fit (restored after it); None keeps torch's setting. One thread: a step's
     # kernels are small (1024 points), and on the shared 2-core machine a lone fit took 100-250 ms a step with two
     # threads (spinning against each other and other processes) against 16-28 ms with one (docs/benchmarks.md).
+    # On the AVX2 AMD EPYC: no gain quiet (a reported run), +3-4 % CPU, and under load only the share of the cores
+    # taken from other processes; the decoded features are the same to the bit at 1 and 2 threads
+    # (docs/benchmarks.md, "Language field speed").
     cpu_threads: int | None = 1
     # DEPARTURE (docs/method.md §3.3): the decoder predicts in the top `basis_dims` directions of the scene's own
     # fused features and the loss is taken there (the cosine in D dims of a decoder whose outputs lie in that span);

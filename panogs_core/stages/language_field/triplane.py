@@ -17,6 +17,12 @@ import torch.nn.functional as F
 from panogs_core.errors import InputError, NumericalError
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.language_field.basis import feature_basis, kept_energy, project_rows
+from panogs_core.stages.language_field.corners import (
+    BatchCorners,
+    bilinear_corners,
+    plane_table,
+    planes_from_table,
+)
 
 if TYPE_CHECKING:
     from panogs_core.stages.language_field.config import LanguageFieldConfig
@@ -181,61 +187,6 @@ class TrainingSet:
         return self._features.index_select(0, self._rows.index_select(0, idx))
 
 
-# The (width, height) coordinates of each plane: plane 0 is (x, y), plane 1 (x, z), plane 2 (y, z).
-_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
-
-
-def bilinear_corners(
-    coords: torch.Tensor,  # (M, 3) in [-1, 1]
-    resolutions: list[int],
-) -> tuple[torch.Tensor, torch.Tensor]:  # (M, K) int64, (M, K) float32, K = 12 per level
-    """The plane cells a point samples and their bilinear weights, in the layout of :func:`plane_table`.
-
-    The same sampling as :meth:`_TriplaneDecoder.encode` (``grid_sample``, bilinear, ``align_corners=True``,
-    border padding): ``latent = sum_k weight_k * table[cell_k]``. Written column by column into the two
-    results, so no list of K columns is held beside them. The cells stay int64: torch's CPU ``index_select``
-    and ``index_add_`` took 2.5x as long with int32 indices (1,024 points of 24 corners, one thread).
-    """
-    count, corners = coords.shape[0], 12 * len(resolutions)
-    cells = torch.empty((count, corners), dtype=torch.int64, device=coords.device)
-    weights = torch.empty((count, corners), dtype=torch.float32, device=coords.device)
-    offset, column = 0, 0
-    for res in resolutions:
-        for a, b in _PLANE_AXES:
-            x = ((coords[:, a] + 1.0) * 0.5 * (res - 1)).clamp(0.0, res - 1.0)  # width position
-            y = ((coords[:, b] + 1.0) * 0.5 * (res - 1)).clamp(0.0, res - 1.0)  # height position
-            x0 = x.floor().clamp(max=res - 2)
-            y0 = y.floor().clamp(max=res - 2)
-            fx, fy = x - x0, y - y0
-            base = offset + y0.long() * res + x0.long()
-            for cell, weight in (
-                (base, (1 - fx) * (1 - fy)),
-                (base + 1, fx * (1 - fy)),
-                (base + res, (1 - fx) * fy),
-                (base + res + 1, fx * fy),
-            ):
-                cells[:, column] = cell
-                weights[:, column] = weight
-                column += 1
-            offset += res * res
-    return cells, weights
-
-
-def plane_table(planes: list[torch.Tensor]) -> torch.Tensor:  # (cells, C)
-    """Every level's ``(3, C, R, R)`` planes as one ``(sum 3 R^2, C)`` table, rows in (level, plane, y, x) order."""
-    return torch.cat([p.permute(0, 2, 3, 1).reshape(-1, p.shape[1]) for p in planes])
-
-
-def planes_from_table(table: torch.Tensor, resolutions: list[int]) -> list[torch.Tensor]:
-    """The inverse of :func:`plane_table`: ``(cells, C)`` -> per level ``(3, C, R, R)``."""
-    planes, offset = [], 0
-    for res in resolutions:
-        block = table[offset : offset + 3 * res * res]
-        planes.append(block.reshape(3, res, res, -1).permute(0, 3, 1, 2).contiguous())
-        offset += 3 * res * res
-    return planes
-
-
 # Device types with torch's fused Adam kernel (torch 2.13: cpu, cuda, mps, xpu); elsewhere the per-tensor loop.
 _FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps", "xpu")
 
@@ -336,32 +287,6 @@ def _cosine_loss_and_gradients(
     return loss, d_h, grads
 
 
-def _gathered_latent(
-    table: torch.Tensor,  # (cells, C)
-    cells: torch.Tensor,  # (B, K) rows of the table
-    corner_weights: torch.Tensor,  # (B, K)
-) -> torch.Tensor:  # (B, C)
-    """``sum_k weight_k * table[cell_k]``: the tri-plane latent of points whose corners are known."""
-    rows = table.index_select(0, cells.reshape(-1)).reshape(*cells.shape, table.shape[1])  # (B, K, C)
-    return (rows * corner_weights.unsqueeze(2)).sum(dim=1)
-
-
-def _add_table_gradient(
-    grad: torch.Tensor,  # (cells, C), overwritten
-    cells: torch.Tensor,  # (B, K)
-    corner_weights: torch.Tensor,  # (B, K)
-    latent_grad: torch.Tensor,  # (B, C)
-) -> None:
-    """The table's gradient of a batch, written into a buffer kept across steps.
-
-    The backward of :func:`_gathered_latent` by hand: autograd would allocate a fresh ``(cells, C)`` zero
-    gradient every step, whose page faults cost twice the zeroing and the scatter together.
-    """
-    grad.zero_()
-    rows = (corner_weights.unsqueeze(2) * latent_grad.unsqueeze(1)).reshape(-1, grad.shape[1])  # (B K, C)
-    grad.index_add_(0, cells.reshape(-1), rows)
-
-
 def train_model(
     model: _TriplaneDecoder,
     data: TrainingSet,
@@ -374,8 +299,8 @@ def train_model(
     decoder's weights are updated in place. Adam keeps the reference's two groups: planes (eps 1e-15, no decay)
     and decoder (L2 weight decay); Adam is element-wise, so the update of every plane value is the one it would
     get in its ``(3, C, R, R)`` plane. Gradients are computed by hand (:func:`_cosine_loss_and_gradients`,
-    :func:`_add_table_gradient`): no autograd graph is built. With a feature basis ``U`` (``data.basis``) the last
-    layer trains as ``V = U^T W`` (``k``, H) and is written back as ``W = U V``.
+    :class:`BatchCorners`): no autograd graph is built. With a feature basis ``U`` (``data.basis``) the last layer
+    trains as ``V = U^T W`` (``k``, H) and is written back as ``W = U V``.
     """
     resolutions = [int(p.shape[-1]) for p in model.planes]
     table = plane_table([p.detach() for p in model.planes])  # (cells, C), a copy
@@ -390,20 +315,19 @@ def train_model(
     count = len(data)
     steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
     epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
-    table_grad = torch.zeros_like(table)  # (cells, C), reused by every step
+    corners = BatchCorners(table)
     with torch.no_grad():
         for epoch in range(epochs):
             order = torch.randperm(count, generator=gen).to(weights.device)
             for start in range(0, count, cfg.batch_size):
                 idx = order[start : start + cfg.batch_size]
                 cells, corner_weights = data.cells.index_select(0, idx), data.corner_weights.index_select(0, idx)
-                latent = _gathered_latent(table, cells, corner_weights)  # (B, C)
+                latent = corners.latent(cells, corner_weights)  # (B, C)
                 inverse_norms, sample_weights = data.inverse_norms.index_select(0, idx), weights.index_select(0, idx)
                 loss, latent_grad, mlp_grads = _cosine_loss_and_gradients(
                     mlp, latent, data.targets(idx), inverse_norms, sample_weights
                 )
-                _add_table_gradient(table_grad, cells, corner_weights, latent_grad)
-                planes_adam.step([table_grad])
+                planes_adam.step([corners.table_gradient(latent_grad)])
                 mlp_adam.step(mlp_grads)
             if not math.isfinite(float(loss)):
                 raise NumericalError(f"language field: the loss became {float(loss)} at epoch {epoch + 1}")

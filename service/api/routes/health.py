@@ -17,8 +17,11 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", response_model=Health)
-def healthz() -> Health:
-    """The process is up."""
+async def healthz() -> Health:
+    """The process is up.
+
+    Answered on the event loop itself, never waiting for one of the request threads: those may all be busy (bundles
+    being validated, slow uploads), which is not the process being down."""
     return Health(status="ok")
 
 

@@ -25,6 +25,7 @@ def create_scene(
     tenant: TenantDep,
     storage: StorageDep,
     settings: SettingsDep,
+    request: Request,
     response: Response,
 ) -> Scene:
     """Validate a complete upload and make it a scene; a bad bundle is refused with every problem listed."""
@@ -35,7 +36,8 @@ def create_scene(
     # The upload stops counting once its scene exists: its bytes are room for the scene (counted once).
     limit, reason = lifecycle.extraction_limit(session, settings, storage, tenant.id, releasing=upload.length)
     try:
-        scene = scenes.create_scene(session, storage, upload, body.name, max_bytes=limit, settings=settings)
+        opener = request.app.state.bundle_opener
+        scene = scenes.create_scene(session, storage, upload, body.name, opener, max_bytes=limit, settings=settings)
     except InvalidBundle as exc:
         if any("exceeds the limit" in p for p in exc.problems or []):
             exc.problems = [*(exc.problems or []), f"the extraction limit of {limit:,} bytes is set by {reason}"]

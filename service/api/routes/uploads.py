@@ -31,7 +31,11 @@ _BODY = {
     }
 }
 _ERRORS = error_responses(404, 409, 412, 413, 415, 460, 507)
-TusVersion = Annotated[str | None, Header(alias="Tus-Resumable", description="1.0.0")]
+TusVersion = Annotated[
+    str | None, Header(alias="Tus-Resumable", description="1.0.0", json_schema_extra={"enum": ["1.0.0"]})
+]
+# sha256 and the base64 of 32 bytes; the digest itself is compared with the bytes received (460 when it differs).
+CHECKSUM_SCHEMA = {"pattern": r"^sha256 [A-Za-z0-9+/]{43}=$"}
 
 
 @router.options("", include_in_schema=False)
@@ -61,7 +65,9 @@ async def create_upload(
     factory: FactoryDep,
     upload_length: Annotated[int, Header(alias="Upload-Length", ge=0, description="total bytes")],
     upload_metadata: Annotated[str | None, Header(alias="Upload-Metadata")] = None,
-    upload_checksum: Annotated[str | None, Header(alias="Upload-Checksum")] = None,
+    upload_checksum: Annotated[
+        str | None, Header(alias="Upload-Checksum", description="sha256 <base64>", json_schema_extra=CHECKSUM_SCHEMA)
+    ] = None,
     tus_resumable: TusVersion = None,
 ) -> Response:
     """Start an upload of ``Upload-Length`` bytes; the body may carry the first bytes (or all of them).
@@ -118,7 +124,9 @@ async def append(
     storage: StorageDep,
     factory: FactoryDep,
     upload_offset: Annotated[int, Header(alias="Upload-Offset", ge=0, description="must equal the current offset")],
-    upload_checksum: Annotated[str | None, Header(alias="Upload-Checksum", description="sha256 <base64>")] = None,
+    upload_checksum: Annotated[
+        str | None, Header(alias="Upload-Checksum", description="sha256 <base64>", json_schema_extra=CHECKSUM_SCHEMA)
+    ] = None,
     tus_resumable: TusVersion = None,
 ) -> Response:
     """Append the body at ``Upload-Offset`` (which must be the offset the server has).

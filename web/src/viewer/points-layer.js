@@ -42,7 +42,8 @@ void main() {
 export const OVERLAY_ALPHA = 0.45; // the class or instance colours over the photo
 
 const BACKGROUND = 0x101418;
-// From above, front left, in a z-up world; turned with the run's up (fitDirection) for any other.
+// From above, front left, in a z-up world; turned with the run's up (fitDirection) for any other. The first view of
+// a run whose capture cameras agree on a side looks from behind them instead (first-view.js, setCaptureDirection).
 const FIT_DIRECTION = new THREE.Vector3(-0.6, -1.0, 0.8).normalize();
 const FOV_DEG = 50; // the orbit view's vertical field of view (a capture frame's view takes the frame's own)
 const Z_UP = new THREE.Vector3(0, 0, 1); // a run that states no up (older runs) is taken as z-up
@@ -93,6 +94,7 @@ export class PointsLayer {
     this.three.add(this.points);
     this.camera = new THREE.PerspectiveCamera(FOV_DEG, 1, 0.01, 1000);
     this.up = sceneUp(scene.header);
+    this.captureDirection = null; // from the capture's cameras, once its host's cameras.json is read
     this.camera.up.copy(this.up);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement); // orbits about camera.up, as now
     this.controls.addEventListener("change", () => this.render());
@@ -164,12 +166,18 @@ export class PointsLayer {
     this.controls._quatInverse?.copy(this.controls._quat).invert();
   }
 
-  // FIT_DIRECTION turned from z-up to the run's up.
+  // The direction from the scene's centre to the fit view's camera (first-view.js), or null: FIT_DIRECTION.
+  setCaptureDirection(direction) {
+    this.captureDirection = direction ? new THREE.Vector3(...direction).normalize() : null;
+  }
+
+  // From behind the capture's cameras where they agree on a side, else FIT_DIRECTION turned from z-up to the run's up.
   fitDirection() {
+    if (this.captureDirection) return this.captureDirection.clone();
     return FIT_DIRECTION.clone().applyQuaternion(new THREE.Quaternion().setFromUnitVectors(Z_UP, this.up));
   }
 
-  // The whole scene in view from above, front left (of the run's up); near and far planes from its size.
+  // The whole scene in view from above (of the run's up), from fitDirection; near and far planes from its size.
   fit() {
     this.camera.up.copy(this.up); // a capture frame's view may have left its own up and field of view
     this.camera.fov = FOV_DEG;

@@ -4,6 +4,7 @@
 //
 // This class wires the parts: ViewState owns the state, Panels the DOM around the canvas, PointsLayer the
 // three.js scene, input.js the pointer and keys. Every change goes state first, then what shows it.
+import { captureViewDirection } from "./first-view.js";
 import { bindClicks, bindKeys } from "./input.js";
 import { Panels } from "./panels.js";
 import { OVERLAY_ALPHA, PointsLayer } from "./points-layer.js";
@@ -154,8 +155,11 @@ export class Viewer {
     } catch (_) {
       return; // no list: the orbit view only
     }
-    if (Array.isArray(this.cameras.up) && !this.scene.header.up && this.layer) {
-      this.layer.setUp(this.cameras.up); // an upright first view and orbit, unless the URL already placed it
+    if (this.layer) {
+      if (Array.isArray(this.cameras.up) && !this.scene.header.up) this.layer.setUp(this.cameras.up); // upright
+      // The first view from behind the capture's cameras, looking their way (where they agree on a side), unless
+      // the URL placed the camera or the user moved it while the list was read.
+      this.layer.setCaptureDirection(captureViewDirection(this.cameras.frames, this.layer.up.toArray()));
       if (!this.state.cam && this.state.frame === null) this.fit(false);
     }
     const ids = this.cameras.frames.map((frame) => String(frame.id));
