@@ -216,6 +216,19 @@ class TestMaps2DWithModels:
         assert not np.allclose(bottom_box, uncovered, atol=1e-3)
         assert result.frames[0].mask_count == 2
 
+    def test_any_printable_frame_id_is_written_inside_the_folder(
+        self, models: tuple[Path, Path], tmp_path: Path
+    ) -> None:
+        # A bundle's frame ids are any printable text; the maps' files are named by their place in the manifest, so
+        # an id with a slash or a space neither escapes the folder nor fails the run.
+        sam, _clip = models
+        frame = _frames(1)[0]
+        odd = FrameImage("../seq 1/frame 7", frame.color)
+        result = compute_2d_maps([odd], tmp_path / "m", CFG, masks_model=sam)
+        assert [f.masks for f in result.frames] == ["masks/000000.png"]
+        assert result.read_masks("../seq 1/frame 7").shape[0] > 0
+        assert not (tmp_path / "seq 1").exists()
+
     def test_features_only_needs_masks(self, models: tuple[Path, Path], tmp_path: Path) -> None:
         _, clip = models
         with pytest.raises(InputError, match="frame 000000: no mask map, and no masks model"):
@@ -225,8 +238,8 @@ class TestMaps2DWithModels:
         sam, _clip = models
         with pytest.raises(InputError, match="neither masks_model nor features_model"):
             compute_2d_maps(_frames(1), tmp_path / "m", CFG)
-        bad = [FrameImage("../x", _frames(1)[0].color)]
-        with pytest.raises(InputError, match=r"frame id '\.\./x'"):
+        bad = [FrameImage("a\x00b", _frames(1)[0].color)]
+        with pytest.raises(InputError, match=r"frame id 'a\\x00b': expected non-empty printable text"):
             compute_2d_maps(bad, tmp_path / "m", CFG, masks_model=sam)
         twice = [_frames(1)[0], _frames(1)[0]]
         with pytest.raises(InputError, match="appears twice"):
