@@ -27,7 +27,9 @@ class Maps2DConfig:
     """
 
     # --- masks (Segment Anything automatic mode) ---
-    points_per_side: int = 32  # prompt points per image side, a regular grid (SAM's automatic mode: 32)
+    # Prompt points per image side, a regular grid. None: by device (masks.grid_side), 8 on a CPU (the CPU default,
+    # docs/method.md §17: the decoder's cost is linear in the points), 32 (SAM's automatic mode) on a GPU.
+    points_per_side: int | None = None
     # prompts per decoder call; memory and speed, not results. None: 4 on a CPU, 64 (SAM's) on a GPU
     # (masks.prompts_per_call; docs/benchmarks.md "2D maps stage costs").
     points_per_batch: int | None = None
@@ -72,7 +74,10 @@ class Maps2DConfig:
     cpu_threads: int | None = None
 
     def __post_init__(self) -> None:
-        _require(self.points_per_side >= 1, "points_per_side", ">= 1", self.points_per_side)
+        _require(
+            self.points_per_side is None or self.points_per_side >= 1, "points_per_side", "None or >= 1",
+            self.points_per_side,
+        )  # fmt: skip
         _require(
             self.points_per_batch is None or self.points_per_batch >= 1,
             "points_per_batch",

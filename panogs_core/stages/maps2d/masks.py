@@ -136,7 +136,7 @@ def _candidates(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Low-resolution logits ``(M, h, w)`` (cropped to the image) and predicted IoU ``(M,)`` of the masks that
     pass the score, stability and area filters, at most ``max_candidates`` of them (best predicted IoU)."""
-    grid = torch.as_tensor(point_grid(cfg.points_per_side), dtype=torch.float32)
+    grid = torch.as_tensor(point_grid(grid_side(cfg, sam.device)), dtype=torch.float32)
     grid = grid * torch.tensor([resized[1], resized[0]], dtype=torch.float32)  # (x, y) in the model's input pixels
     kept_logits: list[torch.Tensor] = []
     kept_scores: list[torch.Tensor] = []
@@ -168,6 +168,18 @@ def _candidates(
             pending = len(kept_scores[0])
     kept_logits, kept_scores = _best(kept_logits, kept_scores, cfg.max_candidates)
     return kept_logits[0], kept_scores[0]
+
+
+CPU_POINTS_PER_SIDE = 8  # the CPU default grid (docs/method.md §17, "CPU costs and the CPU default")
+GPU_POINTS_PER_SIDE = 32  # SAM's automatic mode
+
+
+def grid_side(cfg: Maps2DConfig, device: torch.device) -> int:
+    """Prompt points per image side: ``points_per_side``, or by device when None: 8 on a CPU (the decoder's cost is
+    linear in the points: 0.27 CPU s each there, docs/benchmarks.md), 32 (SAM's) on a GPU."""
+    if cfg.points_per_side is not None:
+        return cfg.points_per_side
+    return GPU_POINTS_PER_SIDE if device.type == "cuda" else CPU_POINTS_PER_SIDE
 
 
 def prompts_per_call(cfg: Maps2DConfig, device: torch.device) -> int:
