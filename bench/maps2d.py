@@ -2,7 +2,8 @@
 §17, docs/benchmarks.md "2D maps stage costs").
 
 Usage:
-    python bench/maps2d.py [--threads 2] [--frames 2] [--warm 0|1] [--cases sam-vit-b slimsam-77 ...] [--root DIR]
+    python bench/maps2d.py [--threads 2] [--frames 2] [--warm 0|1] [--masks 32] [--nms-iou 1.0]
+                           [--cases sam-vit-b slimsam-77 ...] [--root DIR]
     python bench/maps2d.py --components   # CPU seconds per part (encoder, decoder per point, crop), one thread
     python bench/maps2d.py --profile-decoder   # where SAM's decoder time goes, per operator, one thread
 
@@ -31,6 +32,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -89,7 +91,12 @@ CASES = {
     "clip-b16": (None, "clip-b16", {}),
     "clip-b16-1crop": (None, "clip-b16", {"crop_margins": (0.1,)}),
     "clip-l14": (None, "clip-l14", {}),
-    "slimsam-77-p16+clip-b16": ("slimsam-77", "clip-b16", {"points_per_side": 16}),
+    "slimsam-77-p8": ("slimsam-77", None, {"points_per_side": 8}),
+    # the CPU default before 2026-12-05 (two crop margins, 64 prompts per decoder call)
+    "slimsam-77-p16+clip-b16": ("slimsam-77", "clip-b16", {"points_per_side": 16, "points_per_batch": 64}),
+    # the CPU default (docs/method.md §17)
+    "slimsam-77-p8+clip-b32": ("slimsam-77", "clip-b32", {"points_per_side": 8}),
+    "slimsam-77-p8+clip-b32-1crop": ("slimsam-77", "clip-b32", {"points_per_side": 8, "crop_margins": (0.1,)}),
 }
 KEEP_ALL = {"pred_iou_thresh": -1.0, "stability_score_thresh": 0.0, "min_mask_fraction": 0.0}
 
@@ -144,7 +151,8 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, object]:
     root = Path(args.root)
     masks_dir = build(masks_name, root / "models") if masks_name else None
     feats_dir = build(feats_name, root / "models") if feats_name else None
-    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **extra})
+    nms = {} if args.nms_iou is None else {"nms_iou_thresh": args.nms_iou}
+    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **nms, **extra})
     n_masks = None if masks_dir else args.masks
     out = root / "runs" / name
     shutil.rmtree(out, ignore_errors=True)  # a kept folder would be continued, not computed
@@ -193,24 +201,34 @@ def run_components(args: argparse.Namespace) -> None:
             before = _cpu_seconds()
             embeddings = sam.get_image_embeddings(torch.randn(1, 3, 1024, 1024))
             encoder = _cpu_seconds() - before
-            points = torch.rand(1, 64, 1, 2) * 1000
-            before = _cpu_seconds()
-            sam(image_embeddings=embeddings, input_points=points, input_labels=torch.ones(1, 64, 1, dtype=torch.long))
-            per_point = (_cpu_seconds() - before) / 64
-            print(
-                json.dumps(
-                    {"model": name, "encoder_cpu_s": round(encoder, 2), "decoder_cpu_s_per_point": round(per_point, 3)}
-                ),
-                flush=True,
-            )
+            row: dict[str, object] = {"model": name, "encoder_cpu_s": round(encoder, 2)}
+            for batch in (4, 64):  # prompts per decoder call: the stage's CPU value, and SAM's
+                row[f"decoder_cpu_s_per_point_batch_{batch}"] = round(_decoder_cpu_per_point(sam, embeddings, batch), 3)
+            print(json.dumps(row), flush=True)
             del sam
 
 
-def run_decoder_profile() -> None:
-    """Where SAM's decoder spends its 0.19 CPU s per point: ``SamMaskDecoder`` alone (SAM ViT-B's default decoder
-    config, random weights), 64 single-point prompts on a random image embedding, one thread, no post-processing;
-    prints the CPU seconds per point and torch.profiler's operators by self CPU time."""
+def _decoder_cpu_per_point(sam: Any, embeddings: Any, batch: int, points: int = 64) -> float:
+    """CPU seconds per prompt point of SAM's prompt encoder and mask decoder, ``points`` points in calls of
+    ``batch`` (after one warm-up call)."""
     import torch
+
+    grid = torch.rand(1, points, 1, 2) * 1000
+    labels = torch.ones(1, batch, 1, dtype=torch.long)
+    sam(image_embeddings=embeddings, input_points=grid[:, :batch], input_labels=labels)
+    before = _cpu_seconds()
+    for start in range(0, points, batch):
+        sam(image_embeddings=embeddings, input_points=grid[:, start : start + batch], input_labels=labels)
+    return (_cpu_seconds() - before) / points
+
+
+def run_decoder_profile() -> None:
+    """Where SAM's decoder spends its CPU time per point, and its floating-point work per point:
+    ``SamMaskDecoder`` alone (SAM ViT-B's default decoder config, random weights), 64 single-point prompts on a
+    random image embedding, one thread, no post-processing; prints the CPU seconds and GFLOP (torch's
+    FlopCounterMode) per point and torch.profiler's operators by self CPU time."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
     from transformers import SamConfig
     from transformers.models.sam.modeling_sam import SamMaskDecoder
 
@@ -226,7 +244,10 @@ def run_decoder_profile() -> None:
             before = _cpu_seconds()
             decoder(sparse_prompt_embeddings=sparse, **kwargs)
             per_point = (_cpu_seconds() - before) / 64
-    print(json.dumps({"decoder_cpu_s_per_point": round(per_point, 3)}), flush=True)
+    with torch.inference_mode(), FlopCounterMode(display=False) as flops:
+        decoder(sparse_prompt_embeddings=sparse[:, :4], **kwargs)
+    gflop = flops.get_total_flops() / 4 / 1e9  # per prompt: the decoder's work grows linearly with the prompts
+    print(json.dumps({"decoder_cpu_s_per_point": round(per_point, 3), "decoder_gflop_per_point": round(gflop, 2)}))
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
 
 
@@ -241,6 +262,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--frames", type=int, default=2, help="timed frames per case (after one warm-up)")
     parser.add_argument("--masks", type=int, default=32, help="masks per frame: max_masks, and the features' id map")
+    parser.add_argument(
+        "--nms-iou",
+        type=float,
+        help="the mask cases' NMS threshold (1.0: only identical masks suppressed, so about --masks masks reach "
+        "the features, as a real room's frame gives; default: the stage's, which leaves 10-13 random masks)",
+    )
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--warm", type=int, default=1, choices=(0, 1), help="0: no warm-up frame (the timed run loads)")
     parser.add_argument("--root", default="/tmp/maps2d-bench")
@@ -259,7 +286,8 @@ def main() -> None:
         return
     print(
         f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.processor() or platform.machine()}, "
-        f"load {os.getloadavg()[0]:.2f}, {args.threads} threads, {args.frames} timed frames, {args.masks} masks"
+        f"load {os.getloadavg()[0]:.2f}, {args.threads} threads, {args.frames} timed frames, {args.masks} masks, "
+        f"NMS {args.nms_iou if args.nms_iou is not None else 'the stage default'}"
     )
     print(
         "| case | wall s / key frame | CPU s / key frame | first frame wall s | peak RSS MB | masks "
@@ -283,6 +311,7 @@ def main() -> None:
             str(args.warm),
             "--root",
             args.root,
+            *(["--nms-iou", str(args.nms_iou)] if args.nms_iou is not None else []),
         ]
         proc = subprocess.run(argv, capture_output=True, text=True, check=False)
         if proc.returncode != 0:

@@ -16,7 +16,7 @@ from panogs_core.stages.maps2d.config import Maps2DConfig, scaled_size
 class TestConfig:
     def test_defaults(self) -> None:
         cfg = Maps2DConfig()
-        assert cfg.points_per_side == 32
+        assert cfg.points_per_side is None  # by device: masks.grid_side
         assert cfg.pred_iou_thresh == 0.88
         assert cfg.stability_score_thresh == 0.95
         assert set(cfg.mask_settings()).isdisjoint(cfg.feature_settings())
@@ -24,7 +24,8 @@ class TestConfig:
     @pytest.mark.parametrize(
         ("field", "value", "message"),
         [
-            ("points_per_side", 0, r"maps2d.points_per_side: expected >= 1, found 0"),
+            ("points_per_side", 0, r"maps2d.points_per_side: expected None or >= 1, found 0"),
+            ("points_per_batch", 0, r"maps2d.points_per_batch: expected None or >= 1, found 0"),
             ("pred_iou_thresh", 1.5, r"maps2d.pred_iou_thresh: expected in \[-1, 1\], found 1.5"),
             ("stability_score_thresh", float("nan"), r"maps2d.stability_score_thresh: expected in \[0, 1\]"),
             ("nms_iou_thresh", 0.0, r"maps2d.nms_iou_thresh: expected in \(0, 1\], found 0.0"),
@@ -41,6 +42,15 @@ class TestConfig:
     def test_exception(self, field: str, value: object, message: str) -> None:
         with pytest.raises(ConfigError, match=message):
             Maps2DConfig(**{field: value})  # type: ignore[arg-type]
+
+    def test_prompts_per_call_by_device(self) -> None:
+        torch = pytest.importorskip("torch")
+        from panogs_core.stages.maps2d.masks import prompts_per_call
+
+        assert Maps2DConfig().points_per_batch is None
+        assert prompts_per_call(Maps2DConfig(), torch.device("cpu")) == 4
+        assert prompts_per_call(Maps2DConfig(), torch.device("cuda")) == 64
+        assert prompts_per_call(Maps2DConfig(points_per_batch=16), torch.device("cpu")) == 16
 
     def test_scaled_size(self) -> None:
         assert scaled_size(968, 1296, 640) == (478, 640)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -151,6 +152,40 @@ class TestMaps2DWithModels:
         assert a.key != b.key
         assert b.read_features("000000").shape == (3, 4, 12)
 
+    def test_prompts_per_call_change_no_mask(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        # One prompt a call, the CPU's default and SAM's 64, with a candidate cap small enough that the best
+        # candidates are picked several times over the grid: the same masks each time.
+        sam, _ = models
+        maps = []
+        for batch in (1, None, 64):
+            cfg = replace(CFG, points_per_batch=batch, max_candidates=7)
+            result = compute_2d_maps(_frames(2), tmp_path / f"m{batch}", cfg, masks_model=sam)
+            maps.append([result.read_masks(f.id) for f in result.frames])
+        assert maps[0][0].max() >= 2  # masks, not an empty map
+        for other in maps[1:]:
+            for a, b in zip(maps[0], other, strict=True):
+                np.testing.assert_array_equal(a, b)
+
+    def test_image_tower_alone(self, models: tuple[Path, Path]) -> None:
+        # The stage builds CLIP's image tower only, with the whole model's projection width (12 here, where the
+        # vision section's own default is 512), and embeds as the whole model does.
+        import torch
+        from transformers import CLIPModel
+
+        from panogs_core.stages.maps2d.models import load_clip
+
+        _, clip = models
+        loaded = load_clip(clip, "cpu")
+        assert not hasattr(loaded.model, "text_model")
+        whole = CLIPModel.from_pretrained(clip).eval()
+        pixels = torch.randn(3, 3, 16, 16)
+        with torch.inference_mode():
+            expected = whole.get_image_features(pixel_values=pixels)
+            expected = expected if isinstance(expected, torch.Tensor) else expected.pooler_output
+            got = loaded.model(pixel_values=pixels).image_embeds
+        assert got.shape == (3, 12)
+        torch.testing.assert_close(got, expected)
+
     def test_masks_only(self, models: tuple[Path, Path], tmp_path: Path) -> None:
         sam, _ = models
         result = compute_2d_maps(_frames(2), tmp_path / "m", CFG, masks_model=sam)
@@ -181,6 +216,19 @@ class TestMaps2DWithModels:
         assert not np.allclose(bottom_box, uncovered, atol=1e-3)
         assert result.frames[0].mask_count == 2
 
+    def test_any_printable_frame_id_is_written_inside_the_folder(
+        self, models: tuple[Path, Path], tmp_path: Path
+    ) -> None:
+        # A bundle's frame ids are any printable text; the maps' files are named by their place in the manifest, so
+        # an id with a slash or a space neither escapes the folder nor fails the run.
+        sam, _clip = models
+        frame = _frames(1)[0]
+        odd = FrameImage("../seq 1/frame 7", frame.color)
+        result = compute_2d_maps([odd], tmp_path / "m", CFG, masks_model=sam)
+        assert [f.masks for f in result.frames] == ["masks/000000.png"]
+        assert result.read_masks("../seq 1/frame 7").shape[0] > 0
+        assert not (tmp_path / "seq 1").exists()
+
     def test_features_only_needs_masks(self, models: tuple[Path, Path], tmp_path: Path) -> None:
         _, clip = models
         with pytest.raises(InputError, match="frame 000000: no mask map, and no masks model"):
@@ -190,8 +238,8 @@ class TestMaps2DWithModels:
         sam, _clip = models
         with pytest.raises(InputError, match="neither masks_model nor features_model"):
             compute_2d_maps(_frames(1), tmp_path / "m", CFG)
-        bad = [FrameImage("../x", _frames(1)[0].color)]
-        with pytest.raises(InputError, match=r"frame id '\.\./x'"):
+        bad = [FrameImage("a\x00b", _frames(1)[0].color)]
+        with pytest.raises(InputError, match=r"frame id 'a\\x00b': expected non-empty printable text"):
             compute_2d_maps(bad, tmp_path / "m", CFG, masks_model=sam)
         twice = [_frames(1)[0], _frames(1)[0]]
         with pytest.raises(InputError, match="appears twice"):

@@ -204,29 +204,31 @@ def _nested(flat: dict[str, object]) -> dict[str, object]:
 
 
 @pytest.mark.parametrize(
-    ("extra", "grid"),
+    ("points_per_side", "device", "grid"),
     [
-        (["--masks-model", "some/sam"], 16),  # the CPU default (docs/method.md §17)
-        (["--masks-model", "some/sam", "--set", "maps2d.points_per_side=8"], 8),  # the user's choice wins
-        (["--features-model", "some/clip"], 32),  # no masks model: the stage's own default, untouched
-        (["--masks-model", "some/sam", "--set", "maps2d.device=cuda"], 32),  # not on the CPU
+        (None, "cpu", 8),  # the CPU default (docs/method.md §17), in the CLI and in a worker alike
+        (None, "cuda", 32),  # SAM's automatic mode on a GPU
+        (12, "cpu", 12),  # the user's choice wins
+        (12, "cuda", 12),
     ],
 )
-def test_the_cli_sets_the_cpu_grid_only_for_a_masks_model_on_the_cpu(extra: list[str], grid: int) -> None:
+def test_the_prompt_grid_is_chosen_by_device_unless_set(points_per_side: int | None, device: str, grid: int) -> None:
     import torch
 
+    from panogs_core.stages.maps2d.config import Maps2DConfig
+    from panogs_core.stages.maps2d.masks import grid_side
+
+    cfg = Maps2DConfig(points_per_side=points_per_side)
+    assert grid_side(cfg, torch.device(device)) == grid
+
+
+def test_the_cli_passes_the_named_models() -> None:
     from panogs_core.cli.commands.run import _map_models, _settings
     from panogs_core.cli.main import build_parser
 
-    if torch.cuda.is_available():
-        pytest.skip("the CPU default applies where torch sees no CUDA device")
-    args = build_parser().parse_args(["run", "b", "--out", "o", *extra])
+    args = build_parser().parse_args(["run", "b", "--out", "o", "--masks-model", "some/sam"])
     cfg, _ = _settings(args)
-    assert cfg.maps2d.points_per_side == grid
+    assert cfg.maps2d.points_per_side is None  # chosen by the stage on its device
     models = _map_models(args)
     assert models is not None
-    assert (models.masks, models.features, models.allow_download) == (
-        "some/sam" if "--masks-model" in extra else None,
-        "some/clip" if "--features-model" in extra else None,
-        False,
-    )
+    assert (models.masks, models.features, models.allow_download) == ("some/sam", None, False)

@@ -69,8 +69,8 @@ def add_command(sub: Any) -> None:
         "--masks-model",
         metavar="PATH_OR_HUB",
         help="a Segment Anything model (folder or hub name, e.g. Zigeng/SlimSAM-uniform-77) that computes the "
-        "masks of a bundle that has none, from its colour frames (docs/method.md §17); on a CPU its grid is "
-        "maps2d.points_per_side=16 unless --config/--set says otherwise",
+        "masks of a bundle that has none, from its colour frames (docs/method.md §17); its prompt grid is "
+        "maps2d.points_per_side, by default 8 x 8 on a CPU and 32 x 32 on a GPU",
     )
     p.add_argument(
         "--features-model",
@@ -148,14 +148,7 @@ def _settings(args: argparse.Namespace) -> tuple[PipelineConfig, str | Vocabular
     overrides = parse_overrides(args.set) if args.set else {}
     if overrides:
         cfg = cfg.with_overrides(overrides)
-    if args.masks_model and not _sets_grid(args.config, overrides) and _on_cpu(cfg.maps2d.device):
-        # docs/method.md §17: the CPU default is a 16 x 16 prompt grid (a quarter of SAM's decoder cost).
-        cfg = cfg.with_overrides({"maps2d": {"points_per_side": CPU_POINTS_PER_SIDE}})
     return cfg, vocabulary
-
-
-# The masks' prompt grid on a CPU when the user sets none (docs/method.md §17, "CPU costs and the CPU default").
-CPU_POINTS_PER_SIDE = 16
 
 
 def _map_models(args: argparse.Namespace) -> Any:
@@ -165,25 +158,6 @@ def _map_models(args: argparse.Namespace) -> Any:
     from panogs_core.stages.maps2d import MapModels
 
     return MapModels(masks=args.masks_model, features=args.features_model, allow_download=args.allow_download)
-
-
-def _sets_grid(config: str | None, overrides: dict[str, Any]) -> bool:
-    """Whether the user chose ``maps2d.points_per_side`` (in ``--config`` or ``--set``)."""
-    import yaml
-
-    chosen = [overrides]
-    if config:
-        chosen.append(yaml.safe_load(Path(config).read_text()) or {})
-    return any(isinstance(d.get("maps2d"), dict) and "points_per_side" in d["maps2d"] for d in chosen)
-
-
-def _on_cpu(device: str) -> bool:
-    """Whether the 2D-maps stage runs on the CPU (``auto``: when torch sees no CUDA device)."""
-    if device != "auto":
-        return device == "cpu"
-    import torch
-
-    return not torch.cuda.is_available()
 
 
 def _runner(args: argparse.Namespace) -> Callable[..., Any]:

@@ -13,8 +13,11 @@ a later call on the same folder with the same models and settings continues afte
 Checkpoint folder (``out_dir``)::
 
     manifest.json          format, models (identity hashes, space, dim), settings, key, frames written so far
-    masks/<frame id>.png    16-bit single-channel id map, long side mask_long_side      (when a masks model ran)
-    features/<frame id>.npy (Hf, Wf, D) float16, unit rows, long side feature_long_side (when a features model ran)
+    masks/<n>.png          16-bit single-channel id map, long side mask_long_side      (when a masks model ran)
+    features/<n>.npy       (Hf, Wf, D) float16, unit rows, long side feature_long_side (when a features model ran)
+
+``<n>`` is the frame's place in the manifest (six digits), not its id: a bundle's frame ids are any printable
+text (a space or a slash included), which is no safe file name; the manifest maps each id to its files.
 
 Importing this module imports no torch; :func:`compute_2d_maps` imports the torch half when it runs.
 """
@@ -24,7 +27,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import shutil
 from collections.abc import Iterable, Sized
 from dataclasses import asdict, dataclass, field
@@ -57,7 +59,6 @@ __all__ = [
 
 FORMAT_ID = "panogs-maps2d/1"
 MANIFEST = "manifest.json"
-_FRAME_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 @dataclass(frozen=True)
@@ -280,7 +281,7 @@ def compute_2d_maps(
             _check_frame(frame, seen, need_masks=masks_model is None)
             if frame.id not in done:
                 maps = runner.process_frame(models, frame.color, frame.masks, cfg)
-                entries.append(_write_frame(result.root, frame.id, maps))
+                entries.append(_write_frame(result.root, frame.id, len(entries), maps))
                 result = _replace_frames(result, entries, complete=False)
                 result.save()
             report(on_progress, len(seen), max(count, len(seen)))
@@ -337,8 +338,8 @@ def _replace_frames(result: Maps2DResult, entries: list[FrameMaps], *, complete:
 
 
 def _check_frame(frame: FrameImage, seen: set[str], *, need_masks: bool) -> None:
-    if not isinstance(frame.id, str) or not _FRAME_ID.fullmatch(frame.id):
-        raise InputError(f"frame id {frame.id!r}: expected letters, digits, '.', '_' or '-' (at most 128)")
+    if not isinstance(frame.id, str) or not frame.id or not frame.id.isprintable():
+        raise InputError(f"frame id {frame.id!r}: expected non-empty printable text (the bundle's rule)")
     if frame.id in seen:
         raise InputError(f"frame id {frame.id!r} appears twice")
     seen.add(frame.id)
@@ -356,19 +357,20 @@ def _check_frame(frame: FrameImage, seen: set[str], *, need_masks: bool) -> None
             raise ShapeError(f"frame {frame.id}: masks {masks.dtype} {masks.shape}, expected a 2D id map >= 0")
 
 
-def _write_frame(root: Path, frame_id: str, maps: Any) -> FrameMaps:
-    """Write one frame's maps (each file atomically) and return its manifest entry."""
+def _write_frame(root: Path, frame_id: str, place: int, maps: Any) -> FrameMaps:
+    """Write one frame's maps (each file atomically, named by its ``place`` in the manifest) and return its
+    manifest entry."""
     import cv2
 
     masks_rel = features_rel = None
     if maps.masks is not None:
-        masks_rel = f"masks/{frame_id}.png"
+        masks_rel = f"masks/{place:06d}.png"
         ok, data = cv2.imencode(".png", maps.masks.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:  # pragma: no cover - OpenCV encodes any uint16 array
             raise InputError(f"{root / masks_rel}: PNG encoding failed")
         _write_atomic(root / masks_rel, data.tobytes())
     if maps.features is not None:
-        features_rel = f"features/{frame_id}.npy"
+        features_rel = f"features/{place:06d}.npy"
         target = root / features_rel
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(target.name + ".tmp")

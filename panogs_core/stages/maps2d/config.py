@@ -27,8 +27,12 @@ class Maps2DConfig:
     """
 
     # --- masks (Segment Anything automatic mode) ---
-    points_per_side: int = 32  # prompt points per image side, a regular grid (SAM's automatic mode: 32)
-    points_per_batch: int = 64  # prompts per decoder call (SAM: 64); memory, not results
+    # Prompt points per image side, a regular grid. None: by device (masks.grid_side), 8 on a CPU (the CPU default,
+    # docs/method.md §17: the decoder's cost is linear in the points), 32 (SAM's automatic mode) on a GPU.
+    points_per_side: int | None = None
+    # prompts per decoder call; memory and speed, not results. None: 4 on a CPU, 64 (SAM's) on a GPU
+    # (masks.prompts_per_call; docs/benchmarks.md "2D maps stage costs").
+    points_per_batch: int | None = None
     # The model's predicted IoU a mask needs (SAM: 0.88). Scores of random weights sit near 0: tests set <= 0,
     # which keeps every mask.
     pred_iou_thresh: float = 0.88
@@ -70,8 +74,16 @@ class Maps2DConfig:
     cpu_threads: int | None = None
 
     def __post_init__(self) -> None:
-        _require(self.points_per_side >= 1, "points_per_side", ">= 1", self.points_per_side)
-        _require(self.points_per_batch >= 1, "points_per_batch", ">= 1", self.points_per_batch)
+        _require(
+            self.points_per_side is None or self.points_per_side >= 1, "points_per_side", "None or >= 1",
+            self.points_per_side,
+        )  # fmt: skip
+        _require(
+            self.points_per_batch is None or self.points_per_batch >= 1,
+            "points_per_batch",
+            "None or >= 1",
+            self.points_per_batch,
+        )
         _require(_finite_in(self.pred_iou_thresh, -1.0, 1.0), "pred_iou_thresh", "in [-1, 1]", self.pred_iou_thresh)
         _require(
             _finite_in(self.stability_score_thresh, 0.0, 1.0),

@@ -6,7 +6,8 @@ For one image and its mask id map (docs/method.md §17; the OpenMask3D / Concept
    of side ``longer box side * (1 + 2 * margin)``; what falls outside the image is the processor's mean colour
    (zero after normalisation), so the processor's centre crop of a square removes nothing;
 2. the crops and the whole image (padded to a square the same way) are embedded by the image tower
-   (``CLIPModel.get_image_features``) and L2-normalised; a mask's feature is the normalised mean of its crops';
+   (``CLIPVisionModelWithProjection``, the projected embedding) and L2-normalised; a mask's feature is the
+   normalised mean of its crops';
 3. :func:`pooled_feature_map` writes them on a ``feature_long_side`` grid: each cell takes the feature of the mask
    at its centre (docs/scene_format.md §2.3), blended with the whole image's by ``global_mix``; cells no mask
    covers take the whole image's. Unit rows, float16.
@@ -124,9 +125,7 @@ def _embed(clip: LoadedModel, crops: list[np.ndarray], batch: int) -> np.ndarray
         for start in range(0, len(crops), batch):
             images = [Image.fromarray(c) for c in crops[start : start + batch]]
             pixels = clip.processor(images=images, return_tensors="pt")["pixel_values"]
-            feats = clip.model.get_image_features(pixel_values=pixels.to(clip.device, clip.dtype))
-            if not isinstance(feats, torch.Tensor):  # transformers 5 returns a model output
-                feats = feats.pooler_output
+            feats = clip.model(pixel_values=pixels.to(clip.device, clip.dtype)).image_embeds
             out.append(feats.float().cpu().numpy())
     return _unit(np.concatenate(out, axis=0))
 

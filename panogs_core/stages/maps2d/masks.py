@@ -4,8 +4,9 @@ For one image (docs/method.md §17):
 
 1. the image encoder runs once (``SamModel.get_image_embeddings``), the processor having resized the long side to
    the model's input and padded it;
-2. a regular grid of ``points_per_side**2`` single-point prompts goes through the prompt encoder and mask decoder in
-   batches, three masks per point (``multimask_output``), each with the model's predicted IoU;
+2. a regular grid of ``points_per_side**2`` single-point prompts goes through the prompt encoder and mask decoder
+   in batches (:func:`prompts_per_call`), three masks per point (``multimask_output``), each with the model's
+   predicted IoU;
 3. a candidate is kept when its predicted IoU reaches ``pred_iou_thresh``, its stability score (the IoU of the
    mask thresholded at logit ``+offset`` and at ``-offset``) reaches ``stability_score_thresh`` and its area
    reaches ``min_mask_fraction`` of the image, all measured on the decoder's low-resolution logits cropped to the
@@ -135,12 +136,14 @@ def _candidates(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Low-resolution logits ``(M, h, w)`` (cropped to the image) and predicted IoU ``(M,)`` of the masks that
     pass the score, stability and area filters, at most ``max_candidates`` of them (best predicted IoU)."""
-    grid = torch.as_tensor(point_grid(cfg.points_per_side), dtype=torch.float32)
+    grid = torch.as_tensor(point_grid(grid_side(cfg, sam.device)), dtype=torch.float32)
     grid = grid * torch.tensor([resized[1], resized[0]], dtype=torch.float32)  # (x, y) in the model's input pixels
     kept_logits: list[torch.Tensor] = []
     kept_scores: list[torch.Tensor] = []
-    for start in range(0, len(grid), cfg.points_per_batch):
-        points = grid[start : start + cfg.points_per_batch]
+    pending = 0
+    batch_size = prompts_per_call(cfg, sam.device)
+    for start in range(0, len(grid), batch_size):
+        points = grid[start : start + batch_size]
         batch = len(points)
         out = sam.model(
             image_embeddings=embeddings,
@@ -159,9 +162,41 @@ def _candidates(
         ok &= (area >= cfg.min_mask_fraction) & (area > 0)
         kept_logits.append(low[ok].to(torch.float16))
         kept_scores.append(iou[ok])
-        logits, scores = torch.cat(kept_logits), torch.cat(kept_scores)
-        if len(scores) > cfg.max_candidates:  # the best ones only: bounds memory and the NMS's M x M matrix
-            top = torch.topk(scores, cfg.max_candidates).indices.sort().values
-            logits, scores = logits[top], scores[top]
-        kept_logits, kept_scores = [logits], [scores]
+        pending += int(ok.sum())
+        if pending > 2 * cfg.max_candidates:  # compact now and then, not per call: small calls on a CPU
+            kept_logits, kept_scores = _best(kept_logits, kept_scores, cfg.max_candidates)
+            pending = len(kept_scores[0])
+    kept_logits, kept_scores = _best(kept_logits, kept_scores, cfg.max_candidates)
     return kept_logits[0], kept_scores[0]
+
+
+CPU_POINTS_PER_SIDE = 8  # the CPU default grid (docs/method.md §17, "CPU costs and the CPU default")
+GPU_POINTS_PER_SIDE = 32  # SAM's automatic mode
+
+
+def grid_side(cfg: Maps2DConfig, device: torch.device) -> int:
+    """Prompt points per image side: ``points_per_side``, or by device when None: 8 on a CPU (the decoder's cost is
+    linear in the points: 0.27 CPU s each there, docs/benchmarks.md), 32 (SAM's) on a GPU."""
+    if cfg.points_per_side is not None:
+        return cfg.points_per_side
+    return GPU_POINTS_PER_SIDE if device.type == "cuda" else CPU_POINTS_PER_SIDE
+
+
+def prompts_per_call(cfg: Maps2DConfig, device: torch.device) -> int:
+    """Prompt points per decoder call: ``points_per_batch``, or by device when None (docs/method.md §17): 4 on a
+    CPU, where the decoder's per-prompt tensors (4,096 image tokens x 256 channels each) then stay in the caches
+    (docs/benchmarks.md, "2D maps stage costs"), 64 (SAM's) on a GPU."""
+    if cfg.points_per_batch is not None:
+        return cfg.points_per_batch
+    return 64 if device.type == "cuda" else 4
+
+
+def _best(
+    logits: list[torch.Tensor], scores: list[torch.Tensor], count: int
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """The ``count`` candidates of best predicted IoU, in their order (bounds memory and the NMS's M x M matrix)."""
+    merged_logits, merged_scores = torch.cat(logits), torch.cat(scores)
+    if len(merged_scores) > count:
+        top = torch.topk(merged_scores, count).indices.sort().values
+        merged_logits, merged_scores = merged_logits[top], merged_scores[top]
+    return [merged_logits], [merged_scores]

@@ -67,24 +67,41 @@ def load_sam(folder: Path, device: str) -> LoadedModel:
 
 
 def load_clip(folder: Path, device: str) -> LoadedModel:
-    """A CLIP model's image tower and its image processor (the text tower stays for
-    :mod:`panogs_core.language.text_encoders`, which loads the same folder).
+    """A CLIP model's image tower with its projection, and its image processor.
+
+    Only the image tower is built (``CLIPVisionModelWithProjection`` reads the vision weights of a ``CLIPModel``
+    checkpoint and leaves the rest): the text tower, a third of CLIP ViT-B's weights (250 MB in float32), is
+    never in the stage's memory; :mod:`panogs_core.language.text_encoders` loads it from the same folder for the
+    labels and queries.
 
     Raises:
         ModelLoadError: the folder is not a CLIP model's, or its files do not load.
     """
-    from transformers import CLIPImageProcessorPil, CLIPModel
+    from transformers import CLIPImageProcessorPil, CLIPVisionConfig, CLIPVisionModelWithProjection
+    from transformers.utils import logging as hf_logging
 
-    kind = read_config(folder).get("model_type")
+    config = read_config(folder)
+    kind = config.get("model_type")
     if kind not in CLIP_TYPES:
         raise ModelLoadError(f"{folder}: config.json model_type {kind!r}, expected a CLIP model ('clip')")
     _need_processor(folder, "CLIP")
     dev, dtype = pick_device(device)
+    # The projection's width is the whole model's setting; the vision section of config.json may hold a stale one.
+    width = config.get("projection_dim")
+    verbosity = hf_logging.get_verbosity()
     try:
         processor = CLIPImageProcessorPil.from_pretrained(folder, local_files_only=True)
-        model: Any = CLIPModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
+        vision: Any = CLIPVisionConfig.from_pretrained(folder, local_files_only=True)
+        if isinstance(width, int):
+            vision.projection_dim = width
+        hf_logging.set_verbosity_error()  # the text tower's weights are left on purpose: no "unexpected keys" report
+        model: Any = CLIPVisionModelWithProjection.from_pretrained(
+            folder, config=vision, local_files_only=True, dtype=dtype
+        )
     except Exception as exc:  # as above
         raise ModelLoadError(f"{folder}: the CLIP model does not load: {exc}") from exc
+    finally:
+        hf_logging.set_verbosity(verbosity)
     return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)
 
 
