@@ -76,11 +76,18 @@ docs-tables: $(VENV)/.installed ## write the generated docs: run-folder tables, 
 docs-cli: $(VENV)/.installed ## write docs/cli.md, the reference of every command, from the parsers
 	$(PY) tools/cli_docs.py --write
 
+# The suite runs in PYTEST_WORKERS processes (pytest-xdist; each test file whole in one of them, so that a module's
+# shared fixtures are made once); PYTEST_WORKERS=0 runs it in this process. The service tests make their own
+# databases, Redis key prefixes and ports (random names, free ports: tests/support/service_harness.py), so two
+# processes do not see each other's.
+PYTEST_WORKERS ?= 2
+PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
+
 test: $(VENV)/.installed $(WEB_BUILT) ## the whole test suite (needs PostgreSQL and Redis on 127.0.0.1; under CI=true they must answer)
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q $(PYTEST_PARALLEL)
 
 test-fast: $(VENV)/.installed $(WEB_BUILT) ## the whole tree but the tests marked slow (about a minute; PostgreSQL and Redis as for test)
-	$(VENV)/bin/pytest -q -m "not slow"
+	$(VENV)/bin/pytest -q -m "not slow" $(PYTEST_PARALLEL)
 
 lint: $(VENV)/.installed ## ruff (lint + format check) over every Python folder, mypy (strict on service and worker)
 	$(VENV)/bin/ruff check .
