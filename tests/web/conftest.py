@@ -66,15 +66,16 @@ MAP_MODELS = {"masks": "tiny-sam", "features": "tiny-clip"}  # the entry names t
 
 @pytest.fixture(scope="session")
 def map_model_entries(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """``PANOGS_MAP_MODELS`` of the served app: the tiny random models, built once (none without transformers)."""
-    try:
-        from tiny_models import tiny_clip, tiny_sam
-    except ImportError:
-        return {}
+    """``PANOGS_MAP_MODELS`` of the served app: the tiny random models, built once (none without transformers).
+
+    Building imports torch and transformers here (about 4 CPU seconds alone; under ``make test`` another test file
+    run by the same process may have imported both already)."""
     try:
         import transformers  # noqa: F401
     except ImportError:
         return {}
+    from tiny_models import tiny_clip, tiny_sam
+
     root = tmp_path_factory.mktemp("web-map-models")
     folders = {"masks": tiny_sam(root / "sam"), "features": tiny_clip(root / "clip")}
     return {MAP_MODELS[kind]: {"kind": kind, "path": str(folder)} for kind, folder in folders.items()}

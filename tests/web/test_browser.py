@@ -695,6 +695,29 @@ def test_a_capture_without_maps_runs_on_the_chosen_models_and_answers_free_text(
     assert report["feature_space"].startswith("clip-vit-"), "the features are the chosen CLIP's"
     assert api.get(f"/v1/jobs/{job['id']}").json()["stage_cached"]["maps_2d"] is False
     print(f"viewer opened while the fit ran: {opened_while_fitting}")
+    # Its re-run names the same models (the scene still has no maps of its own); deleted at once, as the re-run
+    # tests above cover the run itself.
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job["id"]}"]')
+    rerun: list[dict[str, Any]] = []
+
+    def record(route: Any) -> None:
+        if route.request.method == "POST":
+            rerun.append(route.request.post_data_json)
+        route.continue_()
+
+    page.route("**/v1/jobs", record)
+    try:
+        row.locator("[data-action=re-run]").click()
+        row.locator("[data-field=fit]").uncheck()
+        row.locator("form button[type=submit]").click()
+        row.locator("[data-role=message]", has_text="re-run queued as job").wait_for()
+    finally:
+        page.unroute("**/v1/jobs")
+    assert [body["maps"] for body in rerun] == [sent[0]["maps"]]
+    for other in api.get("/v1/jobs", params={"scene_id": scene["id"]}).json()["data"]:
+        if other["id"] != job["id"]:
+            assert api.delete(f"/v1/jobs/{other['id']}").status_code == 204
 
 
 def test_the_app_ran_under_its_content_security_policy(page: Any, served: dict[str, Any]) -> None:
