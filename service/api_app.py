@@ -13,7 +13,18 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service.api.routes import artifacts, health, instances, jobs, renders, scenes, uploads, viewer_scene, web_app
+from service.api.routes import (
+    artifacts,
+    health,
+    instances,
+    jobs,
+    map_models,
+    renders,
+    scenes,
+    uploads,
+    viewer_scene,
+    web_app,
+)
 from service.auth import KeyVerifier
 from service.body_limit import BodyLimit
 from service.bundle_check import BundleOpener
@@ -94,7 +105,15 @@ def create_app(settings: Settings | None = None, *, sender: Sender | None = None
     app.state.encoder = encoder
     install_error_handlers(app)
     app.include_router(health.router)
-    for router in (uploads.router, scenes.router, jobs.router, instances.router, artifacts.router, viewer_scene.router):
+    for router in (
+        uploads.router,
+        scenes.router,
+        jobs.router,
+        map_models.router,
+        instances.router,
+        artifacts.router,
+        viewer_scene.router,
+    ):
         app.include_router(router, prefix=API_PREFIX)
     app.include_router(renders.router, prefix=API_PREFIX)  # renders of a finished job
     app.include_router(web_app.router)

@@ -277,6 +277,13 @@ class JobMaps(BaseModel):
     )
 
 
+class MapModelsPublic(BaseModel):
+    """The operator's 2D models a job may name (``PANOGS_MAP_MODELS``): entry names per kind, never their folders."""
+
+    masks: list[str] = Field(description="entries of masks (SAM-family) models, sorted")
+    features: list[str] = Field(description="entries of features (CLIP) models, sorted")
+
+
 class JobCreate(BaseModel):
     """Run the pipeline on a scene."""
 

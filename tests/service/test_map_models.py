@@ -152,6 +152,18 @@ def api(declared: Settings, sender: RecordingSender) -> Iterator[TestClient]:
         yield c
 
 
+def test_the_entries_are_listed_by_kind_without_their_folders(make_settings: Callable[..., Settings]) -> None:
+    """``GET /v1/map-models``: what the app's upload form offers; names only, and only to a signed-in tenant."""
+    for entries, listed in ((ENTRIES, {"masks": ["sam-vit-h", "slimsam"], "features": ["clip-b16"]}), ({}, None)):
+        settings = make_settings("sqlite", map_models=entries)
+        with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
+            assert client.get("/v1/map-models").status_code == 401
+            response = client.get("/v1/map-models", headers=new_key(settings))
+        assert response.status_code == 200, response.text
+        assert response.json() == (listed or {"masks": [], "features": []})
+        assert "/models" not in response.text
+
+
 class TestJobsNameEntries:
     def test_unknown_entry_lists_the_known_ones_of_its_kind(
         self, api: TestClient, declared: Settings, tiny_zip: bytes

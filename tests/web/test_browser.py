@@ -371,10 +371,18 @@ def test_a_query_lists_its_best_candidates_below_the_threshold_and_the_threshold
     listed = page.locator("[data-hit-id], [data-candidate-id]").evaluate_all(read)
     assert listed == [h["instance_id"] for h in free["hits"] + free["candidates"]]
     assert listed, "a free-text question always gets ranked instances"
-    scores = page.locator(".pgs-hits .pgs-score").all_inner_texts()
-    assert [float(x) for x in scores] == [round(h["score"], 3) for h in free["hits"] + free["candidates"]]
+    _assert_scores_shown(page, free["hits"] + free["candidates"])
     page.screenshot(path=str(artifacts / "query-free-text.png"))
     page.keyboard.press("Escape")
+
+
+def _assert_scores_shown(page: Any, ranked: list[dict[str, Any]]) -> None:
+    """The answer list shows each score in three decimals, or in its first two digits where those read 0.000."""
+    shown = [float(x) for x in page.locator(".pgs-hits .pgs-score").all_inner_texts()]
+    assert len(shown) == len(ranked)
+    for text, answer in zip(shown, ranked, strict=True):
+        score = answer["score"]
+        assert text == (pytest.approx(score, rel=0.06) if 0 < abs(score) < 5e-4 else round(score, 3)), (text, score)
 
 
 def test_class_query_lights_exactly_the_instances_the_api_returns(
@@ -604,6 +612,112 @@ def test_deleting_the_job_removes_it_and_its_files(
     page.wait_for_selector(".pgs-message.pgs-bad [data-action=back]")
     page.click("[data-action=back]")
     page.wait_for_selector("#upload")
+
+
+# The tiny random models' settings (tests/service/test_map_models.py): every mask kept, small grids; a short fit.
+MAPS_RUN = {
+    "maps2d": {
+        "pred_iou_thresh": -1.0,
+        "stability_score_thresh": 0.0,
+        "min_mask_fraction": 0.0,
+        "points_per_side": 4,
+        "max_masks": 8,
+        "mask_long_side": 64,
+        "feature_long_side": 16,
+    },
+    "language_field": {"epochs": 1, "min_steps": 1},
+    "appearance": {"iterations": 20},
+}
+
+
+def test_a_capture_without_maps_runs_on_the_chosen_models_and_answers_free_text(
+    page: Any, served: dict[str, Any], bare_bundle_zip: Path, api: httpx.Client, artifacts: Path
+) -> None:
+    """A new user's capture, posed colour and depth alone: the upload form offers the operator's 2D models, the job
+    names them, the viewer opens from the job's row as soon as the results are ready and offers the photo view when
+    the fit ends (no reload), and a free-text question, embedded by the chosen CLIP's text tower, gets ranked
+    instances with their scores. Random weights: the order means nothing; the path is what is checked."""
+    if not served["map_models"]:
+        pytest.skip("no 2D models to offer: transformers is not installed")
+    page.goto(f"{served['url']}/app#/")
+    page.wait_for_selector(".pgs-map-models:not([hidden])")
+    values = "els => els.map(e => e.value)"
+    assert page.locator("select[name=masks-model] option").evaluate_all(values) == ["tiny-sam"]
+    assert page.locator("select[name=features-model] option").evaluate_all(values) == ["tiny-clip"]
+    sent: list[dict[str, Any]] = []
+
+    def with_settings(route: Any) -> None:
+        if route.request.method != "POST":
+            route.continue_()
+            return
+        sent.append(route.request.post_data_json)
+        route.continue_(post_data=json.dumps({**sent[-1], "config": MAPS_RUN}))
+
+    page.route("**/v1/jobs", with_settings)
+    try:
+        page.set_input_files("#upload input[type=file]", str(bare_bundle_zip))
+        page.click("#upload button[type=submit]")
+        page.wait_for_function("() => document.querySelector('#upload-message').textContent.includes('job queued')")
+    finally:
+        page.unroute("**/v1/jobs")
+    assert [set(body) for body in sent] == [{"scene_id", "maps"}], sent
+    assert sent[0]["maps"] == {"masks": "tiny-sam", "features": "tiny-clip"}
+    scene = api.get(f"/v1/scenes/{sent[0]['scene_id']}").json()
+    assert (scene["has_mask_maps"], scene["has_feature_maps"]) == (False, False)
+    (job,) = api.get("/v1/jobs", params={"scene_id": scene["id"]}).json()["data"]
+    ready = f'tr[data-job-id="{job["id"]}"][data-results=ready]'
+    try:
+        page.wait_for_selector(ready, timeout=JOB_TIMEOUT_MS)
+    except Exception:
+        print(served["log"]())
+        raise
+    page.evaluate("window.__sameDocument = true")  # gone if anything below reloads the page
+    page.click(f"{ready} [data-action=open]")
+    page.wait_for_selector(".pgs-viewer[data-state=ready]", timeout=60_000)
+    opened_while_fitting = page.get_attribute(".pgs-viewer", "data-photo") == "unavailable"
+    text = "a wooden cabinet"
+    page.fill(".pgs-query input", text)
+    page.press(".pgs-query input", "Enter")
+    page.wait_for_selector(".pgs-viewer[data-query=done]", timeout=120_000)  # the CLIP text tower's first load
+    free = api.post(f"/v1/jobs/{job['id']}/query", json={"text": text}).json()
+    assert free["query_kind"] == "text"
+    ranked = free["hits"] + free["candidates"]
+    read = "els => els.map(e => +(e.dataset.hitId ?? e.dataset.candidateId))"
+    listed = page.locator("[data-hit-id], [data-candidate-id]").evaluate_all(read)
+    assert listed == [h["instance_id"] for h in ranked]
+    assert listed, "a free-text question always gets ranked instances"
+    _assert_scores_shown(page, ranked)
+    page.wait_for_selector(".pgs-viewer[data-photo=off]", timeout=JOB_TIMEOUT_MS)  # offered when the fit ends
+    assert page.evaluate("window.__sameDocument") is True, "the photo view came without a reload"
+    assert page.locator("[data-action=photo]").is_visible()
+    page.screenshot(path=str(artifacts / "capture-without-maps.png"))
+    report = api.get(f"/v1/jobs/{job['id']}/artifacts/report.json").json()
+    assert report["feature_space"].startswith("clip-vit-"), "the features are the chosen CLIP's"
+    assert api.get(f"/v1/jobs/{job['id']}").json()["stage_cached"]["maps_2d"] is False
+    print(f"viewer opened while the fit ran: {opened_while_fitting}")
+    # Its re-run names the same models (the scene still has no maps of its own); deleted at once, as the re-run
+    # tests above cover the run itself.
+    page.goto(f"{served['url']}/app#/")
+    row = page.locator(f'tr[data-job-id="{job["id"]}"]')
+    rerun: list[dict[str, Any]] = []
+
+    def record(route: Any) -> None:
+        if route.request.method == "POST":
+            rerun.append(route.request.post_data_json)
+        route.continue_()
+
+    page.route("**/v1/jobs", record)
+    try:
+        row.locator("[data-action=re-run]").click()
+        row.locator("[data-field=fit]").uncheck()
+        row.locator("form button[type=submit]").click()
+        row.locator("[data-role=message]", has_text="re-run queued as job").wait_for()
+    finally:
+        page.unroute("**/v1/jobs")
+    assert [body["maps"] for body in rerun] == [sent[0]["maps"]]
+    for other in api.get("/v1/jobs", params={"scene_id": scene["id"]}).json()["data"]:
+        if other["id"] != job["id"]:
+            assert api.delete(f"/v1/jobs/{other['id']}").status_code == 204
 
 
 def test_the_app_ran_under_its_content_security_policy(page: Any, served: dict[str, Any]) -> None:

@@ -10,11 +10,13 @@ import {
   cachedStagesText,
   fitRunning,
   fitText,
+  jobMaps,
   jobProgressText,
   jobStateText,
   pollDelay,
   resultsReady,
   sceneFitted,
+  startingJobText,
   tileReadouts,
   vocabularyBody,
   vocabularyText,
@@ -144,6 +146,27 @@ describe("the re-run form's vocabulary", () => {
       classes: [{ name: "shelf", kind: "stuff" }, { name: "rug" }, { name: "lamp", kind: "thing" }],
     });
     assert.deepEqual(vocabularyBody("lamp, rug", "scannet20"), { classes: [{ name: "lamp" }, { name: "rug" }] });
+  });
+});
+
+describe("the upload form's 2D models", () => {
+  const chosen = { masks: "slimsam", features: "clip-b16" };
+
+  it("names a model only for each kind of map the scene's bundle lacks", () => {
+    const bare = { name: "cab", has_mask_maps: false, has_feature_maps: false };
+    assert.deepEqual(jobMaps(bare, chosen), chosen);
+    assert.deepEqual(jobMaps({ ...bare, has_mask_maps: true }, chosen), { features: "clip-b16" });
+    assert.equal(jobMaps({ has_mask_maps: true, has_feature_maps: true }, chosen), undefined);
+    assert.equal(jobMaps({}, chosen), undefined); // a server from before the scene's two flags
+    assert.equal(jobMaps(bare, { masks: "", features: "" }), undefined); // none offered: the server says what lacks
+  });
+
+  it("says which models will compute the maps", () => {
+    assert.equal(startingJobText({ name: "cab" }, undefined), "scene cab is valid; starting a job ...");
+    assert.equal(
+      startingJobText({ name: "cab" }, chosen),
+      "scene cab is valid; starting a job (its 2D maps computed by slimsam and clip-b16) ...",
+    );
   });
 });
 

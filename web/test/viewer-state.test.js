@@ -3,6 +3,7 @@ import assert from "node:assert/strict";
 import { describe, it } from "node:test";
 import {
   answerText,
+  hitScoreText,
   hitsText,
   instanceOrder,
   instanceTitle,
@@ -197,6 +198,13 @@ describe("read-outs", () => {
     );
     assert.equal(answerText("rug", { hits: [], candidates: [], min_score: 0.5 }), '0 hits for "rug" (score ≥ 0.50)');
     assert.equal(answerText("rug", { hits: [] }), '0 hits for "rug" (score ≥ 0.50)', "an older server's answer");
+  });
+
+  it("shows a hit's score in three decimals, or its first digits when three decimals read 0.000", () => {
+    assert.deepEqual([0.8123, 0.0005, 0, 1].map(hitScoreText), ["0.812", "0.001", "0.000", "1.000"]);
+    const nearZero = [3.0004e-5, 5.48e-6, 5.36e-6].map(hitScoreText);
+    assert.deepEqual(nearZero, ["3.0e-5", "5.5e-6", "5.4e-6"]); // ranked, not three ties
+    assert.deepEqual(nearZero.map(Number), [3.0e-5, 5.5e-6, 5.4e-6]);
   });
 
   it("takes the median radius from a sample", () => {

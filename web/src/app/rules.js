@@ -122,3 +122,19 @@ export function vocabularyBody(text, previous) {
     .filter(Boolean);
   return { classes: names.map((name) => (kinds.has(name) ? { name, kind: kinds.get(name) } : { name })) };
 }
+
+// The `maps` of the job the upload form starts (docs/service.md, "2D maps: the operator's models"): for each kind of
+// map the new scene's bundle lacks, the model chosen in the form; nothing for a kind it brings (naming a model for
+// it is refused). chosen: { masks, features }, entry names or "" (none offered).
+export function jobMaps(scene, chosen) {
+  const maps = {};
+  if (scene.has_mask_maps === false && chosen.masks) maps.masks = chosen.masks;
+  if (scene.has_feature_maps === false && chosen.features) maps.features = chosen.features;
+  return Object.keys(maps).length ? maps : undefined;
+}
+
+// What the upload form says while the job starts: the models that will compute the scene's maps, if any.
+export function startingJobText(scene, maps) {
+  const models = maps ? Object.values(maps).join(" and ") : "";
+  return `scene ${scene.name} is valid; starting a job${models ? ` (its 2D maps computed by ${models})` : ""} ...`;
+}

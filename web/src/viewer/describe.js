@@ -33,6 +33,13 @@ export function formatScore(score) {
   return Number(score).toFixed(2);
 }
 
+// A hit's or candidate's score in the answer list: three decimals, or, under what three decimals show (0.000), two
+// significant digits (3.0e-5), so that the order of answers that all score near 0 still shows.
+export function hitScoreText(score) {
+  const value = Number(score);
+  return value !== 0 && Math.abs(value) < 0.0005 ? value.toExponential(1) : value.toFixed(3);
+}
+
 // The legend: classes that have primitives, in vocabulary order, then void when some primitives are void.
 export function legendRows(header) {
   const rows = header.classes

@@ -4,7 +4,15 @@
 // browser tests and benchmarks wait on.
 import { h } from "../dom.js";
 import { cssRgb } from "./colours.js";
-import { answerText, formatScore, instanceOrder, instanceTitle, legendRows, progressText } from "./describe.js";
+import {
+  answerText,
+  formatScore,
+  hitScoreText,
+  instanceOrder,
+  instanceTitle,
+  legendRows,
+  progressText,
+} from "./describe.js";
 import { SHORTCUTS } from "./keys.js";
 import { MODES } from "./state.js";
 
@@ -292,7 +300,7 @@ export class Panels {
         swatch(colourOf(hit.instance_id)),
         `#${hit.instance_id} ${hit.class_name} `,
         below ? h("span", { class: "pgs-kind" }, "below") : null,
-        h("span", { class: "pgs-score" }, hit.score.toFixed(3)),
+        h("span", { class: "pgs-score" }, hitScoreText(hit.score)),
       );
     this.hitList.replaceChildren(
       ...answer.hits.map((hit) => row(hit, false)),

@@ -54,6 +54,7 @@ export function rerunForm(job, message, refresh) {
         scene_id: job.scene_id,
         config: built.config,
         vocabulary: vocabularyBody(vocabulary.value, job.vocabulary),
+        maps: job.maps || undefined, // a scene without its own maps needs the job's models again
       });
       message.className = "pgs-message pgs-good";
       message.replaceChildren(`re-run queued as job ${shortId(rerun.id)}`);

@@ -1,10 +1,11 @@
 // The upload card: a bundle sent over tus (tus-js-client; a dropped connection resumes from the server's offset),
-// then validated into a scene and queued as a job.
+// then validated into a scene and queued as a job. A bundle without its own 2D maps (posed colour and depth alone) has
+// them computed by the operator's models, chosen here from those the server lists (GET /v1/map-models).
 import * as tus from "tus-js-client";
 import { h } from "../../dom.js";
 import { APP_HEADER, api, tusError } from "../api-client.js";
 import { showError } from "../messages.js";
-import { uploadProgressText } from "../rules.js";
+import { jobMaps, startingJobText, uploadProgressText } from "../rules.js";
 
 const CHUNK_BYTES = 8 * 1024 * 1024;
 // How long "job queued" stays under the form: the job's row in the table below says the rest of its life.
@@ -28,19 +29,38 @@ export function uploadCard(onQueued) {
   const bar = h("progress", { max: 1, value: 0, hidden: true });
   const message = h("div", { class: "pgs-message", id: "upload-message", "aria-live": "polite" });
   const start = h("button", { type: "submit" }, "Upload and run");
+  const masksModel = h("select", { name: "masks-model", "aria-label": "masks model" });
+  const featuresModel = h("select", { name: "features-model", "aria-label": "features model" });
+  const models = h(
+    "fieldset",
+    { class: "pgs-map-models", hidden: true },
+    h("legend", {}, "2D models, for a bundle without its own masks or feature maps"),
+    h("label", { class: "pgs-field" }, h("span", {}, "masks"), masksModel),
+    h("label", { class: "pgs-field" }, h("span", {}, "features (and free text)"), featuresModel),
+  );
+  // The operator's entries; none (or a server without the route) leaves the choice hidden and the job without maps.
+  api("GET", "/v1/map-models").then(
+    (listed) => {
+      masksModel.replaceChildren(...listed.masks.map((name) => h("option", { value: name }, name)));
+      featuresModel.replaceChildren(...listed.features.map((name) => h("option", { value: name }, name)));
+      models.hidden = !listed.masks.length && !listed.features.length;
+    },
+    () => {},
+  );
 
   const createJob = async (uploadId) => {
     message.textContent = "validating the bundle ...";
     try {
       const scene = await api("POST", "/v1/scenes", { upload_id: uploadId, name: name.value.trim() || undefined });
-      message.textContent = `scene ${scene.name} is valid; starting a job ...`;
-      await api("POST", "/v1/jobs", { scene_id: scene.id });
+      const maps = jobMaps(scene, { masks: masksModel.value, features: featuresModel.value });
+      message.textContent = startingJobText(scene, maps);
+      await api("POST", "/v1/jobs", { scene_id: scene.id, maps });
       const queued = `scene ${scene.name}: job queued (its row is in the jobs below)`;
       message.textContent = queued;
       setTimeout(() => {
         if (message.textContent === queued) message.textContent = "";
       }, QUEUED_NOTE_MS);
-      form.reset();
+      form.reset(); // the selects go back to their first entry
       bar.hidden = true;
       onQueued();
     } catch (err) {
@@ -98,6 +118,7 @@ export function uploadCard(onQueued) {
     start,
     " ",
     bar,
+    models,
     message,
   );
   return form;
