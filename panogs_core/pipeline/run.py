@@ -139,6 +139,8 @@ class _Run:
         if spec.resumable:
             extra["snapshot"] = self.store.snapshot(spec.name, self._keys()[spec.name])
         if spec.load is None:
+            if spec.own_checkpoint:
+                return self._timed(spec.name, lambda report, stats: spec.call(*args, self.cfg, report, stats=stats))
             return self._timed(spec.name, lambda report, _: spec.call(*args, self.cfg, report, **extra))
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> Any:
@@ -245,6 +247,7 @@ def run_pipeline(
         forget_maps(STAGES_FOLDER.path(out))
     values: dict[str, Any] = {"source": bundle, "out": out, "vocabulary_spec": vocabulary, "map_models": map_models}
     run = _Run(out, cfg, values, resume=resume, on_progress=on_progress, shared=shared)
+    values["shared"] = run.store.shared  # None without resume: nothing is then fetched
     try:
         result = _run_stages(run, vocabulary, on_results)
     except BaseException:

@@ -32,6 +32,7 @@ from panogs_core.language.label_sets import builtin_vocabulary, ensure_embedding
 from panogs_core.language.model_identity import resolve_model_dir
 from panogs_core.language.text_encoders import get_text_encoder, is_model_space
 from panogs_core.pipeline.config import PipelineConfig
+from panogs_core.pipeline.profiling import StageStats
 from panogs_core.progress import ProgressFn
 from panogs_core.snapshots import StageSnapshot
 from panogs_core.stages.affinity import AffinityConfig, segment_affinity
@@ -40,7 +41,7 @@ from panogs_core.stages.fusion import FusedFeatures, fuse_features
 from panogs_core.stages.labeling import FusedEvidence, PanopticLabels, assign_panoptic, unit_embeddings
 from panogs_core.stages.language_field import LanguageField, fit_language_field
 from panogs_core.stages.maps2d import MapModels
-from panogs_core.stages.maps2d.stage import with_computed_maps
+from panogs_core.stages.maps2d.stage import SharedFolders, with_computed_maps
 from panogs_core.stages.masks import MaskObservations, observe_masks
 from panogs_core.stages.neighbors import KnnGraph, build_knn
 from panogs_core.stages.primitives import Primitives, build_primitives
@@ -50,7 +51,7 @@ from panogs_core.types import Vocabulary
 
 # The values a run starts with: the ``bundle`` argument (a path or an opened bundle), the run folder and the
 # ``vocabulary`` argument. Every other value is written by a stage of the table.
-RUN_ARGUMENTS = ("source", "out", "vocabulary_spec", "map_models")
+RUN_ARGUMENTS = ("source", "out", "vocabulary_spec", "map_models", "shared")
 
 
 class Checkpoint(Protocol):
@@ -80,6 +81,8 @@ class StageSpec:
         after_results: Runs after the results are written and ``on_results`` is called (the appearance fit): its
             failure leaves the results (``appearance.state`` ``failed``).
         resumable: Takes ``snapshot=`` (:class:`StageSnapshot`), to keep and resume its partial work.
+        own_checkpoint: Keeps its own checkpoint (not a ``load``ed file): takes ``stats=`` (:class:`StageStats`)
+            and sets ``stats.cached`` when it reused it rather than computed.
         load: A checkpointed stage's reader of its checkpoint (the output class's ``load``); None: no checkpoint.
         inputs: The keys its key includes: upstream stages, or ``"input"`` (the bundle's hash), ``"features"``
             (the per-primitive language features, see :func:`primitive_features`), ``"vocabulary"``.
@@ -96,6 +99,7 @@ class StageSpec:
     when: Callable[[PipelineConfig], bool] | None = None
     after_results: bool = False
     resumable: bool = False
+    own_checkpoint: bool = False
     load: Callable[[Path], Any] | None = None
     inputs: tuple[str, ...] = ()
     settings: Callable[[PipelineConfig], object] | None = None
@@ -193,9 +197,24 @@ def validate(source: str | Path | Bundle, out: Path, cfg: PipelineConfig, progre
     return source if isinstance(source, Bundle) else open_bundle(source, workdir=BUNDLE_FOLDER.path(out))
 
 
-def maps_2d(bundle: Bundle, out: Path, models: MapModels | None, cfg: PipelineConfig, progress: ProgressFn) -> Bundle:
-    """The bundle with the 2D maps it lacks computed by ``models`` (itself, at once, when it lacks none)."""
-    return with_computed_maps(bundle, STAGES_FOLDER.path(out), cfg.maps2d, models, progress)
+def maps_2d(
+    bundle: Bundle,
+    out: Path,
+    models: MapModels | None,
+    shared: SharedFolders | None,
+    cfg: PipelineConfig,
+    progress: ProgressFn,
+    stats: StageStats,
+) -> Bundle:
+    """The bundle with the 2D maps it lacks computed by ``models`` (itself, at once, when it lacks none); maps
+    this run folder or the shared store already has are reused (``stats.cached``)."""
+
+    def reused() -> None:
+        stats.cached = True
+
+    return with_computed_maps(
+        bundle, STAGES_FOLDER.path(out), cfg.maps2d, models, progress, shared=shared, on_reused=reused
+    )
 
 
 def primitives(bundle: Bundle, cfg: PipelineConfig, progress: ProgressFn) -> Primitives:
@@ -362,7 +381,7 @@ PIPELINE: tuple[StageSpec, ...] = (
     StageSpec("validate", validate, ("source", "out"), writes="bundle"),
     # The maps the bundle lacks, computed from its colour frames (its own checkpoint folder, keyed by the models'
     # identities, the frames and the maps' settings); the stages after it read the bundle it writes.
-    StageSpec("maps_2d", maps_2d, ("bundle", "out", "map_models"), writes="bundle"),
+    StageSpec("maps_2d", maps_2d, ("bundle", "out", "map_models", "shared"), writes="bundle", own_checkpoint=True),
     StageSpec(
         "vocabulary",
         lambda bundle, spec, models, _c, _p: resolve_scene_vocabulary(bundle, spec, models),

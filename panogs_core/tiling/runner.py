@@ -118,7 +118,10 @@ def _maps(
 ) -> tuple[Bundle, StageStats]:
     """The scene with the 2D maps it lacks computed (stage ``maps_2d``, timed)."""
     with StageTimer("maps_2d") as timer:
-        scene = with_computed_maps(scene, STAGES_FOLDER.path(out), cfg.maps2d, models, _named(on_progress, "maps_2d"))
+        scene = with_computed_maps(
+            scene, STAGES_FOLDER.path(out), cfg.maps2d, models, _named(on_progress, "maps_2d"),
+            on_reused=lambda: setattr(timer.stats, "cached", True),
+        )  # fmt: skip
     return scene, timer.stats
 
 

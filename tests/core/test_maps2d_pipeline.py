@@ -7,7 +7,6 @@ errors. Random weights make meaningless maps: these tests assert the wiring, not
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
+from bundle_copies import without_maps
 from capture_room import write_tum
 from tiny_models import KEEP_ALL, tiny_clip, tiny_sam
 
@@ -80,19 +80,6 @@ def _manifests(out: Path) -> list[Path]:
     return sorted((out / "stages" / "maps_2d").glob("*/manifest.json"))
 
 
-def _without(bundle: Path, dst: Path, kind: str) -> Path:
-    """A copy of ``bundle`` whose frames bring no ``kind`` (``masks`` or ``features``)."""
-    shutil.copytree(bundle, dst)
-    doc = json.loads((dst / "scene.json").read_text())
-    for frame in doc["frames"]:
-        frame.pop(kind, None)
-    if kind == "features":
-        doc.pop("features")
-    (dst / "scene.json").write_text(json.dumps(doc))
-    shutil.rmtree(dst / kind)
-    return dst
-
-
 # Runs the tiny room's pipeline with model folders (10-40 s here).
 @pytest.mark.slow
 def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
@@ -135,10 +122,11 @@ def test_a_capture_without_maps_gets_labels_and_answers_a_text_query(
     assert _manifests(out) == [manifest]
     assert manifest.stat().st_mtime_ns == before
     assert _stage(out, "maps_2d")["wall_s"] < 1.0
+    assert _stage(out, "maps_2d")["cached"] is True  # report.json (and a job's status) says it was reused
 
 
 def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
-    bundle = _without(synth_tiny, tmp_path / "b", "masks")
+    bundle = without_maps(synth_tiny, tmp_path / "b", ("masks",))
     out = tmp_path / "run"
     result = run_pipeline(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)),
                           map_models=MapModels(masks=str(models[0]), features=str(models[1])))  # fmt: skip
@@ -151,7 +139,7 @@ def test_masks_only_keeps_the_bundles_features(synth_tiny: Path, models: tuple[P
 
 
 def test_features_only_reads_the_bundles_masks(synth_tiny: Path, models: tuple[Path, Path], tmp_path: Path) -> None:
-    bundle = _without(synth_tiny, tmp_path / "b", "features")
+    bundle = without_maps(synth_tiny, tmp_path / "b", ("features",))
     out = tmp_path / "run"
     run_pipeline(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)),
                  map_models=MapModels(features=str(models[1])))  # fmt: skip
@@ -170,7 +158,7 @@ def test_a_tiled_run_computes_the_maps_once_for_every_tile(
 ) -> None:
     from panogs_core.tiling.runner import run_tiled
 
-    bundle = _without(synth_tiny, tmp_path / "b", "masks")
+    bundle = without_maps(synth_tiny, tmp_path / "b", ("masks",))
     out = tmp_path / "run"
     result = run_tiled(bundle, out, PipelineConfig().with_overrides(_nested(SETTINGS)), tiles=(2, 1),
                        map_models=MapModels(masks=str(models[0])))  # fmt: skip

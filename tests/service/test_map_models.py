@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 import scripted_pipeline as scripted
+from bundle_copies import without_maps
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
@@ -543,24 +544,6 @@ E2E_CONFIG = {
 }
 
 
-def _colour_and_depth(bundle: Path, dst: Path) -> bytes:
-    """A zip of ``bundle`` without its feature maps, masks, vocabulary and ground truth: posed RGB-D alone."""
-    import json
-
-    shutil.copytree(bundle, dst)
-    doc = json.loads((dst / "scene.json").read_text())
-    for frame in doc["frames"]:
-        frame.pop("features", None)
-        frame.pop("masks", None)
-    doc.pop("features", None)
-    (dst / "scene.json").write_text(json.dumps(doc))
-    for name in ("features", "masks", "gt"):
-        shutil.rmtree(dst / name)
-    for name in ("vocabulary.json", "vocabulary.npy"):
-        (dst / name).unlink()
-    return Path(shutil.make_archive(str(dst), "zip", dst)).read_bytes()
-
-
 @pytest.mark.slow
 def test_a_bundle_of_colour_and_depth_to_labels_and_a_text_query(
     make_settings: Callable[..., Settings], synth_tiny: Path, folders: dict[str, Path], tmp_path: Path
@@ -576,7 +559,8 @@ def test_a_bundle_of_colour_and_depth_to_labels_and_a_text_query(
     from panogs_core.pipeline.config import PipelineConfig
     from panogs_core.pipeline.run import STAGES, run_pipeline
 
-    archive = _colour_and_depth(synth_tiny, tmp_path / "capture")
+    capture = without_maps(synth_tiny, tmp_path / "capture")
+    archive = Path(shutil.make_archive(str(capture), "zip", capture)).read_bytes()
     settings = make_settings("sqlite", stand_in=None, map_models=_entries(folders))
     with TestClient(create_app(settings, sender=RecordingSender(), run_reaper=False)) as client:
         auth = new_key(settings)

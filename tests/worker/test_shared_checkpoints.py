@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
 import scripted_pipeline as scripted
 
 from service.db.models import Job, JobState, Scene
@@ -190,3 +191,46 @@ def test_a_checkpoint_never_stored_is_pushed_with_the_job(settings: Settings, tm
     assert [i.key for i in storage.objects.list_objects(storage.job_prefix(job_id))] == [
         f"{storage.job_prefix(job_id)}fusion.npz"
     ]
+
+
+def test_a_scenes_computed_2d_maps_are_computed_once_and_fetched_by_its_next_job(
+    settings: Settings, synth_tiny: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The 2D maps are a folder, not a stage file: they travel through the scene's store as one archive, so the
+    scene's next job (another run folder, another worker) loads no model and reads the same maps."""
+    pytest.importorskip("transformers")
+    from bundle_copies import without_maps
+    from tiny_models import KEEP_ALL, tiny_clip, tiny_sam
+
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.stages.maps2d import MapModels, Maps2DConfig
+    from panogs_core.stages.maps2d import runner as maps_runner
+    from panogs_core.stages.maps2d.stage import with_computed_maps
+
+    bundle = open_bundle(without_maps(synth_tiny, tmp_path / "capture"))
+    cfg = Maps2DConfig(**KEEP_ALL, points_per_side=4, max_masks=8, mask_long_side=64, feature_long_side=16,
+                       device="cpu")  # fmt: skip
+    models = MapModels(masks=str(tiny_sam(tmp_path / "sam")), features=str(tiny_clip(tmp_path / "clip")))
+    scene_id = uuid.uuid4()
+    first = with_computed_maps(bundle, tmp_path / "job1" / "stages", cfg, models, lambda *_: None,
+                               shared=_shared(settings, scene_id, "job1"))  # fmt: skip
+    objects = Storage(settings.storage).objects
+    stored = [o.key for o in objects.list_objects(f"scenes/{scene_id}/stages/")]
+    assert len(stored) == 1
+    assert stored[0].startswith(f"scenes/{scene_id}/stages/maps_2d/")
+
+    def no_loading(*_args: object) -> None:
+        raise AssertionError("the scene's maps were not fetched: a model was loaded")
+
+    monkeypatch.setattr(maps_runner, "load_models", no_loading)
+    second_store = _shared(settings, scene_id, "job2")
+    reused: list[bool] = []
+    second = with_computed_maps(bundle, tmp_path / "job2" / "stages", cfg, models, lambda *_: None,
+                                shared=second_store, on_reused=lambda: reused.append(True))  # fmt: skip
+    assert reused == [True]
+    assert second_store.reused == ["maps_2d"]
+    assert second.feature_space == first.feature_space
+    for frame_a, frame_b in zip(first.frames, second.frames, strict=True):
+        assert (first.read_masks(frame_a) == second.read_masks(frame_b)).all()
+        assert (first.read_features(frame_a) == second.read_features(frame_b)).all()
+    assert not list((tmp_path / "job2" / "stages" / "maps_2d").glob("*.tar"))  # unpacked, the archive gone

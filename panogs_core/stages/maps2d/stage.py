@@ -5,8 +5,10 @@ A kind the bundle brings is its own and is never recomputed; a kind it lacks is 
 names (:class:`~panogs_core.stages.maps2d.MapModels`) for every frame with a colour image. The maps go to a
 checkpoint folder under the run's ``stages/maps_2d/``, named by a key of the frame ids, the models' identities
 (hashes of their files, not their paths) and the settings the maps depend on: a re-run that changes any other
-setting finds the folder complete and loads no model. The bundle returned serves the computed maps through
-:attr:`Bundle.computed <panogs_core.io.bundle.Bundle>`, so the stages after it read them as the bundle's own.
+setting finds the folder complete and loads no model, and with a shared store (the service's, per scene) the
+scene's other jobs fetch the folder, packed as one archive, instead of computing it. The bundle returned serves the
+computed maps through :attr:`Bundle.computed <panogs_core.io.bundle.Bundle>`, so the stages after it read them as
+the bundle's own.
 
 Importing this module imports no torch (the computation imports it when it runs).
 """
@@ -18,8 +20,10 @@ import hashlib
 import json
 import logging
 import shutil
-from collections.abc import Iterator
+import tarfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Protocol
 
 from panogs_core.errors import InputError
 from panogs_core.io.bundle import Bundle
@@ -44,6 +48,15 @@ MAPS_FOLDER = "maps_2d"  # under the run's stages/: one folder per key
 _OPTION = {"masks": "--masks-model (a Segment Anything model)", "features": "--features-model (a CLIP model)"}
 
 
+class SharedFolders(Protocol):
+    """What this stage uses of a run's shared checkpoints (``panogs_core.pipeline.checkpoints.SharedCheckpoints``):
+    a miss in ``fetch`` makes this run the one that computes the key, and it stores what it computed."""
+
+    def fetch(self, stage: str, key: str, dest: Path) -> bool: ...
+
+    def store(self, stage: str, key: str, path: Path) -> None: ...
+
+
 def forget_maps(checkpoints: Path) -> None:
     """Remove the computed maps under a run's ``stages/`` (a run that must recompute every stage)."""
     shutil.rmtree(checkpoints / MAPS_FOLDER, ignore_errors=True)
@@ -56,7 +69,14 @@ def missing_kinds(bundle: Bundle) -> tuple[str, ...]:
 
 
 def with_computed_maps(
-    bundle: Bundle, checkpoints: Path, cfg: Maps2DConfig, models: MapModels | None, progress: ProgressFn
+    bundle: Bundle,
+    checkpoints: Path,
+    cfg: Maps2DConfig,
+    models: MapModels | None,
+    progress: ProgressFn,
+    *,
+    shared: SharedFolders | None = None,
+    on_reused: Callable[[], None] | None = None,
 ) -> Bundle:
     """The bundle with the kinds it lacks computed (the bundle itself when it lacks none).
 
@@ -66,6 +86,9 @@ def with_computed_maps(
         cfg: The stage's settings.
         models: The models that compute the missing kinds.
         progress: ``progress(done, total)`` per frame; may raise ``Cancelled`` (between frames).
+        shared: Checkpoints kept beyond the run folder: the maps' folder is fetched from there when this run
+            lacks it, and stored there when this run computes it.
+        on_reused: Called when the maps were not computed but found complete (here or in ``shared``).
 
     Raises:
         InputError: a missing kind without a model to compute it (naming the option to pass), or no frame that
@@ -89,9 +112,15 @@ def with_computed_maps(
     frames = _frames_to_compute(bundle, need_own_masks=masks_model is None)
     masks_id, feats_id = identify_models(masks_model, features_model, allow_download=models.allow_download)
     ids = [f.id for f in frames]
-    key = _folder_key(checkpoint_key(masks_id, feats_id, cfg), ids)
+    content_key = checkpoint_key(masks_id, feats_id, cfg)
+    key = _folder_key(content_key, ids)
     folder = checkpoints / MAPS_FOLDER / key
-    result = _complete(folder, checkpoint_key(masks_id, feats_id, cfg), ids)
+    result = _complete(folder, content_key, ids)
+    lease_held = False
+    if result is None and shared is not None:
+        lease_held = not shared.fetch(MAPS_FOLDER, key, _archive(folder))
+        if not lease_held:
+            result = _unpacked(folder, content_key, ids)
     if result is None:
         result = compute_2d_maps(
             _images(bundle, frames, own_masks=masks_model is None),
@@ -103,9 +132,47 @@ def with_computed_maps(
             total=len(frames),
             on_progress=progress,
         )
+        if shared is not None and lease_held:
+            _share(shared, folder)
     else:
         log.info("maps_2d: the maps of %d frames are in %s already", len(ids), folder)
+        if on_reused is not None:
+            on_reused()
     return _view(bundle, result)
+
+
+def _archive(folder: Path) -> Path:
+    """Where a maps folder travels to and from a shared store as one file (beside the folder)."""
+    return folder.with_name(f"{folder.name}.tar")
+
+
+def _share(shared: SharedFolders, folder: Path) -> None:
+    """Store the computed folder in ``shared`` as one archive (the store keeps whole files, one per key)."""
+    archive = _archive(folder)
+    tmp = archive.with_name(f".{archive.name}.tmp")
+    with tarfile.open(tmp, "w") as tar:
+        for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+            tar.add(path, arcname=path.relative_to(folder).as_posix())
+    tmp.replace(archive)
+    shared.store(MAPS_FOLDER, folder.name, archive)
+    archive.unlink()  # the store has its own copy (or link); the run folder keeps the unpacked maps
+
+
+def _unpacked(folder: Path, maps_key: str, frame_ids: list[str]) -> Maps2DResult | None:
+    """The maps of an archive fetched from a shared store, unpacked into ``folder``; None when they are not
+    complete for this key and these frames (then this run computes them)."""
+    archive = _archive(folder)
+    shutil.rmtree(folder, ignore_errors=True)
+    try:
+        with tarfile.open(archive) as tar:
+            tar.extractall(folder, filter="data")  # plain files inside the folder only
+    except (tarfile.TarError, OSError) as exc:
+        log.warning("maps_2d: the shared maps %s could not be unpacked (%s); computing them", archive, exc)
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    finally:
+        archive.unlink(missing_ok=True)
+    return _complete(folder, maps_key, frame_ids)
 
 
 def _noun(kind: str) -> str:
