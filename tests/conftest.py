@@ -152,10 +152,10 @@ def tiny_building_plain_run(tiny_building: Path, tmp_path_factory: pytest.TempPa
 
 # The test files that took longest in a run of the whole suite (per-file totals of ``pytest -n 2 --dist loadfile
 # --junitxml``; docs/contributing.md, "The test suite"), most first, then the readers of a session folder that an
-# earlier one made: pytest-xdist hands whole files to the two processes in collection order (pyproject sets
-# ``--no-loadscope-reorder``; by default it orders files by their count of tests), so the long ones start first and
-# the short ones fill in at the end, and both processes finish at about the same time instead of one waiting for
-# the other's last long file. Files not named keep their order after these.
+# earlier one made: pytest-xdist hands whole files to the two processes in collection order (:func:`pytest_configure`
+# turns off its own order, by each file's count of tests), so the long ones start first and the short ones fill in
+# at the end, and both processes finish at about the same time instead of one waiting for the other's last long
+# file. Files not named keep their order after these.
 LONG_FIRST = (
     "tests/web/test_browser.py",
     "tests/core/test_tiling.py",  # makes the building and its two runs (tests/conftest.py)
@@ -180,6 +180,14 @@ LONG_FIRST = (
     "tests/service/test_renders.py",
     "tests/web/test_viewer_up.py",  # reads the tilted capture's run
 )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under ``--dist loadfile`` pytest-xdist hands out the files in collection order, not by their count of tests
+    (``--no-loadscope-reorder``, set here rather than in pyproject's ``addopts``: a pytest started without plugins,
+    as tests/service/test_honest_ci.py starts one, would refuse the option)."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -23,9 +23,11 @@ import pytest
 
 def shared_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The folder the processes of this test run share: the controller's temporary folder under xdist (each worker's
-    is a sub-folder of it, ``pytest-N/gw0``), this session's otherwise."""
+    is a sub-folder of it, ``pytest-N/popen-gw0``), this session's otherwise (also in a pytest that a test starts,
+    which inherits ``PYTEST_XDIST_WORKER`` but has a temporary folder of its own)."""
     base = tmp_path_factory.getbasetemp()
-    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "made-once"
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    root = (base.parent if worker and base.name == f"popen-{worker}" else base) / "made-once"
     root.mkdir(exist_ok=True)
     return root
 
