@@ -78,7 +78,7 @@ print(json.dumps({"scripts": str(migrations_dir()), "upgraded": after_upgrade, "
 def test_installed_wheel_migrates_from_any_folder(tmp_path_factory: pytest.TempPathFactory, tmp_path: Path) -> None:
     """The migrations ship inside the wheel: an installed ``panogs[service]``, run from a folder that is not the
     repository, upgrades a fresh SQLite file to head and back down."""
-    venv = install(tmp_path_factory.getbasetemp(), "service")
+    venv = install(tmp_path_factory, "service")
     db = tmp_path / "fresh.db"
     argv = [str(venv.python), "-c", MIGRATE_FROM_WHEEL, f"sqlite:///{db}", str(db)]
     done = subprocess.run(argv, cwd=tmp_path, env=venv.env(), capture_output=True, text=True, timeout=300)

@@ -69,7 +69,7 @@ def test_api_never_imports_torch(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def api_install(tmp_path_factory: pytest.TempPathFactory) -> FreshInstall:
     """``panogs[service]`` from a wheel in a new virtual environment (shared with the migration test)."""
-    return install(tmp_path_factory.getbasetemp(), "service")
+    return install(tmp_path_factory, "service")
 
 
 @pytest.mark.slow

@@ -25,11 +25,7 @@ from service_harness import (
     temp_postgres,
 )
 
-from panogs_core.synthetic import make_building
-
 pytestmark = pytest.mark.slow
-
-SPACE = "clip-vit-b32"  # the label-set space needs no text encoder
 
 
 def _zip(folder: Path) -> bytes:
@@ -93,10 +89,10 @@ def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Procs, 
 
 
 def test_tiled_job_survives_a_killed_worker_and_merges_once(
-    services: tuple[Procs, str, dict[str, str], str], tmp_path: Path
+    services: tuple[Procs, str, dict[str, str], str], tiny_building: Path
 ) -> None:
     procs, url, headers, db_url = services
-    bundle = make_building(tmp_path / "b", rooms=(2, 1), room="tiny", feature_space=SPACE)
+    bundle = tiny_building  # two tiny rooms, the label-set space (the session's, tests/conftest.py: only zipped here)
     logs = lambda: "\n".join(f"--- {n}\n{procs.tail(n, 30)()}" for n in list(procs.procs))  # noqa: E731
     with httpx.Client(base_url=url, headers=headers, timeout=60) as c:
         data = _zip(bundle)

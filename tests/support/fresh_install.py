@@ -1,20 +1,22 @@
 """The project as a user installs it: a wheel built from the sources, installed with an extra into a new virtual
 environment, away from the repository (no editable install, no source tree on the path).
 
-Built once per test session (``functools.cache``): the tests of the API install and of the shipped migrations
-share it. Pip reads the same indexes and constraints as ``make install``, so on a machine that has installed the
-project before, every download is already in pip's cache or local wheel folders.
+Built once per test run (made_once.py: one build for both pytest-xdist processes): the tests of the API install
+and of the shipped migrations share it. Pip reads the same indexes and constraints as ``make install``, so on a
+machine that has installed the project before, every download is already in pip's cache or local wheel folders.
 """
 
 from __future__ import annotations
 
-import functools
 import os
 import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+
+import pytest
+from made_once import made_once
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCES = ("pyproject.toml", "README.md", "panogs_core", "service", "worker")
@@ -67,10 +69,14 @@ def build_wheel(out: Path) -> Path:
     return wheel
 
 
-@functools.cache
-def install(base: Path, extras: str) -> FreshInstall:
-    """``panogs[extras]`` from a freshly built wheel in a new virtual environment under ``base``."""
-    out = base / f"fresh-{extras.replace(',', '-')}"
+def install(tmp_path_factory: pytest.TempPathFactory, extras: str) -> FreshInstall:
+    """``panogs[extras]`` from a freshly built wheel in a new virtual environment, made once per test run."""
+    out = made_once(tmp_path_factory, f"fresh-{extras.replace(',', '-')}", lambda folder: _install(folder, extras))
+    return FreshInstall(out / "venv", extras)
+
+
+def _install(out: Path, extras: str) -> FreshInstall:
+    """``panogs[extras]`` from a freshly built wheel in a new virtual environment under ``out``."""
     wheel = build_wheel(out)
     venv = FreshInstall(out / "venv", extras)
     subprocess.run([sys.executable, "-m", "venv", str(venv.root)], check=True, timeout=300)
