@@ -6,6 +6,7 @@ Usage:
                            [--cases sam-vit-b slimsam-77 ...] [--root DIR]
     python bench/maps2d.py --components   # CPU seconds per part (encoder, decoder per point, crop), one thread
     python bench/maps2d.py --profile-decoder   # where SAM's decoder time goes, per operator, one thread
+    python bench/maps2d.py --room 100 --room-bundle DIR   # the whole stage on a room's key frames (below)
 
 No weights can be downloaded here, so each model is built at its published architecture with random weights and
 saved with ``save_pretrained`` (kept under ``--root``); random weights cost what real ones do, except where the work
@@ -18,6 +19,16 @@ none, the timed run then includes the models' load), then ``--frames`` timed one
 folder. Prints a markdown table with wall time and CPU time (user + system) per frame: on a host that other
 processes load, wall time grows with the load while CPU time stays the work's; the room estimate is CPU time /
 threads (a perfect 2-core split, an upper bound on speed).
+
+The children run with the thread environment ``panogs run`` and ``panogs worker`` give the stage
+(panogs_core/threads.py: ``--threads`` threads per pool, idle threads sleep at once); ``--active-wait`` keeps the
+OpenMP default instead (idle threads spin, which a loaded host bills as CPU time: how the figures before
+2026-12-05 09:00 UTC were taken).
+
+``--room N --room-bundle DIR``: the whole stage as a run calls it (``with_computed_maps``, bundle frames read,
+maps written to a checkpoint folder) on ``N`` key frames of a bundle (the frames that bring masks, e.g. a
+``scannet-size`` synthetic room's 100), copied without their maps and without the other frames; the CPU default
+models at their real sizes. Prints one JSON line: wall and CPU seconds, per frame, peak RSS.
 """
 
 from __future__ import annotations
@@ -94,8 +105,10 @@ CASES = {
     "slimsam-77-p8": ("slimsam-77", None, {"points_per_side": 8}),
     # the CPU default before 2026-12-05 (two crop margins, 64 prompts per decoder call)
     "slimsam-77-p16+clip-b16": ("slimsam-77", "clip-b16", {"points_per_side": 16, "points_per_batch": 64}),
-    # the CPU default (docs/method.md §17)
+    # the CPU default (docs/method.md §17); cpu_precision "auto": bfloat16 on a CPU with AVX512-BF16 or AMX
     "slimsam-77-p8+clip-b32": ("slimsam-77", "clip-b32", {"points_per_side": 8}),
+    # the CPU default in float32 (the default before 2026-12-05 10:00 UTC, and on a CPU without native bfloat16)
+    "slimsam-77-p8+clip-b32-fp32": ("slimsam-77", "clip-b32", {"points_per_side": 8, "cpu_precision": "float32"}),
     "slimsam-77-p8+clip-b32-1crop": ("slimsam-77", "clip-b32", {"points_per_side": 8, "crop_margins": (0.1,)}),
 }
 KEEP_ALL = {"pred_iou_thresh": -1.0, "stability_score_thresh": 0.0, "min_mask_fraction": 0.0}
@@ -251,6 +264,69 @@ def run_decoder_profile() -> None:
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
 
 
+def room_bundle(src: Path, dst: Path, count: int) -> Path:
+    """A copy of bundle ``src`` (scene.json and the colour images it keeps) with its first ``count`` key frames
+    (frames that bring masks) and no maps: what a capture without maps looks like to the stage."""
+    doc = json.loads((src / "scene.json").read_text())
+    keys = [f for f in doc["frames"] if f.get("masks")][:count]
+    if len(keys) < count:
+        raise SystemExit(f"{src}: {len(keys)} key frames, fewer than --room {count}")
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("masks", "features", "color", "depth"))
+    for frame in keys:
+        frame.pop("masks")
+        frame.pop("features", None)
+        for kind in ("color", "depth"):
+            (dst / frame[kind]).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src / frame[kind], dst / frame[kind])
+    doc["frames"] = keys
+    doc.pop("features", None)
+    (dst / "scene.json").write_text(json.dumps(doc))
+    return dst
+
+
+def run_room(args: argparse.Namespace) -> dict[str, object]:
+    """The stage on ``--room`` key frames of ``--room-bundle`` in this process (its entry as a run calls it)."""
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.stages.maps2d import MapModels, Maps2DConfig
+    from panogs_core.stages.maps2d.stage import with_computed_maps
+    from panogs_core.threads import set_torch_threads
+
+    set_torch_threads(args.threads)
+    root = Path(args.root)
+    masks_name, feats_name, extra = CASES[args.room_case]
+    models = MapModels(
+        str(build(masks_name, root / "models")) if masks_name else None,
+        str(build(feats_name, root / "models")) if feats_name else None,
+    )
+    bundle = open_bundle(room_bundle(Path(args.room_bundle), root / "room" / "bundle", args.room))
+    checkpoints = root / "room" / "stages"
+    shutil.rmtree(checkpoints, ignore_errors=True)
+    done: list[float] = []
+    cpu_before, start = _cpu_seconds(), time.perf_counter()
+
+    def progress(count: int, total: int) -> None:
+        done.append(time.perf_counter() - start)
+        load = os.getloadavg()[0]
+        print(f"# frame {count}/{total} at {done[-1]:.0f} s, load {load:.1f}", file=sys.stderr, flush=True)
+
+    cfg = Maps2DConfig(device="cpu", **extra)
+    result = with_computed_maps(bundle, checkpoints, cfg, models, progress).computed
+    wall, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_before
+    frames = len(result.frames)  # type: ignore[union-attr]
+    return {
+        "case": args.room_case,
+        "frames": frames,
+        "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
+        "wall_s_per_frame": round(wall / frames, 2),
+        "cpu_s_per_frame": round(cpu / frames, 2),
+        "first_frame_wall_s": round(done[0], 1),
+        "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "masks_per_frame": round(sum(f.mask_count for f in result.frames) / frames, 1),  # type: ignore[union-attr]
+    }
+
+
 def _cpu_seconds() -> float:
     """User + system CPU seconds of this process: on a host other processes load, the work itself."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -273,8 +349,26 @@ def main() -> None:
     parser.add_argument("--root", default="/tmp/maps2d-bench")
     parser.add_argument("--components", action="store_true", help="per-part CPU seconds on one thread instead")
     parser.add_argument("--profile-decoder", action="store_true", help="SAM's decoder alone, profiled, one thread")
+    parser.add_argument(
+        "--active-wait", action="store_true", help="keep OpenMP's spinning idle threads (the figures before 09:00 UTC)"
+    )
+    parser.add_argument("--room", type=int, help="the whole stage on this many key frames of --room-bundle")
+    parser.add_argument("--room-bundle", help="a bundle whose key frames bring masks (a scannet-size synthetic room)")
+    parser.add_argument("--room-case", default="slimsam-77-p8+clip-b32", choices=[c for c in CASES if "+" in c])
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one case, print its JSON
     args = parser.parse_args()
+    if not args.active_wait and os.environ.get("OMP_WAIT_POLICY") is None:
+        # as `panogs run` does (panogs_core/cli/arguments.py limit_threads), for the children: their pools read it
+        # when they load; then run again so that this process's own pools do too
+        from panogs_core.threads import apply_thread_environment
+
+        apply_thread_environment(os.environ, args.threads)
+        os.execv(sys.executable, [sys.executable, *sys.argv])
+    if args.room:
+        if not args.room_bundle:
+            parser.error("--room needs --room-bundle")
+        print(json.dumps(run_room(args)))
+        return
     if args.components:
         run_components(args)
         return
@@ -287,7 +381,8 @@ def main() -> None:
     print(
         f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.processor() or platform.machine()}, "
         f"load {os.getloadavg()[0]:.2f}, {args.threads} threads, {args.frames} timed frames, {args.masks} masks, "
-        f"NMS {args.nms_iou if args.nms_iou is not None else 'the stage default'}"
+        f"NMS {args.nms_iou if args.nms_iou is not None else 'the stage default'}, "
+        f"OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'unset (spinning)')}"
     )
     print(
         "| case | wall s / key frame | CPU s / key frame | first frame wall s | peak RSS MB | masks "
@@ -312,6 +407,7 @@ def main() -> None:
             "--root",
             args.root,
             *(["--nms-iou", str(args.nms_iou)] if args.nms_iou is not None else []),
+            *(["--active-wait"] if args.active_wait else []),
         ]
         proc = subprocess.run(argv, capture_output=True, text=True, check=False)
         if proc.returncode != 0:

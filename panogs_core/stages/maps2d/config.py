@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 from panogs_core.errors import ConfigError
 
+CPU_PRECISIONS = ("auto", "float32", "bfloat16")
+
 
 @dataclass(frozen=True, kw_only=True)
 class Maps2DConfig:
@@ -69,6 +71,11 @@ class Maps2DConfig:
     # --- device ---
     # "auto": the first CUDA device when torch sees one (half precision), else the CPU (float32).
     device: str = "auto"
+    # Number format on a CPU (docs/method.md §17, "CPU costs and the CPU default"): "auto" is bfloat16 where the CPU
+    # does bfloat16 arithmetic natively (AVX512-BF16 or AMX: 0.6-0.7x the CPU time of float32 and 0.6x the encoder's
+    # peak memory, docs/benchmarks.md "2D maps stage costs"), else float32 (emulated bfloat16 is many times
+    # slower); "float32" or "bfloat16" force one. A GPU always runs in float16.
+    cpu_precision: str = "auto"
     # torch intra-op threads on a CPU (restored after the stage); None keeps torch's setting (the process's
     # thread policy, panogs_core/threads.py).
     cpu_threads: int | None = None
@@ -120,6 +127,7 @@ class Maps2DConfig:
             "auto, cpu, cuda or cuda:N",
             self.device,
         )
+        _require(self.cpu_precision in CPU_PRECISIONS, "cpu_precision", " or ".join(CPU_PRECISIONS), self.cpu_precision)
         _require(self.cpu_threads is None or self.cpu_threads >= 1, "cpu_threads", "None or >= 1", self.cpu_threads)
 
     def mask_settings(self) -> dict[str, object]:
@@ -134,6 +142,7 @@ class Maps2DConfig:
             "max_candidates",
             "max_masks",
             "mask_long_side",
+            "cpu_precision",
         )
         return {n: getattr(self, n) for n in names}
 
@@ -143,6 +152,7 @@ class Maps2DConfig:
             "feature_long_side": self.feature_long_side,
             "crop_margins": list(self.crop_margins),
             "global_mix": self.global_mix,
+            "features_cpu_precision": self.cpu_precision,
         }
 
 
