@@ -4,7 +4,8 @@
 Usage:
     python bench/maps2d.py [--threads 2] [--frames 2] [--warm 0|1] [--masks 32] [--nms-iou 1.0]
                            [--cases sam-vit-b slimsam-77 ...] [--root DIR]
-    python bench/maps2d.py --components   # CPU seconds per part (encoder, decoder per point, crop), one thread
+    python bench/maps2d.py --components [--dtype bfloat16]   # CPU s per part (encoder, decoder a point, crop), 1 thread
+    python bench/maps2d.py --parts [--cases ...]   # where one key frame's CPU time goes inside the stage
     python bench/maps2d.py --profile-decoder   # where SAM's decoder time goes, per operator, one thread
     python bench/maps2d.py --room 100 --room-bundle DIR   # the whole stage on a room's key frames (below)
 
@@ -200,19 +201,21 @@ def run_components(args: argparse.Namespace) -> None:
 
     torch.set_num_threads(1)
     root = Path(args.root) / "models"
+    dtype = getattr(torch, args.dtype)
+    print(json.dumps({"dtype": args.dtype}))
     with torch.inference_mode():
         for name in CLIP_ARCH:
-            clip = CLIPModel.from_pretrained(build(name, root)).eval()
-            crops = torch.randn(8, 3, 224, 224)
+            clip = CLIPModel.from_pretrained(build(name, root), dtype=dtype).eval()
+            crops = torch.randn(8, 3, 224, 224, dtype=dtype)
             clip.get_image_features(pixel_values=crops[:1])
             before = _cpu_seconds()
             clip.get_image_features(pixel_values=crops)
             print(json.dumps({"model": name, "cpu_s_per_crop": round((_cpu_seconds() - before) / 8, 3)}), flush=True)
             del clip
         for name in SAM_ARCH:
-            sam = SamModel.from_pretrained(build(name, root)).eval()
+            sam = SamModel.from_pretrained(build(name, root), dtype=dtype).eval()
             before = _cpu_seconds()
-            embeddings = sam.get_image_embeddings(torch.randn(1, 3, 1024, 1024))
+            embeddings = sam.get_image_embeddings(torch.randn(1, 3, 1024, 1024, dtype=dtype))
             encoder = _cpu_seconds() - before
             row: dict[str, object] = {"model": name, "encoder_cpu_s": round(encoder, 2)}
             for batch in (4, 64):  # prompts per decoder call: the stage's CPU value, and SAM's
@@ -226,13 +229,69 @@ def _decoder_cpu_per_point(sam: Any, embeddings: Any, batch: int, points: int = 
     ``batch`` (after one warm-up call)."""
     import torch
 
-    grid = torch.rand(1, points, 1, 2) * 1000
+    grid = (torch.rand(1, points, 1, 2) * 1000).to(embeddings.dtype)
     labels = torch.ones(1, batch, 1, dtype=torch.long)
     sam(image_embeddings=embeddings, input_points=grid[:, :batch], input_labels=labels)
     before = _cpu_seconds()
     for start in range(0, points, batch):
         sam(image_embeddings=embeddings, input_points=grid[:, start : start + batch], input_labels=labels)
     return (_cpu_seconds() - before) / points
+
+
+def run_parts(name: str, args: argparse.Namespace) -> dict[str, object]:
+    """CPU seconds per key frame of each part of the stage's frame step (the functions it calls, wrapped), after
+    a warm-up frame, in this process: SAM's encoder, the decoder loop with its filters, NMS, painting, the crops'
+    embedding (processor and tower) and the tower alone."""
+    import torch
+
+    from panogs_core.stages.maps2d import features, masks, runner
+    from panogs_core.stages.maps2d.config import Maps2DConfig
+
+    torch.set_num_threads(args.threads)
+    masks_name, feats_name, extra = CASES[name]
+    root = Path(args.root) / "models"
+    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **extra})
+    models = runner.load_models(
+        build(masks_name, root) if masks_name else None, build(feats_name, root) if feats_name else None, cfg
+    )
+    spent: dict[str, float] = {}
+
+    def wrap(owner: Any, attr: str, label: str) -> None:
+        inner = getattr(owner, attr)
+
+        def timed(*a: Any, **k: Any) -> Any:
+            before = _cpu_seconds()
+            try:
+                return inner(*a, **k)
+            finally:
+                spent[label] = spent.get(label, 0.0) + _cpu_seconds() - before
+
+        setattr(owner, attr, timed)
+
+    if models.sam is not None:
+        wrap(models.sam.model, "get_image_embeddings", "sam_encoder")
+    wrap(masks, "_candidates", "decoder_and_filters")
+    wrap(masks, "mask_nms", "nms")
+    wrap(masks, "paint_masks", "paint")
+    wrap(features, "_embed", "crops_embedded")
+    if models.clip is not None:
+        wrap(models.clip.model, "forward", "image_tower")
+    images = list(frames(args.frames + 1, None if masks_name else args.masks))
+    runner.process_frame(models, images[0].color, images[0].masks, cfg)  # warm-up
+    spent.clear()
+    before, start = _cpu_seconds(), time.perf_counter()
+    for image in images[1:]:
+        out = runner.process_frame(models, image.color, image.masks, cfg)
+    n = args.frames
+    return {
+        "case": name,
+        "dtype": str((models.sam or models.clip).dtype).removeprefix("torch."),  # type: ignore[union-attr]
+        "cpu_s_per_frame": round((_cpu_seconds() - before) / n, 2),
+        "wall_s_per_frame": round((time.perf_counter() - start) / n, 2),
+        **{k: round(v / n, 2) for k, v in spent.items()},
+        "masks": out.mask_count,
+        "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+    }
 
 
 def run_decoder_profile() -> None:
@@ -349,6 +408,8 @@ def main() -> None:
     parser.add_argument("--root", default="/tmp/maps2d-bench")
     parser.add_argument("--components", action="store_true", help="per-part CPU seconds on one thread instead")
     parser.add_argument("--profile-decoder", action="store_true", help="SAM's decoder alone, profiled, one thread")
+    parser.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="--components' dtype")
+    parser.add_argument("--parts", action="store_true", help="per-part CPU s of a key frame inside the stage")
     parser.add_argument(
         "--active-wait", action="store_true", help="keep OpenMP's spinning idle threads (the figures before 09:00 UTC)"
     )
@@ -376,7 +437,16 @@ def main() -> None:
         run_decoder_profile()
         return
     if args.one:
-        print(json.dumps(run_case(args.one, args)))
+        print(json.dumps(run_parts(args.one, args) if args.parts else run_case(args.one, args)))
+        return
+    if args.parts:  # each case in its own process (its own peak)
+        for name in args.cases:
+            argv = [sys.executable, __file__, "--parts", "--one", name, "--threads", str(args.threads),
+                    "--frames", str(args.frames), "--masks", str(args.masks), "--root", args.root,
+                    *(["--active-wait"] if args.active_wait else [])]  # fmt: skip
+            proc = subprocess.run(argv, capture_output=True, text=True, check=False)
+            lines = proc.stdout.strip().splitlines()
+            print(lines[-1] if proc.returncode == 0 and lines else f"{name}: failed: {proc.stderr[-400:]}", flush=True)
         return
     print(
         f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.processor() or platform.machine()}, "
