@@ -37,6 +37,7 @@ class TestConfig:
             ("device", "gpu", r"maps2d.device: expected auto, cpu, cuda or cuda:N, found 'gpu'"),
             ("cpu_threads", 0, r"maps2d.cpu_threads"),
             ("feature_long_side", 0, r"maps2d.feature_long_side"),
+            ("frame_stride", 0, r"maps2d.frame_stride: expected >= 1, found 0"),
             ("cpu_precision", "float16", r"maps2d.cpu_precision: expected auto or float32 or bfloat16"),
         ],
     )

@@ -68,6 +68,12 @@ class Maps2DConfig:
     global_mix: float = 0.0
     crops_per_batch: int = 32  # crops per image-tower call; memory, not results
 
+    # --- frames ---
+    # ours: maps for every k-th frame with a colour image (1: every frame, the reference's). The stages after this
+    # one read the frames without maps as a bundle's non-key frames (depth and pose only), so k divides the
+    # stage's time by about k, at the price of the views the masks and features are fused over.
+    frame_stride: int = 1
+
     # --- device ---
     # "auto": the first CUDA device when torch sees one (half precision), else the CPU (float32).
     device: str = "auto"
@@ -119,6 +125,7 @@ class Maps2DConfig:
         for m in self.crop_margins:
             _require(_finite_in(m, 0.0, 10.0), "crop_margins", "margins in [0, 10]", self.crop_margins)
         _require(_finite_in(self.global_mix, 0.0, 1.0), "global_mix", "in [0, 1]", self.global_mix)
+        _require(self.frame_stride >= 1, "frame_stride", ">= 1", self.frame_stride)
         _require(self.crops_per_batch >= 1, "crops_per_batch", ">= 1", self.crops_per_batch)
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         _require(
