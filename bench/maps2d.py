@@ -29,7 +29,8 @@ OpenMP default instead (idle threads spin, which a loaded host bills as CPU time
 ``--room N --room-bundle DIR``: the whole stage as a run calls it (``with_computed_maps``, bundle frames read,
 maps written to a checkpoint folder) on ``N`` key frames of a bundle (the frames that bring masks, e.g. a
 ``scannet-size`` synthetic room's 100), copied without their maps and without the other frames; the CPU default
-models at their real sizes. Prints one JSON line: wall and CPU seconds, per frame, peak RSS.
+models at their real sizes, every candidate kept as in the cases (with the stage's filters, random weights leave
+no mask and only the whole image is embedded). Prints one JSON line: wall and CPU seconds, per frame, peak RSS.
 """
 
 from __future__ import annotations
@@ -369,7 +370,7 @@ def run_room(args: argparse.Namespace) -> dict[str, object]:
         load = os.getloadavg()[0]
         print(f"# frame {count}/{total} at {done[-1]:.0f} s, load {load:.1f}", file=sys.stderr, flush=True)
 
-    cfg = Maps2DConfig(device="cpu", **extra)
+    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **extra})  # as the cases: masks flow
     result = with_computed_maps(bundle, checkpoints, cfg, models, progress).computed
     wall, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_before
     frames = len(result.frames)  # type: ignore[union-attr]
