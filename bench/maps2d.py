@@ -109,6 +109,8 @@ CASES = {
     "slimsam-77-p16+clip-b16": ("slimsam-77", "clip-b16", {"points_per_side": 16, "points_per_batch": 64}),
     # the CPU default (docs/method.md §17); cpu_precision "auto": bfloat16 on a CPU with AVX512-BF16 or AMX
     "slimsam-77-p8+clip-b32": ("slimsam-77", "clip-b32", {"points_per_side": 8}),
+    # the GPU default (docs/method.md §17): SAM ViT-B at SAM's 32x32 grid (points_per_side None on CUDA), ViT-B/16
+    "sam-vit-b+clip-b16": ("sam-vit-b", "clip-b16", {}),
     # the CPU default in float32 (the default before 2026-12-05 10:00 UTC, and on a CPU without native bfloat16)
     "slimsam-77-p8+clip-b32-fp32": ("slimsam-77", "clip-b32", {"points_per_side": 8, "cpu_precision": "float32"}),
     "slimsam-77-p8+clip-b32-1crop": ("slimsam-77", "clip-b32", {"points_per_side": 8, "crop_margins": (0.1,)}),
@@ -167,7 +169,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, object]:
     masks_dir = build(masks_name, root / "models") if masks_name else None
     feats_dir = build(feats_name, root / "models") if feats_name else None
     nms = {} if args.nms_iou is None else {"nms_iou_thresh": args.nms_iou}
-    cfg = Maps2DConfig(device="cpu", **KEEP_ALL, **{"max_masks": args.masks, **nms, **extra})
+    cfg = Maps2DConfig(device=args.device, **KEEP_ALL, **{"max_masks": args.masks, **nms, **extra})
     n_masks = None if masks_dir else args.masks
     out = root / "runs" / name
     shutil.rmtree(out, ignore_errors=True)  # a kept folder would be continued, not computed
@@ -191,6 +193,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, object]:
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "masks": [f.mask_count for f in result.frames],
         "bytes_per_frame": sum(sizes) / args.frames,
+        "cuda_peak_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
     }
 
 
@@ -396,6 +399,7 @@ def _cpu_seconds() -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu", help="the cases' maps2d.device (cuda: bench/gpu_check.sh)")
     parser.add_argument("--frames", type=int, default=2, help="timed frames per case (after one warm-up)")
     parser.add_argument("--masks", type=int, default=32, help="masks per frame: max_masks, and the features' id map")
     parser.add_argument(
@@ -453,7 +457,7 @@ def main() -> None:
         f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.processor() or platform.machine()}, "
         f"load {os.getloadavg()[0]:.2f}, {args.threads} threads, {args.frames} timed frames, {args.masks} masks, "
         f"NMS {args.nms_iou if args.nms_iou is not None else 'the stage default'}, "
-        f"OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'unset (spinning)')}"
+        f"OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'unset (spinning)')}, device {args.device}"
     )
     print(
         "| case | wall s / key frame | CPU s / key frame | first frame wall s | peak RSS MB | masks "
@@ -477,6 +481,8 @@ def main() -> None:
             str(args.warm),
             "--root",
             args.root,
+            "--device",
+            args.device,
             *(["--nms-iou", str(args.nms_iou)] if args.nms_iou is not None else []),
             *(["--active-wait"] if args.active_wait else []),
         ]
