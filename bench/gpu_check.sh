@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# The GPU path in one command (at most 8 minutes: the steps' time limits add up to 480 s): installs the `gpu` extra (gsplat),
+# The GPU path in one command (at most 9 minutes: the steps' time limits add up to 540 s): installs the `gpu` extra (gsplat),
 # runs the tests marked `gpu`, the photometric benchmark at the GPU schedule (held-out PSNR / SSIM, fit time, CUDA
-# peak; docs/gaussians.md) and the stage times of a ScanNet-size `scan` room on CUDA, and writes the figures to
+# peak; docs/gaussians.md), the 2D maps stage per key frame on CUDA (SAM ViT-B at SAM's 32x32 grid and CLIP
+# ViT-B/16, real sizes, random weights; docs/benchmarks.md "2D maps stage costs") and the stage times of a
+# ScanNet-size `scan` room on CUDA, and writes the figures to
 # $OUT/gpu_check.json (each step's exit status, wall time and numbers; a failed step does not stop the others).
 #
 # Usage: bench/gpu_check.sh [OUT]        (OUT defaults to bench/results/gpu_check)
@@ -46,6 +48,8 @@ step pytest_gpu 90 "$py" -m pytest -q -m gpu tests/core
 photometric=(bench/gaussians.py photometric --schedules zero gpu --work "$out/work" --renders "$out/renders")
 [ -n "${SEVENSCENES:-}" ] && photometric+=(--sevenscenes "$SEVENSCENES")
 step photometric 150 "$py" "${photometric[@]}" --json "$out/photometric.json"
+step maps2d 60 "$py" bench/maps2d.py --device cuda --frames 3 --warm 1 --cases sam-vit-b+clip-b16 \
+  --root "$out/work/maps2d"
 step scan_synth 90 "$py" -m panogs_core.cli synth "$out/work/scan-0" --preset scan --seed 0
 step scan_run 70 "$py" -m panogs_core.cli run "$out/work/scan-0" --out "$out/work/scan-run" --no-resume -q
 
@@ -72,6 +76,9 @@ if report.is_file():
         "peak_rss_mb": r["peak_rss_mb"],
         "stages": {s["stage"]: s["wall_s"] for s in r["stages"]},
     }
+maps_log = out / "maps2d.log"
+if maps_log.is_file():  # the bench's markdown table: header and the case's row
+    result["maps2d"] = [line for line in maps_log.read_text().splitlines() if line.startswith(("#", "| sam"))]
 (out / "gpu_check.json").write_text(json.dumps(result, indent=1))
 print(f"wrote {out / 'gpu_check.json'}")
 PY

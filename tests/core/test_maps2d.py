@@ -37,6 +37,8 @@ class TestConfig:
             ("device", "gpu", r"maps2d.device: expected auto, cpu, cuda or cuda:N, found 'gpu'"),
             ("cpu_threads", 0, r"maps2d.cpu_threads"),
             ("feature_long_side", 0, r"maps2d.feature_long_side"),
+            ("frame_stride", 0, r"maps2d.frame_stride: expected >= 1, found 0"),
+            ("cpu_precision", "float16", r"maps2d.cpu_precision: expected auto or float32 or bfloat16"),
         ],
     )
     def test_exception(self, field: str, value: object, message: str) -> None:
@@ -51,6 +53,22 @@ class TestConfig:
         assert prompts_per_call(Maps2DConfig(), torch.device("cpu")) == 4
         assert prompts_per_call(Maps2DConfig(), torch.device("cuda")) == 64
         assert prompts_per_call(Maps2DConfig(points_per_batch=16), torch.device("cpu")) == 16
+
+    def test_cpu_precision(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        # "auto": bfloat16 only where the CPU has it natively; a setting forces either; both settings dicts carry it
+        # (a features-only run's key too).
+        torch = pytest.importorskip("torch")
+        from panogs_core.stages.maps2d import models
+
+        assert Maps2DConfig().cpu_precision == "auto"
+        assert "cpu_precision" in Maps2DConfig().mask_settings()
+        assert "features_cpu_precision" in Maps2DConfig().feature_settings()
+        monkeypatch.setattr(models, "cpu_has_native_bfloat16", lambda: True)
+        assert models.pick_device("cpu", "auto") == (torch.device("cpu"), torch.bfloat16)
+        assert models.pick_device("cpu", "float32")[1] == torch.float32
+        monkeypatch.setattr(models, "cpu_has_native_bfloat16", lambda: False)
+        assert models.pick_device("cpu", "auto")[1] == torch.float32
+        assert models.pick_device("cpu", "bfloat16")[1] == torch.bfloat16
 
     def test_scaled_size(self) -> None:
         assert scaled_size(968, 1296, 640) == (478, 640)

@@ -64,9 +64,11 @@ def _frames(count: int = 3, size: tuple[int, int] = (36, 48)) -> list[FrameImage
     return out
 
 
+# float32 whatever the CPU ("auto" is bfloat16 on one with native bfloat16): the same numbers on every machine.
 CFG = Maps2DConfig(
-    points_per_side=4, points_per_batch=5, max_masks=6, mask_long_side=32, feature_long_side=8, device="cpu", **KEEP_ALL
-)
+    points_per_side=4, points_per_batch=5, max_masks=6, mask_long_side=32, feature_long_side=8, device="cpu",
+    cpu_precision="float32", **KEEP_ALL,
+)  # fmt: skip
 
 
 class TestMaps2DWithModels:
@@ -165,6 +167,30 @@ class TestMaps2DWithModels:
         for other in maps[1:]:
             for a, b in zip(maps[0], other, strict=True):
                 np.testing.assert_array_equal(a, b)
+
+    def test_bfloat16_on_a_cpu(self, models: tuple[Path, Path], tmp_path: Path) -> None:
+        # Both models run in bfloat16 (the CPU default where the CPU has it natively); the maps keep their formats,
+        # and the checkpoint key tells them from float32's, so neither continues the other's folder.
+        import torch
+
+        from panogs_core.stages.maps2d import runner
+
+        sam, clip = models
+        cfg = replace(CFG, cpu_precision="bfloat16")
+        loaded = runner.load_models(sam, clip, cfg)
+        assert loaded.sam is not None
+        assert loaded.clip is not None
+        assert loaded.sam.model.dtype == loaded.clip.model.dtype == torch.bfloat16
+        half = compute_2d_maps(_frames(1), tmp_path / "m", cfg, masks_model=sam, features_model=clip)
+        ids = half.read_masks("000000")
+        assert ids.dtype == np.uint16
+        assert np.unique(ids[ids > 0]).tolist() == list(range(1, half.frames[0].mask_count + 1))
+        assert half.frames[0].mask_count >= 1
+        feats = half.read_features("000000")
+        assert feats.dtype == np.float16
+        np.testing.assert_allclose(np.linalg.norm(feats.astype(np.float32), axis=-1), 1.0, atol=2e-3)
+        full = compute_2d_maps(_frames(1), tmp_path / "m", CFG, masks_model=sam, features_model=clip)
+        assert full.key != half.key
 
     def test_image_tower_alone(self, models: tuple[Path, Path]) -> None:
         # The stage builds CLIP's image tower only, with the whole model's projection width (12 here, where the

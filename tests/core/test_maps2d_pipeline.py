@@ -183,6 +183,32 @@ def test_errors_come_before_any_frame(capture_bundle: Path, models: tuple[Path, 
     assert not list((tmp_path / "c").rglob("masks/*.png"))
 
 
+@pytest.mark.slow  # tiny models on half the tiny capture's frames (2-6 s here)
+def test_a_frame_stride_computes_every_kth_frame_and_leaves_the_others_without_maps(
+    capture_bundle: Path, models: tuple[Path, Path], tmp_path: Path
+) -> None:
+    from panogs_core.stages.maps2d.config import Maps2DConfig
+    from panogs_core.stages.maps2d.stage import with_computed_maps
+
+    bundle = open_bundle(capture_bundle)
+    settings = {k.removeprefix("maps2d."): v for k, v in SETTINGS.items() if k.startswith("maps2d.")}
+    cfg = Maps2DConfig(**settings, frame_stride=3)  # type: ignore[arg-type]
+    seen = with_computed_maps(bundle, tmp_path, cfg, MapModels(str(models[0]), str(models[1])), lambda d, t: None)
+    every = [f.id for f in bundle.frames if f.color is not None]
+    assert len(every) >= 4
+    assert [f.id for f in seen.mask_frames] == every[::3]
+    assert [f.id for f in seen.feature_frames] == every[::3]
+    assert [f.id for f in seen.computed.frames] == every[::3]  # type: ignore[union-attr]
+    assert all(f.masks is None and f.features is None for f in seen.frames if f.id not in every[::3])
+    # Another stride is another folder: the frames computed are in its key.
+    other = with_computed_maps(
+        bundle, tmp_path, Maps2DConfig(**settings, frame_stride=2), MapModels(str(models[0]), str(models[1])),  # type: ignore[arg-type]
+        lambda d, t: None,
+    )  # fmt: skip
+    assert other.computed.root != seen.computed.root  # type: ignore[union-attr]
+    assert [f.id for f in other.mask_frames] == every[::2]
+
+
 def _nested(flat: dict[str, object]) -> dict[str, object]:
     out: dict[str, dict[str, object]] = {}
     for key, value in flat.items():

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 from panogs_core.errors import ConfigError
 
+CPU_PRECISIONS = ("auto", "float32", "bfloat16")
+
 
 @dataclass(frozen=True, kw_only=True)
 class Maps2DConfig:
@@ -66,9 +68,20 @@ class Maps2DConfig:
     global_mix: float = 0.0
     crops_per_batch: int = 32  # crops per image-tower call; memory, not results
 
+    # --- frames ---
+    # ours: maps for every k-th frame with a colour image (1: every frame, the reference's). The stages after this
+    # one read the frames without maps as a bundle's non-key frames (depth and pose only), so k divides the
+    # stage's time by about k, at the price of the views the masks and features are fused over.
+    frame_stride: int = 1
+
     # --- device ---
     # "auto": the first CUDA device when torch sees one (half precision), else the CPU (float32).
     device: str = "auto"
+    # Number format on a CPU (docs/method.md §17, "CPU costs and the CPU default"): "auto" is bfloat16 where the CPU
+    # does bfloat16 arithmetic natively (AVX512-BF16 or AMX: 0.6-0.7x the CPU time of float32 and 0.6x the encoder's
+    # peak memory, docs/benchmarks.md "2D maps stage costs"), else float32 (emulated bfloat16 is many times
+    # slower); "float32" or "bfloat16" force one. A GPU always runs in float16.
+    cpu_precision: str = "auto"
     # torch intra-op threads on a CPU (restored after the stage); None keeps torch's setting (the process's
     # thread policy, panogs_core/threads.py).
     cpu_threads: int | None = None
@@ -112,6 +125,7 @@ class Maps2DConfig:
         for m in self.crop_margins:
             _require(_finite_in(m, 0.0, 10.0), "crop_margins", "margins in [0, 10]", self.crop_margins)
         _require(_finite_in(self.global_mix, 0.0, 1.0), "global_mix", "in [0, 1]", self.global_mix)
+        _require(self.frame_stride >= 1, "frame_stride", ">= 1", self.frame_stride)
         _require(self.crops_per_batch >= 1, "crops_per_batch", ">= 1", self.crops_per_batch)
         # Checked by form, not with torch.device: importing the config must not import torch (API process).
         _require(
@@ -120,6 +134,7 @@ class Maps2DConfig:
             "auto, cpu, cuda or cuda:N",
             self.device,
         )
+        _require(self.cpu_precision in CPU_PRECISIONS, "cpu_precision", " or ".join(CPU_PRECISIONS), self.cpu_precision)
         _require(self.cpu_threads is None or self.cpu_threads >= 1, "cpu_threads", "None or >= 1", self.cpu_threads)
 
     def mask_settings(self) -> dict[str, object]:
@@ -134,6 +149,7 @@ class Maps2DConfig:
             "max_candidates",
             "max_masks",
             "mask_long_side",
+            "cpu_precision",
         )
         return {n: getattr(self, n) for n in names}
 
@@ -143,6 +159,7 @@ class Maps2DConfig:
             "feature_long_side": self.feature_long_side,
             "crop_margins": list(self.crop_margins),
             "global_mix": self.global_mix,
+            "features_cpu_precision": self.cpu_precision,
         }
 
 

@@ -32,17 +32,36 @@ class LoadedModel:
     dtype: torch.dtype
 
 
-def pick_device(device: str) -> tuple[torch.device, torch.dtype]:
-    """The device and dtype of a ``Maps2DConfig.device``: CUDA in half precision, else the CPU in float32."""
+def pick_device(device: str, cpu_precision: str = "float32") -> tuple[torch.device, torch.dtype]:
+    """The device and dtype of a ``Maps2DConfig.device`` and ``cpu_precision``: CUDA in half precision; the CPU in
+    bfloat16 when asked, or for "auto" when it has native bfloat16 arithmetic (:func:`cpu_has_native_bfloat16`),
+    else in float32."""
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ModelLoadError(f"maps2d.device {device!r}: torch sees no CUDA device")
-    return dev, (torch.float16 if dev.type == "cuda" else torch.float32)
+    if dev.type == "cuda":
+        return dev, torch.float16
+    bf16 = cpu_precision == "bfloat16" or (cpu_precision == "auto" and cpu_has_native_bfloat16())
+    return dev, (torch.bfloat16 if bf16 else torch.float32)
 
 
-def load_sam(folder: Path, device: str) -> LoadedModel:
+def cpu_has_native_bfloat16() -> bool:
+    """Whether this CPU does bfloat16 arithmetic in hardware (AVX512-BF16 or AMX), as torch's CPU dispatch sees it.
+    Without it oneDNN emulates bfloat16, many times slower than float32 (docs/benchmarks.md)."""
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's; absent in some builds
+    for name in checks:
+        check = getattr(torch.cpu, name, None)
+        try:
+            if check is not None and check():
+                return True
+        except RuntimeError:
+            continue
+    return False
+
+
+def load_sam(folder: Path, device: str, cpu_precision: str = "float32") -> LoadedModel:
     """A SAM-family model and its processor.
 
     Raises:
@@ -57,7 +76,7 @@ def load_sam(folder: Path, device: str) -> LoadedModel:
             "SlimSAM)"
         )
     _need_processor(folder, "SAM")
-    dev, dtype = pick_device(device)
+    dev, dtype = pick_device(device, cpu_precision)
     try:
         processor = SamImageProcessorPil.from_pretrained(folder, local_files_only=True)
         model: Any = SamModel.from_pretrained(folder, local_files_only=True, dtype=dtype)
@@ -66,7 +85,7 @@ def load_sam(folder: Path, device: str) -> LoadedModel:
     return LoadedModel(model.to(dev).eval(), processor, folder, dev, dtype)
 
 
-def load_clip(folder: Path, device: str) -> LoadedModel:
+def load_clip(folder: Path, device: str, cpu_precision: str = "float32") -> LoadedModel:
     """A CLIP model's image tower with its projection, and its image processor.
 
     Only the image tower is built (``CLIPVisionModelWithProjection`` reads the vision weights of a ``CLIPModel``
@@ -85,7 +104,7 @@ def load_clip(folder: Path, device: str) -> LoadedModel:
     if kind not in CLIP_TYPES:
         raise ModelLoadError(f"{folder}: config.json model_type {kind!r}, expected a CLIP model ('clip')")
     _need_processor(folder, "CLIP")
-    dev, dtype = pick_device(device)
+    dev, dtype = pick_device(device, cpu_precision)
     # The projection's width is the whole model's setting; the vision section of config.json may hold a stale one.
     width = config.get("projection_dim")
     verbosity = hf_logging.get_verbosity()

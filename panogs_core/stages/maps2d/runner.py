@@ -47,8 +47,8 @@ class ComputedMaps:
 def load_models(masks_dir: Path | None, features_dir: Path | None, cfg: Maps2DConfig) -> Models:
     """Load both models on the configured device (each once per run)."""
     return Models(
-        load_sam(masks_dir, cfg.device) if masks_dir is not None else None,
-        load_clip(features_dir, cfg.device) if features_dir is not None else None,
+        load_sam(masks_dir, cfg.device, cfg.cpu_precision) if masks_dir is not None else None,
+        load_clip(features_dir, cfg.device, cfg.cpu_precision) if features_dir is not None else None,
     )
 
 

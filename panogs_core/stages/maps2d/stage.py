@@ -109,7 +109,7 @@ def with_computed_maps(
         )
     masks_model = models.masks if "masks" in missing else None
     features_model = models.features if "features" in missing else None
-    frames = _frames_to_compute(bundle, need_own_masks=masks_model is None)
+    frames = _frames_to_compute(bundle, need_own_masks=masks_model is None, stride=cfg.frame_stride)
     masks_id, feats_id = identify_models(masks_model, features_model, allow_download=models.allow_download)
     ids = [f.id for f in frames]
     content_key = checkpoint_key(masks_id, feats_id, cfg)
@@ -179,13 +179,15 @@ def _noun(kind: str) -> str:
     return "masks" if kind == "masks" else "feature maps"
 
 
-def _frames_to_compute(bundle: Bundle, *, need_own_masks: bool) -> list[Frame]:
-    """The frames that get computed maps: those with a colour image (and their own masks for features only)."""
+def _frames_to_compute(bundle: Bundle, *, need_own_masks: bool, stride: int = 1) -> list[Frame]:
+    """The frames that get computed maps: those with a colour image (and their own masks for features only), then
+    every ``stride``-th of them from the first (``maps2d.frame_stride``); the others keep no map of the kinds
+    computed, which the stages after this one read as non-key frames."""
     frames = [f for f in bundle.frames if f.color is not None and (f.masks is not None or not need_own_masks)]
     if not frames:
         need = "a colour image and masks" if need_own_masks else "a colour image"
         raise InputError(f"{bundle.root / 'scene.json'}: no frame has {need} to compute 2D maps from")
-    return frames
+    return frames[::stride]
 
 
 def _images(bundle: Bundle, frames: list[Frame], *, own_masks: bool) -> Iterator[FrameImage]:
