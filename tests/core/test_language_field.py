@@ -398,9 +398,6 @@ class TestConfig:
             ("device", "not-a-device"),
             ("cpu_threads", 0),
             ("basis_dims", 0),
-            ("lr_schedule", "linear"),
-            ("warmup_fraction", 1.0),
-            ("final_lr_fraction", -0.1),
         ],
     )
     def test_exception_names_field(self, field: str, value: object) -> None:
@@ -412,37 +409,9 @@ class TestConfig:
         assert cfg.cell_sizes == (0.1, 0.04)  # the reference's Replica levels
         assert cfg.channels == 10
         assert cfg.hidden_dims == (128,)
-        assert cfg.betas[0] == 0.9  # the second moment's decay is ours (0.9, docs/method.md §3.3)
+        assert cfg.betas == (0.9, 0.99)
         assert cfg.weight_decay == 1e-6
         assert cfg.init_scale == 0.1
-
-
-class TestSchedule:
-    """The learning rate over a fit (``lr_schedule``)."""
-
-    def test_constant_is_one(self) -> None:
-        from panogs_core.stages.language_field.triplane import lr_factor
-
-        cfg = LanguageFieldConfig(lr_schedule="constant")
-        assert {lr_factor(cfg, step, 50) for step in range(50)} == {1.0}
-
-    def test_cosine_warms_up_peaks_and_decays_to_the_floor(self) -> None:
-        from panogs_core.stages.language_field.triplane import lr_factor
-
-        cfg = LanguageFieldConfig(lr_schedule="cosine", warmup_fraction=0.1, final_lr_fraction=0.05)
-        factors = [lr_factor(cfg, step, 100) for step in range(100)]
-        assert factors[0] < 0.2  # warming up
-        assert all(a < b for a, b in itertools.pairwise(factors[:11]))  # rises to the peak ...
-        assert factors[10] == pytest.approx(1.0)
-        assert all(a >= b for a, b in itertools.pairwise(factors[10:]))  # ... then never rises again
-        assert factors[-1] == pytest.approx(0.05)
-        assert factors[55] == pytest.approx(0.05 + 0.95 * 0.5, abs=0.02)  # half-way down at the middle
-
-    def test_cosine_fit_learns_the_regions(self) -> None:
-        points, region, anchors = _three_regions()
-        fused = _fused(anchors[region], np.ones(len(region), np.float32))
-        field = fit_language_field(points, fused, _small_cfg(lr_schedule="cosine", epochs=4))
-        assert (np.argmax(field.features @ anchors.T, axis=1) == region).mean() > 0.95
 
 
 class TestFeatureBasis:

@@ -13,16 +13,13 @@ from dataclasses import dataclass
 
 from panogs_core.errors import ConfigError
 
-_SCHEDULES = ("constant", "cosine")
-
 
 @dataclass(frozen=True, kw_only=True)
 class LanguageFieldConfig:
     """Settings of the language field (docs/method.md §3.2-3.3; defaults: the reference's ScanNet settings).
 
-    DEPARTURE (schedule, docs/method.md §3.3): 3 epochs (at least 200 steps) at batch 1024 with larger learning
-    rates and Adam's second-moment decay at 0.9, where the reference trains 11 epochs at batch 256, lr 1e-3 and
-    0.99; on a CPU the cost is per point, not per step.
+    DEPARTURE (schedule, docs/method.md §3.3): 4 epochs at batch 1024 with larger learning rates, where the
+    reference trains 11 epochs at batch 256 and lr 1e-3; on a CPU the cost is per point, not per step.
     """
 
     # Metres per tri-plane cell, one per pyramid level (docs/method.md §3.2: ScanNet (0.2, 0.06), Replica (0.1, 0.04)).
@@ -31,23 +28,18 @@ class LanguageFieldConfig:
     channels: int = 10  # latent channels C per plane (reference num_components)
     init_scale: float = 0.1  # std of the N(0, s^2) plane initialisation
     hidden_dims: tuple[int, ...] = (128,)  # decoder hidden widths: C -> 128 -> D (ScanNet), no biases
-    epochs: int = 3  # passes over the seen primitives (reference: 11)
+    epochs: int = 4  # passes over the seen primitives (reference: 11)
     # DEPARTURE (docs/method.md §3.3): small scenes get more passes, so every scene trains at least this many steps
-    # (70k seen points at 3 epochs already make about 200).
-    min_steps: int = 200
+    # (150k points at 4 epochs already make about 600).
+    min_steps: int = 600
     batch_size: int = 1024  # primitives per step (reference: 256)
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
     plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
-    # Learning rate over the fit: "constant" (the reference), or "cosine": a linear warm-up over the first
-    # `warmup_fraction` of the steps to `lr` / `plane_lr`, then a half cosine down to `final_lr_fraction` of them
-    # at the last step (docs/method.md §3.3).
-    lr_schedule: str = "constant"
-    warmup_fraction: float = 0.05  # share of the steps warming up (cosine schedule only)
-    final_lr_fraction: float = 0.0  # the last step's rate over the peak (cosine schedule only)
     weight_decay: float = 1e-6  # L2 on the decoder weights only (reference)
-    # Adam betas (reference: (0.9, 0.99)). DEPARTURE (docs/method.md §3.3): the second moment decays at 0.9, which
-    # fits the fused features as closely in a third of the steps (a plane cell is touched by a few batches only).
-    betas: tuple[float, float] = (0.9, 0.9)
+    # Adam betas (reference). A third of the steps with the second moment at 0.9 (epochs 3, min_steps 200,
+    # betas (0.9, 0.9)) is 0.35-0.39x the field's CPU at ScanNet size but lowered the ScanNet-size room's PRQ(T) by
+    # 3 points (docs/method.md §3.3, the option of fewer steps).
+    betas: tuple[float, float] = (0.9, 0.99)
     bound_padding: float = 0.05  # metres added on every side of the primitives' box
     max_resolution: int = 1024  # cap on plane resolution R per level (memory: 3*C*R^2 floats per level)
     # Torch device for training and decoding. The CLI keeps the CPU; a service worker sets "cuda" where it sees a
@@ -80,9 +72,6 @@ class LanguageFieldConfig:
         _require(self.min_steps >= 0, "min_steps", ">= 0", self.min_steps)
         _require(math.isfinite(self.lr) and self.lr > 0, "lr", "> 0", self.lr)
         _require(math.isfinite(self.plane_lr) and self.plane_lr > 0, "plane_lr", "> 0", self.plane_lr)
-        _require(self.lr_schedule in _SCHEDULES, "lr_schedule", " or ".join(_SCHEDULES), self.lr_schedule)
-        _require(0 <= self.warmup_fraction < 1, "warmup_fraction", "in [0, 1)", self.warmup_fraction)
-        _require(0 <= self.final_lr_fraction <= 1, "final_lr_fraction", "in [0, 1]", self.final_lr_fraction)
         _require(self.weight_decay >= 0, "weight_decay", ">= 0", self.weight_decay)
         _require(
             len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),

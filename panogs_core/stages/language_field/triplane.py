@@ -287,23 +287,6 @@ def _cosine_loss_and_gradients(
     return loss, d_h, grads
 
 
-def lr_factor(cfg: LanguageFieldConfig, step: int, total: int) -> float:
-    """The learning rate of step ``step`` (0-based) of ``total`` over its peak (``cfg.lr`` / ``cfg.plane_lr``).
-
-    "constant": 1. "cosine": a linear warm-up to 1 over the first ``warmup_fraction`` of the steps, then a half
-    cosine from 1 down to ``final_lr_fraction`` at the last step (docs/method.md §3.3).
-    """
-    if cfg.lr_schedule == "constant":
-        return 1.0
-    warmup = int(cfg.warmup_fraction * total)
-    if step < warmup:
-        return (step + 1) / (warmup + 1)
-    span = max(total - 1 - warmup, 1)
-    progress = min((step - warmup) / span, 1.0)
-    floor = cfg.final_lr_fraction
-    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
 def train_model(
     model: _TriplaneDecoder,
     data: TrainingSet,
@@ -333,7 +316,6 @@ def train_model(
     steps_per_epoch = max(1, math.ceil(count / cfg.batch_size))
     epochs = max(cfg.epochs, math.ceil(cfg.min_steps / steps_per_epoch))
     corners = BatchCorners(table)
-    total, step = epochs * steps_per_epoch, 0
     with torch.no_grad():
         for epoch in range(epochs):
             order = torch.randperm(count, generator=gen).to(weights.device)
@@ -345,11 +327,8 @@ def train_model(
                 loss, latent_grad, mlp_grads = _cosine_loss_and_gradients(
                     mlp, latent, data.targets(idx), inverse_norms, sample_weights
                 )
-                factor = lr_factor(cfg, step, total)
-                planes_adam.lr, mlp_adam.lr = cfg.plane_lr * factor, cfg.lr * factor
                 planes_adam.step([corners.table_gradient(latent_grad)])
                 mlp_adam.step(mlp_grads)
-                step += 1
             if not math.isfinite(float(loss)):
                 raise NumericalError(f"language field: the loss became {float(loss)} at epoch {epoch + 1}")
             report(on_progress, epoch + 1, epochs)
