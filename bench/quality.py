@@ -44,7 +44,8 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   basis (``language_field.basis_dims``); field-e4-600-b099: the defaults spelled out (4 epochs, 600 steps, 0.99)
 - field-seed-1 ... -5, field-e4-600-b099-seed-1 ... -5, field-e3-200-b09-seed-1 ... -5: the field's own seed
   (``language_field.seed``) with the defaults, with the defaults spelled out, and with field-e3-200-b09's schedule:
-  what a field's seed alone moves; field-e4-b09-seed-0 ... -3: field-e3-200-b09's schedule at 4 epochs
+  what a field's seed alone moves; field-e4-b09-seed-0 ... -3: field-e3-200-b09's schedule at 4 epochs;
+  field-steps-300-seed-1 ... -5: field-steps-300 with the field's seed
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
 - vis-cap-0.15 / vis-cap-0.25 / vis-no-cap: the depth test's tolerance (7 % of the depth) capped at 0.15 m (the
@@ -122,6 +123,7 @@ VARIANTS: dict[str, dict] = {
         }
         for k in (1, 2, 3, 4, 5)
     },
+    **{f"field-steps-300-seed-{k}": {"language_field": {"min_steps": 300, "seed": k}} for k in (1, 2, 3, 4, 5)},
     **{
         f"field-e4-b09-seed-{k}": {"language_field": {"epochs": 4, "min_steps": 200, "betas": (0.9, 0.9), "seed": k}}
         for k in (0, 1, 2, 3)
