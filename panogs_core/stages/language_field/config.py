@@ -36,7 +36,10 @@ class LanguageFieldConfig:
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
     plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
     weight_decay: float = 1e-6  # L2 on the decoder weights only (reference)
-    betas: tuple[float, float] = (0.9, 0.99)  # Adam betas (reference)
+    # Adam betas (reference). A third of the steps with the second moment at 0.9 (epochs 3, min_steps 200,
+    # betas (0.9, 0.9)) is 0.35-0.39x the field's CPU at ScanNet size but lowered the ScanNet-size room's PRQ(T) by
+    # 3 points (docs/method.md §3.3, the option of fewer steps).
+    betas: tuple[float, float] = (0.9, 0.99)
     bound_padding: float = 0.05  # metres added on every side of the primitives' box
     max_resolution: int = 1024  # cap on plane resolution R per level (memory: 3*C*R^2 floats per level)
     # Torch device for training and decoding. The CLI keeps the CPU; a service worker sets "cuda" where it sees a
