@@ -17,7 +17,7 @@ pytest.importorskip("transformers")
 
 from bundle_copies import without_maps
 from capture_room import write_tum
-from tiny_models import KEEP_ALL, tiny_clip, tiny_sam
+from tiny_models import TINY_MAPS, tiny_clip, tiny_sam
 
 from panogs_core.cli.main import main
 from panogs_core.errors import InputError
@@ -30,11 +30,7 @@ from panogs_core.stages.maps2d import MapModels, ModelLoadError
 
 # Tiny settings: the tiny models' 64 px images, every mask kept, no appearance fit (not what is tested).
 SETTINGS = {
-    **{f"maps2d.{k}": v for k, v in KEEP_ALL.items()},
-    "maps2d.points_per_side": 4,
-    "maps2d.max_masks": 8,
-    "maps2d.mask_long_side": 64,
-    "maps2d.feature_long_side": 16,
+    **{f"maps2d.{k}": v for k, v in TINY_MAPS.items()},
     "maps2d.device": "cpu",
     "appearance.enabled": False,
 }

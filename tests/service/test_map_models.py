@@ -24,6 +24,7 @@ from bundle_copies import without_maps
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 from svc_helpers import RecordingSender, make_scene, mark_succeeded, new_key
+from tiny_models import TINY_MAPS
 
 from service.api_app import create_app
 from service.db.models import Job, JobState, Scene
@@ -527,18 +528,9 @@ class TestFreeText:
 
 # End to end -----------------------------------------------------------------------------------------------------
 
-# The tiny models' settings (tests/core/test_maps2d_pipeline.py): every mask kept, small grids, no appearance fit.
+# The tiny models' settings (tiny_models.TINY_MAPS: every mask kept, small grids), no appearance fit.
 E2E_CONFIG = {
-    "maps2d": {
-        "pred_iou_thresh": -1.0,
-        "stability_score_thresh": 0.0,
-        "min_mask_fraction": 0.0,
-        "points_per_side": 4,
-        "max_masks": 8,
-        "mask_long_side": 64,
-        "feature_long_side": 16,
-        "device": "cpu",
-    },
+    "maps2d": {**TINY_MAPS, "device": "cpu"},
     "appearance": {"enabled": False},
     "language_field": {"epochs": 1, "min_steps": 1},
 }

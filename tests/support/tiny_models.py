@@ -8,6 +8,8 @@ from pathlib import Path
 
 # Random weights score every mask near 0: keep them all, so that the painting and the crops run.
 KEEP_ALL = {"pred_iou_thresh": -1.0, "stability_score_thresh": 0.0, "min_mask_fraction": 0.0}
+# The ``maps2d`` settings of a run on the tiny models: every mask kept, a 4x4 grid, the tiny models' small images.
+TINY_MAPS = {**KEEP_ALL, "points_per_side": 4, "max_masks": 8, "mask_long_side": 64, "feature_long_side": 16}
 
 
 def _byte_alphabet() -> list[str]:

@@ -19,6 +19,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from tiny_models import TINY_MAPS
 from viewer_page import BACKGROUND, canvas_pixels, look_from_frame
 
 pytestmark = pytest.mark.slow
@@ -614,20 +615,8 @@ def test_deleting_the_job_removes_it_and_its_files(
     page.wait_for_selector("#upload")
 
 
-# The tiny random models' settings (tests/service/test_map_models.py): every mask kept, small grids; a short fit.
-MAPS_RUN = {
-    "maps2d": {
-        "pred_iou_thresh": -1.0,
-        "stability_score_thresh": 0.0,
-        "min_mask_fraction": 0.0,
-        "points_per_side": 4,
-        "max_masks": 8,
-        "mask_long_side": 64,
-        "feature_long_side": 16,
-    },
-    "language_field": {"epochs": 1, "min_steps": 1},
-    "appearance": {"iterations": 20},
-}
+# The tiny random models' settings (tiny_models.TINY_MAPS: every mask kept, small grids); a short fit.
+MAPS_RUN = {"maps2d": TINY_MAPS, "language_field": {"epochs": 1, "min_steps": 1}, "appearance": {"iterations": 20}}
 
 
 def test_a_capture_without_maps_runs_on_the_chosen_models_and_answers_free_text(

@@ -200,7 +200,7 @@ def test_a_scenes_computed_2d_maps_are_computed_once_and_fetched_by_its_next_job
     scene's next job (another run folder, another worker) loads no model and reads the same maps."""
     pytest.importorskip("transformers")
     from bundle_copies import without_maps
-    from tiny_models import KEEP_ALL, tiny_clip, tiny_sam
+    from tiny_models import TINY_MAPS, tiny_clip, tiny_sam
 
     from panogs_core.io.bundle import open_bundle
     from panogs_core.stages.maps2d import MapModels, Maps2DConfig
@@ -208,8 +208,7 @@ def test_a_scenes_computed_2d_maps_are_computed_once_and_fetched_by_its_next_job
     from panogs_core.stages.maps2d.stage import with_computed_maps
 
     bundle = open_bundle(without_maps(synth_tiny, tmp_path / "capture"))
-    cfg = Maps2DConfig(**KEEP_ALL, points_per_side=4, max_masks=8, mask_long_side=64, feature_long_side=16,
-                       device="cpu")  # fmt: skip
+    cfg = Maps2DConfig(**TINY_MAPS, device="cpu")
     models = MapModels(masks=str(tiny_sam(tmp_path / "sam")), features=str(tiny_clip(tmp_path / "clip")))
     scene_id = uuid.uuid4()
     first = with_computed_maps(bundle, tmp_path / "job1" / "stages", cfg, models, lambda *_: None,
