@@ -1,7 +1,7 @@
-"""Whether the object storage answers, as ``/readyz`` asks it: one cheap call (a ``stat`` of a key that need not
-exist) within a short timeout, its answer reused for a few seconds so that a load balancer polling readiness does
-not become the store's load, and at most one probe in flight (a store that hangs holds one thread, not one per
-poll)."""
+"""Whether the object storage answers, as ``/readyz`` asks it: one cheap call (a read of a small object the probe
+keeps, :func:`read_probe_object`) within a short timeout, its answer reused for a few seconds so that a load
+balancer polling readiness does not become the store's load, and at most one probe in flight (a store that hangs
+holds one thread, not one per poll)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,25 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 
-PROBE_KEY = "readyz/probe"  # never written: a stat of it costs the store one HEAD and answers None
+from service.storage.objects import ObjectNotFound, ObjectStorage, StorageError
+
+PROBE_KEY = "readyz/probe"  # a few bytes, written by the first probe that finds none
+PROBE_BODY = b"panogs readiness probe\n"
+
+
+def read_probe_object(objects: ObjectStorage) -> None:
+    """Read the probe's object, writing it first where it is absent; raise when its bytes do not come back.
+
+    A read, not a ``stat``: after a restart SeaweedFS answers a ``HEAD`` from its metadata seconds before it can
+    serve stored bytes, and a download in that window failed with ``InternalError`` while ``/readyz`` said ready.
+    """
+    try:
+        body = objects.get_bytes(PROBE_KEY)
+    except ObjectNotFound:
+        objects.put_bytes(PROBE_KEY, PROBE_BODY)
+        body = objects.get_bytes(PROBE_KEY)
+    if body != PROBE_BODY:
+        raise StorageError(f"{PROBE_KEY} read back {len(body)} other bytes")
 
 
 class StorageProbe:

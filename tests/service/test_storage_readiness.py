@@ -124,3 +124,19 @@ def test_a_stopped_store_is_not_ready_and_its_requests_are_503(
         # The refused chunk left the upload where it was: it resumes at 0 once the store is back.
         head = client.head(f"/v1/uploads/{started.json()['id']}", headers={**auth, **TUS})
         assert head.headers["Upload-Offset"] == "0"
+
+
+def test_the_probe_reads_its_own_object_back(tmp_path: Path) -> None:
+    """The probe reads stored bytes (a stat alone was answered before a restarted SeaweedFS could serve a
+    download): the first probe writes its object, later ones read it, and other bytes are a failure."""
+    from service.storage.local import LocalStorage
+    from service.storage.objects import StorageError
+    from service.storage.probe import PROBE_BODY, PROBE_KEY, read_probe_object
+
+    objects = LocalStorage(tmp_path)
+    read_probe_object(objects)
+    assert objects.get_bytes(PROBE_KEY) == PROBE_BODY
+    read_probe_object(objects)  # read, not written again
+    objects.put_bytes(PROBE_KEY, b"not the probe's")
+    with pytest.raises(StorageError, match="readyz/probe"):
+        read_probe_object(objects)

@@ -11,7 +11,7 @@ from service.broker import broker_ping
 from service.schemas import Health
 from service.settings import Settings
 from service.storage import Storage
-from service.storage.probe import PROBE_KEY, StorageProbe
+from service.storage.probe import StorageProbe, read_probe_object
 
 router = APIRouter(tags=["health"])
 
@@ -51,7 +51,7 @@ def storage_probe(request: Request, settings: Settings, storage: Storage) -> Sto
     probe: StorageProbe | None = getattr(request.app.state, "storage_probe", None)
     if probe is None:
         probe = StorageProbe(
-            lambda: storage.objects.stat(PROBE_KEY),
+            lambda: read_probe_object(storage.objects),
             timeout_s=settings.storage_probe_timeout_s,
             cache_s=settings.storage_probe_cache_s,
         )
