@@ -41,11 +41,13 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   and at least 150; field-e3-200-lr2: 3 epochs, at least 200 steps, at twice the learning rates (1e-2 / 2e-2);
   field-b09: Adam's second-moment decay 0.9 instead of 0.99 (``language_field.betas``); field-e3-200-b09: both;
   field-e3-200-b09-lr4: both, and the decoder's rate at 2e-2; field-e3-200-b09-k128: both, the decoder in a 128-d
-  basis (``language_field.basis_dims``); field-e4-600-b099: the defaults spelled out (4 epochs, 600 steps, 0.99)
+  basis (``language_field.basis_dims``); field-e4-600-b099: the defaults spelled out (4 epochs, 600 steps, 0.99);
+  field-k128: the default schedule with the decoder in a 128-d basis
 - field-seed-1 ... -5, field-e4-600-b099-seed-1 ... -5, field-e3-200-b09-seed-1 ... -5: the field's own seed
   (``language_field.seed``) with the defaults, with the defaults spelled out, and with field-e3-200-b09's schedule:
   what a field's seed alone moves; field-e4-b09-seed-0 ... -3: field-e3-200-b09's schedule at 4 epochs;
-  field-steps-300-seed-1 ... -5: field-steps-300 with the field's seed
+  field-steps-300-seed-1 ... -5: field-steps-300 with the field's seed; field-k128-seed-1 ... -5: field-k128 with
+  the field's seed
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
 - vis-cap-0.15 / vis-cap-0.25 / vis-no-cap: the depth test's tolerance (7 % of the depth) capped at 0.15 m (the
@@ -116,6 +118,8 @@ VARIANTS: dict[str, dict] = {
         "language_field": {"epochs": 3, "min_steps": 200, "betas": (0.9, 0.9), "basis_dims": 128}
     },
     "field-e4-600-b099": {"language_field": {"epochs": 4, "min_steps": 600, "betas": (0.9, 0.99)}},
+    "field-k128": {"language_field": {"basis_dims": 128}},
+    **{f"field-k128-seed-{k}": {"language_field": {"basis_dims": 128, "seed": k}} for k in (1, 2, 3, 4, 5)},
     **{f"field-seed-{k}": {"language_field": {"seed": k}} for k in (1, 2, 3, 4, 5)},
     **{
         f"field-e3-200-b09-seed-{k}": {
