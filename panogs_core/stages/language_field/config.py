@@ -45,9 +45,9 @@ class LanguageFieldConfig:
     lr: float = 5e-3  # Adam learning rate of the decoder MLP (reference: 1e-3)
     plane_lr: float = 1e-2  # Adam learning rate of the planes (reference: 1e-3, same as the MLP)
     weight_decay: float = 1e-6  # L2 on the decoder weights only (reference)
-    # Adam betas. DEPARTURE (docs/method.md §3.3): the second moment at 0.9 (reference 0.99): a plane cell is
-    # touched by a few batches a pass, and at 0.9 its step follows its recent gradients; at the fewer steps the
-    # labels held only with it (docs/benchmarks.md, "Language field speed").
+    # Adam betas. DEPARTURE (docs/method.md §3.3): the second moment at 0.9 where the reference keeps 0.99: a
+    # plane cell is touched by a few batches a pass, and at 0.9 its step follows its recent gradients; at the
+    # fewer steps the labels held only with it (docs/benchmarks.md, "Language field speed").
     betas: tuple[float, float] = (0.9, 0.9)
     bound_padding: float = 0.05  # metres added on every side of the primitives' box
     max_resolution: int = 1024  # cap on plane resolution R per level (memory: 3*C*R^2 floats per level)
