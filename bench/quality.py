@@ -48,6 +48,12 @@ Method variants (a labelling-only variant reuses every earlier stage's checkpoin
   what a field's seed alone moves; field-e4-b09-seed-0 ... -3: field-e3-200-b09's schedule at 4 epochs;
   field-steps-300-seed-1 ... -5: field-steps-300 with the field's seed; field-k128-seed-1 ... -5: field-k128 with
   the field's seed
+- field-init: the decoder's last layer started at the scene's unit target rows (``language_field.decoder_init:
+  targets``); field-init-300-b09: that, at least 300 steps and Adam's second moment at 0.9; field-init-300-b09-k128:
+  that, in a 128-d basis; field-init-e3-200-b09-k128: 3 epochs, at least 200 steps, 0.9, 128-d basis;
+  field-init-300-k128 / field-init-e3-200-k128 / field-init-k128: at the reference's 0.99, in a 128-d basis, at
+  least 300 steps / 3 epochs and at least 200 steps / the default steps; each also as
+  ``-seed-1`` ... ``-5`` with the field's seed
 - no-pool / pool-0.8: fusion reads each primitive's own feature cell (the reference), or blends it with its 2D
   mask's pooled feature at 0.8 instead of 0.5
 - vis-cap-0.15 / vis-cap-0.25 / vis-no-cap: the depth test's tolerance (7 % of the depth) capped at 0.15 m (the
@@ -137,6 +143,32 @@ VARIANTS: dict[str, dict] = {
             "language_field": {"epochs": 4, "min_steps": 600, "betas": (0.9, 0.99), "seed": k}
         }
         for k in (1, 2, 3, 4, 5)
+    },
+    # The decoder's last layer started at the scene's own unit target rows (``language_field.decoder_init``),
+    # alone and with fewer steps; "-seed-K" with the field's seed K (0 is the name without it).
+    **{
+        f"{name}{'' if k == 0 else f'-seed-{k}'}": {"language_field": {**settings, "seed": k}}
+        for name, settings in {
+            "field-init": {"decoder_init": "targets"},
+            "field-init-300-b09": {"decoder_init": "targets", "min_steps": 300, "betas": (0.9, 0.9)},
+            "field-init-300-b09-k128": {
+                "decoder_init": "targets",
+                "min_steps": 300,
+                "betas": (0.9, 0.9),
+                "basis_dims": 128,
+            },
+            "field-init-300-k128": {"decoder_init": "targets", "min_steps": 300, "basis_dims": 128},
+            "field-init-e3-200-k128": {"decoder_init": "targets", "epochs": 3, "min_steps": 200, "basis_dims": 128},
+            "field-init-k128": {"decoder_init": "targets", "basis_dims": 128},
+            "field-init-e3-200-b09-k128": {
+                "decoder_init": "targets",
+                "epochs": 3,
+                "min_steps": 200,
+                "betas": (0.9, 0.9),
+                "basis_dims": 128,
+            },
+        }.items()
+        for k in range(6)
     },
     "lang-affinity": {"affinity": {"mode": "language"}},
     "no-lang-cut": {"superprimitives": {"use_language": False}},

@@ -398,6 +398,7 @@ class TestConfig:
             ("device", "not-a-device"),
             ("cpu_threads", 0),
             ("basis_dims", 0),
+            ("decoder_init", "zeros"),
         ],
     )
     def test_exception_names_field(self, field: str, value: object) -> None:
@@ -409,7 +410,7 @@ class TestConfig:
         assert cfg.cell_sizes == (0.1, 0.04)  # the reference's Replica levels
         assert cfg.channels == 10
         assert cfg.hidden_dims == (128,)
-        assert cfg.betas == (0.9, 0.99)
+        assert cfg.betas == (0.9, 0.9)  # DEPARTURE (docs/method.md §3.3): the reference's second moment is 0.99
         assert cfg.weight_decay == 1e-6
         assert cfg.init_scale == 0.1
 
@@ -472,3 +473,75 @@ class TestFeatureBasis:
         assert cos.min() > 0.95
         full = fit_language_field(points, fused, _small_cfg(basis_dims=None))
         assert not np.array_equal(full.state["mlp.1"], field.state["mlp.1"])
+
+
+class TestDecoderInit:
+    """``decoder_init: targets``: the last layer starts at the scene's own unit target rows."""
+
+    @staticmethod
+    def _training_set(features: np.ndarray, basis_dims: int | None = None):  # type: ignore[no-untyped-def]
+        import torch
+
+        from panogs_core.stages.language_field.triplane import TrainingSet
+
+        points = np.random.default_rng(0).uniform(size=(len(features), 3)).astype(np.float32)
+        weights = np.ones(len(features), np.float32)
+        weights[0] = 0.0  # an unseen row is never drawn
+        bounds = field_bounds(points, 0.05)
+        return TrainingSet(points, features, weights, bounds, [4], torch.device("cpu"), basis_dims=basis_dims, seed=0)
+
+    def test_columns_are_unit_targets_at_the_uniform_length(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.triplane import start_at_targets
+
+        features = np.random.default_rng(1).normal(size=(50, DIM)).astype(np.float32) * 3.0
+        data = self._training_set(features)
+        last = torch.zeros((DIM, 8))
+        start_at_targets(last, data, DIM, seed=0)
+        length = np.sqrt(DIM / (3 * 8))  # the expected column length of PyTorch's U(+-1/sqrt(H)) init
+        columns = last.numpy().T  # (H, D)
+        np.testing.assert_allclose(np.linalg.norm(columns, axis=1), length, rtol=1e-5)
+        unit = features / np.linalg.norm(features, axis=1, keepdims=True)
+        best = (columns / length) @ unit.T  # (H, N) cosines
+        assert np.allclose(best.max(axis=1), 1.0, atol=1e-5)  # each column is one target's direction
+        assert not np.isclose(best[:, 0], 1.0, atol=1e-3).any()  # never the zero-weight row
+        assert len(set(best.argmax(axis=1).tolist())) == 8  # eight different rows
+
+    def test_in_a_basis_the_columns_are_coefficients(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.triplane import start_at_targets
+
+        features = np.random.default_rng(2).normal(size=(60, DIM)).astype(np.float32)
+        data = self._training_set(features, basis_dims=6)
+        assert data.basis is not None
+        last = torch.zeros((6, 8))  # V = U^T W
+        start_at_targets(last, data, DIM, seed=0)
+        unit = features / np.linalg.norm(features, axis=1, keepdims=True)
+        coefficients = unit @ data.basis.numpy()  # (N, k)
+        scaled = last.numpy().T / np.sqrt(DIM / (3 * 8))
+        distance = np.linalg.norm(scaled[:, None, :] - coefficients[None], axis=2).min(axis=1)
+        np.testing.assert_allclose(distance, 0.0, atol=1e-5)
+
+    def test_fewer_rows_than_columns(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.triplane import start_at_targets
+
+        features = np.random.default_rng(3).normal(size=(5, DIM)).astype(np.float32)
+        data = self._training_set(features)  # 4 training rows, 8 columns
+        last = torch.zeros((DIM, 8))
+        start_at_targets(last, data, DIM, seed=0)
+        assert np.isfinite(last.numpy()).all()
+        assert (np.linalg.norm(last.numpy(), axis=0) > 0).all()
+
+    def test_fits_closer_in_few_steps(self) -> None:
+        points, region, anchors = _three_regions(n_per=200, seed=5)
+        fused = _fused(anchors[region], np.ones(len(points)))
+        # 6 steps: the start decides
+        uniform = fit_language_field(points, fused, _small_cfg(epochs=2, batch_size=256, decoder_init="uniform"))
+        started = fit_language_field(points, fused, _small_cfg(epochs=2, batch_size=256, decoder_init="targets"))
+        cos_uniform = (uniform.features * anchors[region]).sum(axis=1).mean()
+        cos_started = (started.features * anchors[region]).sum(axis=1).mean()
+        assert cos_started > cos_uniform + 0.05

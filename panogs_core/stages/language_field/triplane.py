@@ -234,6 +234,27 @@ class _Adam:
             param.addcdiv_(exp_avg, denom, value=-self.lr / bias_correction1)
 
 
+def start_at_targets(last: torch.Tensor, data: TrainingSet, dim: int, seed: int) -> None:
+    """Set the last layer's ``H`` columns to unit target rows drawn with ``seed`` (``decoder_init: targets``).
+
+    ``last`` is ``(D, H)``, or ``(k, H)`` in the feature basis, where the rows are the unit targets' coefficients.
+    Each column gets the expected length of PyTorch's uniform init, ``sqrt(D / (3 H))``: Adam's steps are the same
+    size against it. With a ReLU hidden layer the decoded feature is a non-negative mix of the columns, so it
+    starts inside the cone of the scene's own features rather than in a random direction, and fewer steps fit as
+    closely (docs/method.md §3.3).
+    """
+    hidden = int(last.shape[1])
+    gen = torch.Generator().manual_seed(seed + 2)  # not the shuffle's generator (seed + 1)
+    count = len(data)
+    if count >= hidden:
+        pick = torch.randperm(count, generator=gen)[:hidden]
+    else:  # fewer training rows than columns: some rows start several columns
+        pick = torch.randint(count, (hidden,), generator=gen)
+    pick = pick.to(data.weights.device)
+    rows = data.targets(pick) * data.inverse_norms.index_select(0, pick).unsqueeze(1)  # (H, D) unit, or (H, k)
+    last.copy_(rows.t() * math.sqrt(dim / (3.0 * hidden)))
+
+
 def _cosine_loss_and_gradients(
     mlp: list[torch.Tensor],  # each (out, in), the last (D, H) linear
     latent: torch.Tensor,  # (B, C)
@@ -308,6 +329,8 @@ def train_model(
     basis = data.basis  # (D, k) or None
     # The layers that train: the decoder's own (updates land in the model), the last one in the basis if any.
     mlp = weights_out if basis is None else [*weights_out[:-1], basis.t() @ weights_out[-1]]
+    if cfg.decoder_init == "targets":
+        start_at_targets(mlp[-1], data, int(weights_out[-1].shape[0]), cfg.seed)
     planes_adam = _Adam([table], lr=cfg.plane_lr, betas=cfg.betas, eps=1e-15, weight_decay=0.0)
     mlp_adam = _Adam(mlp, lr=cfg.lr, betas=cfg.betas, eps=1e-8, weight_decay=cfg.weight_decay)  # torch's eps
     gen = torch.Generator().manual_seed(cfg.seed + 1)
