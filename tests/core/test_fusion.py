@@ -356,3 +356,46 @@ class TestMaskPooling:
     def test_config_range(self) -> None:
         with pytest.raises(ConfigError, match="mask_pooling"):
             FusionConfig(mask_pooling=1.5)
+
+
+class TestBlockwiseRows:
+    """The rows read block by block (``_frame_rows``) equal those read from the whole float32 map, to the bit."""
+
+    @staticmethod
+    def _whole_map(
+        fmap: np.ndarray, src: np.ndarray, masks: np.ndarray | None, pixel: np.ndarray, weight: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        from panogs_core.stages import fusion
+
+        cells, inv_norm = fusion._cells_and_inverse_norms(fmap, 1e-6)
+        if masks is None:
+            cell, index = np.unique(src, return_inverse=True)
+            return cells[cell] * inv_norm[cell, None], index
+        dense, values = fusion._dense_mask_ids(masks)
+        pair, index = np.unique(src * len(values) + dense[pixel], return_inverse=True)
+        cell, mask = pair // len(values), pair % len(values)
+        cell_of_pixel = fusion.mask_pixel_cells(masks.shape, fmap.shape[:2])
+        pooled = fusion._pool_cells(cells, inv_norm, dense, len(values), cell_of_pixel)
+        table = cells[cell] * ((1.0 - weight) * inv_norm[cell])[:, None]
+        return table + (weight * pooled)[mask], index
+
+    @pytest.mark.parametrize("dtype", [np.float16, np.float32])
+    @pytest.mark.parametrize("pooling", [0.0, 0.5])
+    def test_identical_to_whole_map(self, monkeypatch: pytest.MonkeyPatch, dtype: type, pooling: float) -> None:
+        from panogs_core.stages import fusion
+
+        monkeypatch.setattr(fusion, "_BLOCK", 64)  # 9 blocks, the last one partial
+        rng = np.random.default_rng(3)
+        hf, wf, hm, wm = 23, 25, 46, 50
+        fmap = rng.standard_normal((hf, wf, 8)).astype(dtype)
+        fmap[0, 3] = 0.0  # no feature
+        fmap[5, 7, 2] = np.nan  # not finite
+        masks = rng.choice([0, 7, 9, 60000], size=(hm, wm)).astype(np.int32)
+        masks[10:30, 5:40] = 9  # a big mask over many blocks
+        pixel = rng.integers(0, hm * wm, 300)
+        src = fusion.feature_cells(pixel // wm, pixel % wm, (hm, wm), (hf, wf))
+        args = None if pooling == 0.0 else (masks, pixel, pooling)
+        table, index = fusion._frame_rows(fmap, src, 1e-6, fusion._CellBuffers(), args)
+        expected, expected_index = self._whole_map(fmap, src, None if pooling == 0.0 else masks, pixel, pooling)
+        np.testing.assert_array_equal(index, expected_index)
+        assert table.tobytes() == expected.astype(np.float32).tobytes()
