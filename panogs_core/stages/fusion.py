@@ -48,7 +48,7 @@ from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
-from panogs_core.stages.visibility import Visibility
+from panogs_core.stages.visibility import Visibility, prefetched
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -167,14 +167,26 @@ def fuse_features(
         raise ShapeError(f"visibility: point index {int(visibility.point_index.max())} >= num_points ({num_points})")
     start = time.perf_counter()
     features = _FeatureSum(num_points, bundle.feature_dim)
-    colors = _ColorSum(num_points) if cfg.fuse_colors and any(f.color for f in frames) else None
+    colors = (
+        _ColorSum(num_points, (bundle.camera.height, bundle.camera.width))
+        if cfg.fuse_colors and any(f.color for f in frames)
+        else None
+    )
+
+    def decode(v: int) -> tuple[np.ndarray | None, np.ndarray | None]:  # the frame's masks and colour, if used
+        frame, seen = frames[v], visibility.offsets[v + 1] > visibility.offsets[v]
+        pooled = seen and frame.features is not None and frame.masks is not None and cfg.mask_pooling > 0.0
+        coloured = seen and colors is not None and frame.color is not None
+        return bundle.read_masks(frame) if pooled else None, bundle.read_color(frame) if coloured else None
+
+    images = prefetched(decode, range(len(frames)))  # the PNG and JPEG decoding runs ahead on other cores
     for v, frame in enumerate(frames):
         point_index, row, col = visibility.frame(v)
+        masks, color = next(images)
         if frame.features is not None and point_index.size:
-            pooling = cfg.mask_pooling if frame.masks is not None else 0.0
-            features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, pooling)
-        if colors is not None and frame.color is not None and point_index.size:
-            colors.add(bundle, frame, point_index, row, col)
+            features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling)
+        if colors is not None and color is not None:
+            colors.add(frame, color, point_index, row, col)
         report(on_progress, v + 1, len(frames))
     feat_sum, count = features.total, features.count  # (N, D) becomes the mean in place, (N,)
     feat_sum *= (1.0 / np.maximum(count, 1)).astype(np.float32)[:, None]  # sum -> mean; unseen rows stay 0
@@ -286,6 +298,7 @@ class _FeatureSum:
         row: np.ndarray,  # (T_v,) int32
         col: np.ndarray,  # (T_v,) int32
         min_norm: float,
+        masks: np.ndarray | None = None,  # (Hm, Wm) the frame's mask ids, or None: no mask pooling
         mask_pooling: float = 0.0,
     ) -> None:
         """Add one frame's unit pixel features (streamed: the map is dropped on return)."""
@@ -297,8 +310,7 @@ class _FeatureSum:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
         image_hw = (bundle.camera.height, bundle.camera.width)
         src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) cell of each primitive
-        if mask_pooling > 0.0:
-            masks = bundle.read_masks(frame)
+        if masks is not None and mask_pooling > 0.0:
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
             table, index = _frame_rows(fmap, src, min_norm, self._buffers, (masks, mask_pixel, mask_pooling))
         else:
@@ -610,15 +622,14 @@ def _unit_rows_(rows: np.ndarray, min_norm: float) -> np.ndarray:  # (U,) bool: 
 class _ColorSum:
     """Running per-primitive RGB sum and count over the key frames that have colour."""
 
-    def __init__(self, num_points: int) -> None:
+    def __init__(self, num_points: int, image_hw: tuple[int, int]) -> None:
         self.total = np.zeros((num_points, 3), dtype=np.float32)  # (N, 3)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
+        self._image_hw = image_hw
 
-    def add(self, bundle: Bundle, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
-        image = bundle.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
-        if image is None:
-            return
-        expected = (bundle.camera.height, bundle.camera.width, 3)
+    def add(self, frame: Frame, image: np.ndarray, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
+        """Add one frame's colours: ``image`` (H, W, 3) uint8 RGB at the camera size, as ``Bundle.read_color``."""
+        expected = (*self._image_hw, 3)
         if image.shape != expected:
             raise ShapeError(f"colour of frame {frame.id}: expected {expected}, got {image.shape}")
         self.total[point_index] += image[row, col].astype(np.float32) / 255.0
