@@ -49,6 +49,7 @@ from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.stages.visibility import Visibility, prefetched
+from panogs_core.threads import torch_threads
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -180,14 +181,17 @@ def fuse_features(
         return bundle.read_masks(frame) if pooled else None, bundle.read_color(frame) if coloured else None
 
     images = prefetched(decode, range(len(frames)))  # the PNG and JPEG decoding runs ahead on other cores
-    for v, frame in enumerate(frames):
-        point_index, row, col = visibility.frame(v)
-        masks, color = next(images)
-        if frame.features is not None and point_index.size:
-            features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling)
-        if colors is not None and color is not None:
-            colors.add(frame, color, point_index, row, col)
-        report(on_progress, v + 1, len(frames))
+    # torch on one thread: its calls here are many and short (a block of cells, a chunk of rows); each of torch's
+    # parallel regions woke the pool's sleeping threads, which cost more than the split saved.
+    with torch_threads(1):
+        for v, frame in enumerate(frames):
+            point_index, row, col = visibility.frame(v)
+            masks, color = next(images)
+            if frame.features is not None and point_index.size:
+                features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling)
+            if colors is not None and color is not None:
+                colors.add(frame, color, point_index, row, col)
+            report(on_progress, v + 1, len(frames))
     feat_sum, count = features.total, features.count  # (N, D) becomes the mean in place, (N,)
     feat_sum *= (1.0 / np.maximum(count, 1)).astype(np.float32)[:, None]  # sum -> mean; unseen rows stay 0
     weights = confidence_weights(feat_sum, count, cfg)
