@@ -21,9 +21,11 @@ docs/method.md §3.1 (``fuse_feature.py``). For every primitive p, over the feat
     with ``paper_variance_eps`` added to the variance so that V = 0 gives a finite weight;
   - ``"none"``: 1 for every seen primitive (an ablation).
 
-The frames are streamed: one feature map is read (memory-mapped), the cells the frame's primitives use are
-gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. Peak memory is the (N, D)
-sum plus one frame's gathered cells; nothing is ever N x V x D.
+The frames are streamed: one feature map is read (memory-mapped, in blocks of cells), the cells the frame's
+primitives use are gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. The rows of
+the next frames are made on threads meanwhile (as many frames ahead as the process has threads), and added in
+frame order: the sum is the sequential one, to the bit. Peak memory is the (N, D) sum plus a few frames' gathered
+cells; nothing is ever N x V x D.
 
 DEPARTURE (memory, docs/method.md §3.1): frames streamed, never every key frame's feature map at once.
 
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import time
 import warnings
 from dataclasses import dataclass
@@ -48,7 +51,7 @@ from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
-from panogs_core.stages.visibility import Visibility, prefetched
+from panogs_core.stages.visibility import Visibility, decode_threads, prefetched
 from panogs_core.threads import torch_threads
 from panogs_core.types import Frame
 
@@ -174,23 +177,34 @@ def fuse_features(
         else None
     )
 
-    def decode(v: int) -> tuple[np.ndarray | None, np.ndarray | None]:  # the frame's masks and colour, if used
-        frame, seen = frames[v], visibility.offsets[v + 1] > visibility.offsets[v]
-        pooled = seen and frame.features is not None and frame.masks is not None and cfg.mask_pooling > 0.0
-        coloured = seen and colors is not None and frame.color is not None
-        return bundle.read_masks(frame) if pooled else None, bundle.read_color(frame) if coloured else None
+    workers = decode_threads()
+    buffers: queue.SimpleQueue[_CellBuffers] = queue.SimpleQueue()  # one set per frame in flight
+    for _ in range(workers + 1):
+        buffers.put(_CellBuffers())
 
-    images = prefetched(decode, range(len(frames)))  # the PNG and JPEG decoding runs ahead on other cores
-    # torch on one thread: its calls here are many and short (a block of cells, a chunk of rows); each of torch's
-    # parallel regions woke the pool's sleeping threads, which cost more than the split saved.
+    def prepare(v: int) -> tuple[_FrameRows | None, np.ndarray | None]:  # the frame's rows, and colour if used
+        """Everything of frame v that does not touch the sums: decoding, the unit rows (run on worker threads)."""
+        frame, (point_index, row, col) = frames[v], visibility.frame(v)
+        rows = None
+        if frame.features is not None and point_index.size:
+            pooled = frame.masks is not None and cfg.mask_pooling > 0.0
+            masks = bundle.read_masks(frame) if pooled else None
+            rows = _FrameRows.of(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling,
+                                 buffers.get())  # fmt: skip
+        coloured = colors is not None and frame.color is not None and point_index.size
+        return rows, bundle.read_color(frame) if coloured else None
+
+    # The frames' rows are made up to ``workers`` frames ahead on threads (OpenCV decodes, numpy, scipy and torch
+    # compute without the GIL); the sums take them here, in frame order, so the result is the sequential one to
+    # the bit. torch on one thread: its calls here are many and short (a block of cells, a chunk of rows), and
+    # each of torch's parallel regions woke the pool's sleeping threads, which cost more than the split saved.
     with torch_threads(1):
-        for v, frame in enumerate(frames):
-            point_index, row, col = visibility.frame(v)
-            masks, color = next(images)
-            if frame.features is not None and point_index.size:
-                features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling)
+        for v, (rows, color) in enumerate(prefetched(prepare, range(len(frames)), workers)):
+            if rows is not None:
+                features.add(rows)
+                buffers.put(rows.buffers)
             if colors is not None and color is not None:
-                colors.add(frame, color, point_index, row, col)
+                colors.add(frames[v], color, *visibility.frame(v))
             report(on_progress, v + 1, len(frames))
     feat_sum, count = features.total, features.count  # (N, D) becomes the mean in place, (N,)
     feat_sum *= (1.0 / np.maximum(count, 1)).astype(np.float32)[:, None]  # sum -> mean; unseen rows stay 0
@@ -281,8 +295,8 @@ def _frames_by_id(bundle: Bundle, visibility: Visibility) -> list[Frame]:
 class _FeatureSum:
     """Running per-primitive sum of unit pixel features and observation count.
 
-    Each frame builds one unit row per (cell, mask) pair in use and adds each primitive's row with torch's
-    ``index_add_`` on a view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
+    Each frame's unit rows (:class:`_FrameRows`) are added to their primitives with torch's ``index_add_`` on a
+    view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
     """
 
     def __init__(self, num_points: int, dim: int) -> None:
@@ -292,43 +306,61 @@ class _FeatureSum:
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
         self._total_t = torch.from_numpy(self.total)  # shares memory with self.total
         self._buffer = torch.empty((_CHUNK, dim), dtype=torch.float32)  # (chunk, D)
-        self._buffers = _CellBuffers()
 
-    def add(
-        self,
+    def add(self, frame: _FrameRows) -> None:
+        """Add one frame's unit rows to the primitives that read them."""
+        import torch
+
+        if frame.table.shape[1] != self.total.shape[1]:
+            raise ShapeError(f"features: expected {self.total.shape[1]} dimensions, got {frame.table.shape[1]}")
+        targets, rows = frame.targets, frame.rows
+        self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
+        table_t = torch.from_numpy(frame.table)
+        for lo in range(0, targets.size, _CHUNK):
+            n = min(_CHUNK, targets.size - lo)
+            gathered = self._buffer[:n]
+            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
+            self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+
+
+@dataclass(frozen=True)
+class _FrameRows:
+    """One frame's unit pixel features: ``table`` rows (in ``buffers``, valid until they are reused) and, for each
+    primitive with a feature, its index and its row."""
+
+    table: np.ndarray  # (U, D) float32 unit rows, zero where no feature
+    targets: np.ndarray  # (T,) int64 primitive indices, unique
+    rows: np.ndarray  # (T,) int64 row of each
+    buffers: _CellBuffers
+
+    @classmethod
+    def of(
+        cls,
         bundle: Bundle,
         frame: Frame,
         point_index: np.ndarray,  # (T_v,) int32, unique within the frame
         row: np.ndarray,  # (T_v,) int32
         col: np.ndarray,  # (T_v,) int32
         min_norm: float,
-        masks: np.ndarray | None = None,  # (Hm, Wm) the frame's mask ids, or None: no mask pooling
-        mask_pooling: float = 0.0,
-    ) -> None:
-        """Add one frame's unit pixel features (streamed: the map is dropped on return)."""
-        import torch
-
+        masks: np.ndarray | None,  # (Hm, Wm) the frame's mask ids, or None: no mask pooling
+        mask_pooling: float,
+        buffers: _CellBuffers,
+    ) -> _FrameRows:
+        """Read the frame's feature map (memory-mapped, dropped on return) into unit rows in ``buffers``."""
         fmap = bundle.read_features(frame)  # (Hf, Wf, D), memory-mapped
-        d = self.total.shape[1]
+        d = bundle.feature_dim
         if fmap.ndim != 3 or fmap.shape[2] != d:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
         image_hw = (bundle.camera.height, bundle.camera.width)
         src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) cell of each primitive
         if masks is not None and mask_pooling > 0.0:
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
-            table, index = _frame_rows(fmap, src, min_norm, self._buffers, (masks, mask_pixel, mask_pooling))
+            table, index = _frame_rows(fmap, src, min_norm, buffers, (masks, mask_pixel, mask_pooling))
         else:
-            table, index = _frame_rows(fmap, src, min_norm, self._buffers)
+            table, index = _frame_rows(fmap, src, min_norm, buffers)
         valid = _unit_rows_(table, min_norm)  # a zero feature is no observation
         keep = np.flatnonzero(valid[index])
-        targets, rows = point_index[keep].astype(np.int64), index[keep]
-        self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
-        table_t = torch.from_numpy(table)
-        for lo in range(0, targets.size, _CHUNK):
-            n = min(_CHUNK, targets.size - lo)
-            gathered = self._buffer[:n]
-            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
-            self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+        return cls(table=table, targets=point_index[keep].astype(np.int64), rows=index[keep], buffers=buffers)
 
 
 class _CellBuffers:

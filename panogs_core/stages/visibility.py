@@ -227,6 +227,13 @@ def frame_visibility(
     return idx[seen].astype(np.int32), row[seen], col[seen], residual
 
 
+def decode_threads() -> int:
+    """Threads for the stages' per-frame reading: OpenCV's thread count (the process's, ``panogs_core.threads``)."""
+    import cv2
+
+    return max(1, int(cv2.getNumThreads()))
+
+
 Item = TypeVar("Item")
 Result = TypeVar("Result")
 
@@ -240,10 +247,7 @@ def prefetched(read: Callable[[Item], Result], items: Sequence[Item], workers: i
     OpenCV's thread count (the process's, ``panogs_core.threads``); with 1, or a single item, the reads run here,
     one by one. An exception of a read is raised where its result is due.
     """
-    if workers is None:
-        import cv2
-
-        workers = cv2.getNumThreads()
+    workers = decode_threads() if workers is None else workers
     if workers <= 1 or len(items) <= 1:
         yield from map(read, items)
         return

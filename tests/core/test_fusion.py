@@ -399,3 +399,30 @@ class TestBlockwiseRows:
         expected, expected_index = self._whole_map(fmap, src, None if pooling == 0.0 else masks, pixel, pooling)
         np.testing.assert_array_equal(index, expected_index)
         assert table.tobytes() == expected.astype(np.float32).tobytes()
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_frames_on_threads_give_the_sequential_result(monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
+    """The frames' rows made on threads, summed in frame order: the same bits as one frame after the other."""
+    from panogs_core.stages import fusion
+
+    rng = np.random.default_rng(5)
+    frames = tuple(_frame(f"f{i}", color=True) for i in range(7))
+    scene = MaskedScene(
+        camera=CAM,
+        frames=frames,
+        features={f.id: rng.standard_normal((3, 4, D)).astype(np.float16) for f in frames},
+        colors={f.id: rng.integers(0, 256, (6, 8, 3), dtype=np.uint8) for f in frames},
+        masks={f.id: rng.integers(0, 3, (6, 8)).astype(np.int32) for f in frames},
+    )
+    seen = {f.id: sorted({(int(p), int(p) % 6, int(p) % 8) for p in rng.choice(20, 12, replace=False)}) for f in frames}
+    vis = _visibility(seen)
+    monkeypatch.setattr(fusion, "decode_threads", lambda: 1)
+    one = fuse_features(scene, vis, 20, FusionConfig())
+    monkeypatch.setattr(fusion, "decode_threads", lambda: workers)
+    many = fuse_features(scene, vis, 20, FusionConfig())
+    assert one.colors is not None
+    assert many.colors is not None
+    for a, b in ((one.features, many.features), (one.weights, many.weights), (one.colors, many.colors)):
+        assert a.tobytes() == b.tobytes()
+    np.testing.assert_array_equal(one.seen_count, many.seen_count)
