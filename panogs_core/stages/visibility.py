@@ -168,14 +168,16 @@ def compute_visibility(
         frames = tuple(f for f in bundle.frames if f.features is not None or f.masks is not None)
     start = time.perf_counter()
     parts: list[tuple[np.ndarray, ...]] = []
-    poses = [_inverse_pose(frame.T_world_cam) for frame in frames]
-    depths = prefetched(bundle.read_depth, [f for f, pose in zip(frames, poses, strict=True) if pose is not None])
-    for done, T_cam_world in enumerate(poses, start=1):
+
+    def part(frame: Frame) -> tuple[np.ndarray, ...]:  # run a few frames ahead on threads (decoding the depth)
+        T_cam_world = _inverse_pose(frame.T_world_cam)
         if T_cam_world is None:
-            parts.append(_empty_part())
-        else:
-            depth = next(depths)  # (H, W) float32 metres
-            parts.append(frame_visibility(points32, T_cam_world, bundle.camera, depth, cfg))
+            return _empty_part()
+        depth = bundle.read_depth(frame)  # (H, W) float32 metres
+        return frame_visibility(points32, T_cam_world, bundle.camera, depth, cfg)
+
+    for done, frame_part in enumerate(prefetched(part, frames), start=1):
+        parts.append(frame_part)
         report(on_progress, done, len(frames))
     vis = _assemble(tuple(f.id for f in frames), parts)
     log.info(
