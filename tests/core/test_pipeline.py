@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -560,3 +561,23 @@ def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
     assert result.instances == first.instances
     for name in ("labels.npz", "instances.json", "panoptic.ply"):
         assert (tmp_path / name).read_bytes() == (out / name).read_bytes()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's niceness is its own on Linux only")
+def test_bundle_hash_thread_runs_at_a_lower_priority(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bundle's hash yields the cores to the stages' threads; the caller's own priority is untouched."""
+    import os
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from panogs_core.pipeline import checkpoints
+
+    def niceness(_: object) -> str:
+        return str(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    monkeypatch.setattr(checkpoints, "hash_bundle", niceness)
+    before = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        inside = int(pool.submit(checkpoints._hash_at_low_priority, None).result())
+    assert inside == min(19, before + checkpoints._HASH_NICENESS)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
