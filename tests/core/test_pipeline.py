@@ -581,3 +581,26 @@ def test_bundle_hash_thread_runs_at_a_lower_priority(monkeypatch: pytest.MonkeyP
         inside = int(pool.submit(checkpoints._hash_at_low_priority, None).result())
     assert inside == min(19, before + checkpoints._HASH_NICENESS)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
+
+
+@pytest.mark.slow
+def test_run_as_the_process_entry_ends_after_its_exit_handlers(tiny_bundle: Path, tmp_path: Path) -> None:
+    """``main()`` with no argv ends a successful ``run`` without the interpreter's teardown: the exit handlers
+    have run, the output streams are flushed and the run folder is complete (what resume reads included)."""
+    import subprocess
+
+    marker = tmp_path / "handlers-ran"
+    code = (
+        "import atexit, pathlib, sys; from panogs_core.cli import main; "
+        f"atexit.register(pathlib.Path({str(marker)!r}).write_text, 'yes'); main(); print('returned')"
+    )
+    out = tmp_path / "run"
+    args = [sys.executable, "-c", code, "run", str(tiny_bundle), "--out", str(out), "--set", "appearance.enabled=false"]
+    root = str(Path(__file__).resolve().parents[2])
+    done = subprocess.run(args, capture_output=True, text=True, cwd=root, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "returned" not in done.stdout  # ended inside main
+    assert "the results are written" in done.stdout  # flushed
+    assert marker.read_text() == "yes"
+    assert (out / "report.json").is_file()
+    assert (out / "stages" / "manifest.json").is_file()
