@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -230,10 +231,15 @@ def frame_visibility(
 
 
 def decode_threads() -> int:
-    """Threads for the stages' per-frame reading: OpenCV's thread count (the process's, ``panogs_core.threads``)."""
+    """Threads for the stages' per-frame work: OpenCV's thread count (the process's, ``panogs_core.threads``), or
+    torch's where that is lower (a tile's process narrows torch's count to its share of the cores)."""
     import cv2
 
-    return max(1, int(cv2.getNumThreads()))
+    threads = int(cv2.getNumThreads())
+    torch = sys.modules.get("torch")  # never imported here: the count only matters once torch has been set up
+    if torch is not None:
+        threads = min(threads, int(torch.get_num_threads()))
+    return max(1, threads)
 
 
 Item = TypeVar("Item")

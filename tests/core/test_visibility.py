@@ -317,3 +317,22 @@ class TestPrefetched:
         assert [next(got) for _ in range(3)] == [0, 1, 2]
         with pytest.raises(ValueError, match="bad frame 3"):
             next(got)
+
+
+def test_decode_threads_follow_the_lower_of_opencv_and_torch() -> None:
+    """A tile's process narrows torch's threads only: the stages' frame threads follow it."""
+    import cv2
+    import torch
+
+    from panogs_core.stages.visibility import decode_threads
+
+    before_cv, before_torch = cv2.getNumThreads(), torch.get_num_threads()
+    try:
+        cv2.setNumThreads(3)
+        torch.set_num_threads(2)
+        assert decode_threads() == 2
+        torch.set_num_threads(4)
+        assert decode_threads() == 3
+    finally:
+        cv2.setNumThreads(before_cv)
+        torch.set_num_threads(before_torch)
