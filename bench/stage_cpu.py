@@ -1,11 +1,11 @@
-"""CPU seconds of the heavy stages (primitives, fusion, language field) at 1 and 2 threads, alternating.
+"""CPU seconds of the heavy stages (primitives, visibility, fusion, language field) at 1 and 2 threads, alternating.
 
 Usage:
-    python bench/stage_cpu.py RUN BUNDLE [--stages primitives fusion language_field] [--threads 1 2]
+    python bench/stage_cpu.py RUN BUNDLE [--stages primitives visibility fusion language_field] [--threads 1 2]
         [--repeats 2] [--src DIR ...] [--profile STAGE]
 
 ``RUN`` is a ``panogs run`` output directory of ``BUNDLE``: each stage reads its inputs from the run's checkpoints
-(``stages/visibility.npz``, ``primitives.npz``, ``fusion.npz``), as the pipeline hands them over. Every
+(``stages/primitives.npz``, ``visibility.npz``, ``fusion.npz``), as the pipeline hands them over. Every
 (source, stage, threads) measurement is a fresh child process pinned to that many cores (``sched_setaffinity``:
 open3d's TBB pool follows the affinity), with the thread variables of :mod:`panogs_core.threads` set before numpy
 and torch load and torch's count set to the same number, the way ``panogs run --threads N`` starts. The rounds
@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("primitives", "fusion", "language_field")
+STAGES = ("primitives", "visibility", "fusion", "language_field")
 
 
 def run_stage(stage: str, run: Path, bundle_path: Path, threads: int) -> None:
@@ -43,6 +43,13 @@ def run_stage(stage: str, run: Path, bundle_path: Path, threads: int) -> None:
 
         def work() -> object:
             return build_primitives(bundle, PrimitivesConfig())
+    elif stage == "visibility":
+        from panogs_core.stages.visibility import VisibilityConfig, compute_visibility
+
+        points = np.load(stages / "primitives.npz")["points"]
+
+        def work() -> object:
+            return compute_visibility(bundle, points, VisibilityConfig())
     elif stage == "fusion":
         from panogs_core.stages.fusion import FusionConfig, fuse_features
         from panogs_core.stages.visibility import Visibility
@@ -112,8 +119,8 @@ def main() -> None:
         for stage in args.stages:
             for src in args.src:
                 for threads in args.threads:
-                    r = child(src.resolve(), stage, run, bundle, threads)
-                    print(f"| {rnd} | {src.name} | {stage} | {threads} | {r['cpu_s']:.2f} | {r['wall_s']:.2f} | "
+                    r, name = child(src.resolve(), stage, run, bundle, threads), src.resolve().name
+                    print(f"| {rnd} | {name} | {stage} | {threads} | {r['cpu_s']:.2f} | {r['wall_s']:.2f} | "
                           f"{r['load']:.1f} |", flush=True)  # fmt: skip
 
 

@@ -4,9 +4,11 @@ installed extras (:mod:`panogs_core.cli.command_groups`); a user error prints on
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
 import os
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
@@ -64,7 +66,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``panogs``; user errors print one clear message and exit 2."""
+    """Entry point of ``panogs``; user errors print one clear message and exit 2.
+
+    As the process's entry (``argv`` None: the command line is ``sys.argv``), a ``run`` that succeeded ends the
+    process here, without the interpreter's teardown (:func:`_end_process`).
+    """
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
@@ -74,10 +80,27 @@ def main(argv: list[str] | None = None) -> int:
         # The text encoder's own bars ("Loading weights") redraw in place too, and a log keeps every frame.
         os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        if argv is None and args.command == "run" and code == 0:
+            _end_process(code)
+        return code
     except PanoGSError as exc:
         print(f"panogs {args.command}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _end_process(code: int) -> None:
+    """End the process now: the exit handlers run and the output streams are flushed, the rest of the
+    interpreter's teardown is skipped (it unloads torch: 0.25-0.45 s of each ``panogs run``, ``python -c "import
+    torch"`` against the same with ``os._exit``). Only when this is the last thread; otherwise nothing happens and
+    the process exits the usual way.
+    """
+    if threading.active_count() > 1:
+        return
+    atexit._run_exitfuncs()  # logging's flush, weakref finalizers (an extracted bundle's folder), the caller's
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)

@@ -21,9 +21,11 @@ docs/method.md §3.1 (``fuse_feature.py``). For every primitive p, over the feat
     with ``paper_variance_eps`` added to the variance so that V = 0 gives a finite weight;
   - ``"none"``: 1 for every seen primitive (an ablation).
 
-The frames are streamed: one feature map is read (memory-mapped), the cells the frame's primitives use are
-gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. Peak memory is the (N, D)
-sum plus one frame's gathered cells; nothing is ever N x V x D.
+The frames are streamed: one feature map is read (memory-mapped, in blocks of cells), the cells the frame's
+primitives use are gathered and normalised, added into an (N, D) float32 sum, and the map is dropped. The rows of
+the next frames are made on threads meanwhile (as many frames ahead as the process has threads), and added in
+frame order: the sum is the sequential one, to the bit. Peak memory is the (N, D) sum plus a few frames' gathered
+cells; nothing is ever N x V x D.
 
 DEPARTURE (memory, docs/method.md §3.1): frames streamed, never every key frame's feature map at once.
 
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import time
 import warnings
 from dataclasses import dataclass
@@ -42,12 +45,14 @@ from typing import Any, Literal
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs  # Y += A X, the kernel of ``csr @ dense``
 
 from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
-from panogs_core.stages.visibility import Visibility
+from panogs_core.stages.visibility import Visibility, decode_threads, prefetched
+from panogs_core.threads import torch_threads
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -57,6 +62,8 @@ _CONFIDENCE_MODES = ("code", "paper", "none")
 # Primitives accumulated per step: the reused (chunk, D) float32 gather buffer (16 MB at D = 512). Torch's
 # index_add_ from it: numpy's ``sum[idx] += rows`` was 10-20x slower into a large (N, D) sum.
 _CHUNK = 8192
+# Feature-map cells per block of :func:`_frame_rows`: a (1024, 512) float32 block is 2 MB, an L2 cache's worth.
+_BLOCK = 1024
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -164,15 +171,41 @@ def fuse_features(
         raise ShapeError(f"visibility: point index {int(visibility.point_index.max())} >= num_points ({num_points})")
     start = time.perf_counter()
     features = _FeatureSum(num_points, bundle.feature_dim)
-    colors = _ColorSum(num_points) if cfg.fuse_colors and any(f.color for f in frames) else None
-    for v, frame in enumerate(frames):
-        point_index, row, col = visibility.frame(v)
+    colors = (
+        _ColorSum(num_points, (bundle.camera.height, bundle.camera.width))
+        if cfg.fuse_colors and any(f.color for f in frames)
+        else None
+    )
+
+    workers = decode_threads()
+    buffers: queue.SimpleQueue[_CellBuffers] = queue.SimpleQueue()  # one set per frame in flight
+    for _ in range(workers + 1):
+        buffers.put(_CellBuffers())
+
+    def prepare(v: int) -> tuple[_FrameRows | None, np.ndarray | None]:  # the frame's rows, and colour if used
+        """Everything of frame v that does not touch the sums: decoding, the unit rows (run on worker threads)."""
+        frame, (point_index, row, col) = frames[v], visibility.frame(v)
+        rows = None
         if frame.features is not None and point_index.size:
-            pooling = cfg.mask_pooling if frame.masks is not None else 0.0
-            features.add(bundle, frame, point_index, row, col, cfg.min_feature_norm, pooling)
-        if colors is not None and frame.color is not None and point_index.size:
-            colors.add(bundle, frame, point_index, row, col)
-        report(on_progress, v + 1, len(frames))
+            pooled = frame.masks is not None and cfg.mask_pooling > 0.0
+            masks = bundle.read_masks(frame) if pooled else None
+            rows = _FrameRows.of(bundle, frame, point_index, row, col, cfg.min_feature_norm, masks, cfg.mask_pooling,
+                                 buffers.get())  # fmt: skip
+        coloured = colors is not None and frame.color is not None and point_index.size
+        return rows, bundle.read_color(frame) if coloured else None
+
+    # The frames' rows are made up to ``workers`` frames ahead on threads (OpenCV decodes, numpy, scipy and torch
+    # compute without the GIL); the sums take them here, in frame order, so the result is the sequential one to
+    # the bit. torch on one thread: its calls here are many and short (a block of cells, a chunk of rows), and
+    # each of torch's parallel regions woke the pool's sleeping threads, which cost more than the split saved.
+    with torch_threads(1):
+        for v, (rows, color) in enumerate(prefetched(prepare, range(len(frames)), workers)):
+            if rows is not None:
+                features.add(rows)
+                buffers.put(rows.buffers)
+            if colors is not None and color is not None:
+                colors.add(frames[v], color, *visibility.frame(v))
+            report(on_progress, v + 1, len(frames))
     feat_sum, count = features.total, features.count  # (N, D) becomes the mean in place, (N,)
     feat_sum *= (1.0 / np.maximum(count, 1)).astype(np.float32)[:, None]  # sum -> mean; unseen rows stay 0
     weights = confidence_weights(feat_sum, count, cfg)
@@ -262,8 +295,8 @@ def _frames_by_id(bundle: Bundle, visibility: Visibility) -> list[Frame]:
 class _FeatureSum:
     """Running per-primitive sum of unit pixel features and observation count.
 
-    Each frame builds one unit row per (cell, mask) pair in use and adds each primitive's row with torch's
-    ``index_add_`` on a view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
+    Each frame's unit rows (:class:`_FrameRows`) are added to their primitives with torch's ``index_add_`` on a
+    view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
     """
 
     def __init__(self, num_points: int, dim: int) -> None:
@@ -273,47 +306,61 @@ class _FeatureSum:
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
         self._total_t = torch.from_numpy(self.total)  # shares memory with self.total
         self._buffer = torch.empty((_CHUNK, dim), dtype=torch.float32)  # (chunk, D)
-        self._buffers = _CellBuffers()
 
-    def add(
-        self,
+    def add(self, frame: _FrameRows) -> None:
+        """Add one frame's unit rows to the primitives that read them."""
+        import torch
+
+        if frame.table.shape[1] != self.total.shape[1]:
+            raise ShapeError(f"features: expected {self.total.shape[1]} dimensions, got {frame.table.shape[1]}")
+        targets, rows = frame.targets, frame.rows
+        self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
+        table_t = torch.from_numpy(frame.table)
+        for lo in range(0, targets.size, _CHUNK):
+            n = min(_CHUNK, targets.size - lo)
+            gathered = self._buffer[:n]
+            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
+            self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+
+
+@dataclass(frozen=True)
+class _FrameRows:
+    """One frame's unit pixel features: ``table`` rows (in ``buffers``, valid until they are reused) and, for each
+    primitive with a feature, its index and its row."""
+
+    table: np.ndarray  # (U, D) float32 unit rows, zero where no feature
+    targets: np.ndarray  # (T,) int64 primitive indices, unique
+    rows: np.ndarray  # (T,) int64 row of each
+    buffers: _CellBuffers
+
+    @classmethod
+    def of(
+        cls,
         bundle: Bundle,
         frame: Frame,
         point_index: np.ndarray,  # (T_v,) int32, unique within the frame
         row: np.ndarray,  # (T_v,) int32
         col: np.ndarray,  # (T_v,) int32
         min_norm: float,
-        mask_pooling: float = 0.0,
-    ) -> None:
-        """Add one frame's unit pixel features (streamed: the map is dropped on return)."""
-        import torch
-
+        masks: np.ndarray | None,  # (Hm, Wm) the frame's mask ids, or None: no mask pooling
+        mask_pooling: float,
+        buffers: _CellBuffers,
+    ) -> _FrameRows:
+        """Read the frame's feature map (memory-mapped, dropped on return) into unit rows in ``buffers``."""
         fmap = bundle.read_features(frame)  # (Hf, Wf, D), memory-mapped
-        d = self.total.shape[1]
+        d = bundle.feature_dim
         if fmap.ndim != 3 or fmap.shape[2] != d:
             raise ShapeError(f"features of frame {frame.id}: expected (Hf, Wf, {d}), got {fmap.shape}")
         image_hw = (bundle.camera.height, bundle.camera.width)
         src = feature_cells(row, col, image_hw, fmap.shape[:2])  # (T_v,) cell of each primitive
-        cells, inv_norm = _cells_and_inverse_norms(fmap, min_norm, self._buffers)  # (C, D) as read, (C,) 1 / |f_c|
-        if mask_pooling > 0.0:
-            masks = bundle.read_masks(frame)
+        if masks is not None and mask_pooling > 0.0:
             mask_pixel = feature_cells(row, col, image_hw, masks.shape)  # (T_v,) the mask pixel of each primitive
-            table, index = _rows_blended_with_masks(
-                cells, inv_norm, src, masks, mask_pixel, fmap.shape[:2], mask_pooling, self._buffers
-            )
+            table, index = _frame_rows(fmap, src, min_norm, buffers, (masks, mask_pixel, mask_pooling))
         else:
-            cell, index = np.unique(src, return_inverse=True)  # the cells in use, and each primitive's
-            table = cells[cell] * inv_norm[cell, None]  # (U, D) unit cells, zero where no feature
+            table, index = _frame_rows(fmap, src, min_norm, buffers)
         valid = _unit_rows_(table, min_norm)  # a zero feature is no observation
         keep = np.flatnonzero(valid[index])
-        targets, rows = point_index[keep].astype(np.int64), index[keep]
-        self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
-        table_t = torch.from_numpy(table)
-        for lo in range(0, targets.size, _CHUNK):
-            n = min(_CHUNK, targets.size - lo)
-            gathered = self._buffer[:n]
-            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
-            self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+        return cls(table=table, targets=point_index[keep].astype(np.int64), rows=index[keep], buffers=buffers)
 
 
 class _CellBuffers:
@@ -326,6 +373,7 @@ class _CellBuffers:
 
     def __init__(self) -> None:
         self.cells: np.ndarray | None = None  # (C, D) float32
+        self._block: np.ndarray | None = None  # (_BLOCK, D) float32
         self._rows: list[np.ndarray] = []  # two (capacity, D) float32 row buffers
         self._pixel_cells: dict[tuple[tuple[int, int], tuple[int, int]], tuple[np.ndarray, np.ndarray]] = {}
 
@@ -343,23 +391,34 @@ class _CellBuffers:
             self._pixel_cells[key] = mask_pixel_cells(mask_hw, feature_hw)
         return self._pixel_cells[key]
 
+    def block(self, rows: np.ndarray) -> np.ndarray:  # (B, D) float32, valid until the next call
+        """Rows of a map (as stored) as float32, in a kept buffer of ``_BLOCK`` rows (a private copy)."""
+        if self._block is None or self._block.shape[1] != rows.shape[1]:
+            self._block = np.empty((_BLOCK, rows.shape[1]), dtype=np.float32)
+        return _to_float32(rows, self._block[: len(rows)])
+
     def read(self, fmap: np.ndarray) -> np.ndarray:  # (C, D) float32, valid until the next call
         """The map's cells as float32 rows (a private copy: callers may write into it)."""
-        import torch
-
         hf, wf, d = fmap.shape
         flat = fmap.reshape(hf * wf, d)
         if self.cells is None or self.cells.shape != flat.shape:
             self.cells = np.empty(flat.shape, dtype=np.float32)
-        if flat.dtype == np.dtype(np.float16):  # torch converts float16 several times faster than numpy
-            # Straight from the memory-mapped file: a float16 copy first cost as much again (its page faults).
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
-                source = torch.from_numpy(np.asarray(flat))  # read-only map: torch only reads it
-            torch.from_numpy(self.cells).copy_(source)
-        else:
-            np.copyto(self.cells, flat, casting="unsafe")
-        return self.cells
+        return _to_float32(flat, self.cells)
+
+
+def _to_float32(rows: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Copy (R, D) rows as stored into the float32 ``out`` (same shape) and return it."""
+    import torch
+
+    if rows.dtype == np.dtype(np.float16):  # torch converts float16 several times faster than numpy
+        # Straight from the memory-mapped file: a float16 copy first cost as much again (its page faults).
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+            source = torch.from_numpy(np.asarray(rows))  # read-only map: torch only reads it
+        torch.from_numpy(out).copy_(source)
+    else:
+        np.copyto(out, rows, casting="unsafe")
+    return out
 
 
 def _cells_and_inverse_norms(
@@ -372,48 +431,124 @@ def _cells_and_inverse_norms(
     is used by some primitive or some mask.
     """
     cells = (buffers or _CellBuffers()).read(fmap)
+    return cells, _inverse_norms_(cells, min_norm)
+
+
+def _frame_rows(
+    fmap: np.ndarray,  # (Hf, Wf, D) feature map as stored (float16 or float32, memory-mapped)
+    src: np.ndarray,  # (T_v,) int64 cell of each primitive
+    min_norm: float,
+    buffers: _CellBuffers,
+    masks: tuple[np.ndarray, np.ndarray, float] | None = None,  # (Hm, Wm) ids, (T_v,) mask pixels, pooling weight
+) -> tuple[np.ndarray, np.ndarray]:  # (U, D) float32 rows (not yet unit), (T_v,) int64 each primitive's row
+    """One row per cell in use (per (cell, mask) pair with ``masks``): the unit cell, blended towards the mask's
+    pooled feature.
+
+    The blend of cell c with mask m is ``(1 - weight) f_c / |f_c| + weight pool_m`` (made unit by the caller); the
+    pairs without a mask (m = 0) and masks without a pooled feature have ``pool_m = 0``: the plain unit cell. Rows
+    are per pair, not per primitive: many primitives share a cell when the maps are coarse. The rows are written
+    into ``buffers`` (valid until its next use).
+
+    The map is read in blocks of ``_BLOCK`` cells that stay in the L2 cache: each block is converted to float32,
+    its norms taken, its share of the masks' pooled features added and its rows in use copied out, so that the
+    (C, D) float32 map is never written whole and read back three times (the conversion, the norms and the pooling
+    each streamed 40 MB per 160 x 120 x 512 map). Every row and every pooled feature is summed in the same order
+    as from the whole map: the results are identical to the bit.
+    """
+    import torch
+
+    hf, wf, d = fmap.shape
+    num_cells = hf * wf
+    flat = fmap.reshape(num_cells, d)
+    if masks is None:
+        cell, index = np.unique(src, return_inverse=True)  # the cells in use, and each primitive's
+        mask, weight, pooling = None, 0.0, None
+    else:
+        mask_ids, mask_pixel, weight = masks
+        dense, mask_values = _dense_mask_ids(mask_ids)  # (Hm Wm,) ids renumbered 0..M (0 stays "no mask")
+        num_masks = len(mask_values)
+        pair, index = np.unique(src * num_masks + dense[mask_pixel], return_inverse=True)  # (U,), (T_v,)
+        cell, mask = pair // num_masks, pair % num_masks
+        pooling = _BlockPooling(dense, num_masks, buffers.pixel_cells(mask_ids.shape, (hf, wf)), d)
+    table, blend = buffers.rows(len(cell), d)  # (U, D) each
+    table_t = torch.from_numpy(table)
+    starts = range(0, num_cells, _BLOCK)
+    bounds = np.searchsorted(cell, [*starts, num_cells])  # the rows of each block's cells (cell is sorted)
+    for b, c0 in enumerate(starts):
+        block = buffers.block(flat[c0 : c0 + _BLOCK])  # (B, D) float32
+        inv_norm = _inverse_norms_(block, min_norm)  # (B,) 1 / |f_c|, 0 (and the row zeroed) where no feature
+        if pooling is not None:
+            pooling.add(b, block, inv_norm)
+        lo, hi = int(bounds[b]), int(bounds[b + 1])
+        if hi > lo:
+            local = cell[lo:hi] - c0
+            # torch's gather into a kept buffer: numpy's np.take(out=) took twice as long as a fresh cells[cell].
+            torch.index_select(torch.from_numpy(block), 0, torch.from_numpy(local), out=table_t[lo:hi])
+            table[lo:hi] *= ((1.0 - weight) * inv_norm[local])[:, None]
+    if pooling is not None and mask is not None:
+        pooled = pooling.pooled(min_norm)  # (M + 1, D), row 0 zero
+        scaled_pool = torch.from_numpy(weight * pooled)  # (weight pool)[m] is weight (pool[m]), exactly
+        table += torch.index_select(scaled_pool, 0, torch.from_numpy(mask), out=torch.from_numpy(blend)).numpy()
+    return table, index.reshape(-1)
+
+
+def _inverse_norms_(cells: np.ndarray, min_norm: float) -> np.ndarray:  # (C,) float32
+    """``1 / |f_c|`` of each float32 row, 0 where the row holds no feature; such rows are zeroed in place (a
+    non-finite cell would turn its products into NaN)."""
     with np.errstate(invalid="ignore", over="ignore"):
         norm = np.sqrt(np.einsum("cd,cd->c", cells, cells))  # (C,)
     valid = np.isfinite(norm) & (norm > min_norm)
     inv_norm = np.zeros(len(norm), dtype=np.float32)
     inv_norm[valid] = 1.0 / norm[valid]
     if not valid.all():
-        cells[~valid] = 0.0  # a non-finite cell would turn its products into NaN
-    return cells, inv_norm
+        cells[~valid] = 0.0
+    return inv_norm
 
 
-def _rows_blended_with_masks(
-    cells: np.ndarray,  # (C, D) float32 cells as read
-    inv_norm: np.ndarray,  # (C,) 1 / |f_c|, 0 where no feature
-    src: np.ndarray,  # (T_v,) int64 cell of each primitive
-    masks: np.ndarray,  # (Hm, Wm) int mask ids, 0 = no mask
-    mask_pixel: np.ndarray,  # (T_v,) int64 flat mask pixel of each primitive
-    feature_hw: tuple[int, int],
-    weight: float,
-    buffers: _CellBuffers,
-) -> tuple[np.ndarray, np.ndarray]:  # (U, D) float32 rows (not yet unit), (T_v,) int64 each primitive's row
-    """One row per (cell, mask) pair in use: the unit cell, blended towards the mask's pooled feature.
+class _BlockPooling:
+    """The masks' pooled features (:func:`_pool_cells`) summed block by block of cells, as the blocks are read.
 
-    The blend of cell c with mask m is ``(1 - weight) f_c / |f_c| + weight pool_m`` (made unit by the caller); the
-    pairs without a mask (m = 0) and masks without a pooled feature have ``pool_m = 0``: the plain unit cell. Rows
-    are per pair, not per primitive: many primitives share a cell when the maps are coarse. The rows are written
-    into ``buffers`` (valid until its next use).
+    The (mask, cell) terms are grouped by block, then by mask, then by cell; each block's terms are one small CSR
+    product added into the (M + 1, D) sum by scipy's own kernel (``csr_matvecs``, which accumulates), so every
+    mask's sum runs over its cells in the same order as the one product over the whole map.
     """
-    import torch
 
-    dense, mask_values = _dense_mask_ids(masks)  # (Hm Wm,) ids renumbered 0..M (0 stays "no mask")
-    num_masks = len(mask_values)
-    pair, index = np.unique(src * num_masks + dense[mask_pixel], return_inverse=True)  # (U,), (T_v,)
-    cell, mask = pair // num_masks, pair % num_masks
-    pixel_cells = buffers.pixel_cells(masks.shape, feature_hw)
-    pooled = _pool_cells(cells, inv_norm, dense, num_masks, pixel_cells)  # (M + 1, D), row 0 zero
-    table, blend = buffers.rows(len(pair), cells.shape[1])  # (U, D) each
-    # torch's gather into a kept buffer: numpy's np.take(out=) took twice as long as a fresh cells[cell].
-    torch.index_select(torch.from_numpy(cells), 0, torch.from_numpy(cell), out=torch.from_numpy(table))
-    table *= ((1.0 - weight) * inv_norm[cell])[:, None]
-    scaled_pool = torch.from_numpy(weight * pooled)  # (weight pool)[m] is weight (pool[m]), exactly
-    table += torch.index_select(scaled_pool, 0, torch.from_numpy(mask), out=torch.from_numpy(blend)).numpy()
-    return table, index.reshape(-1)
+    def __init__(
+        self,
+        dense: np.ndarray,  # (Hm Wm,) int64 dense mask number of every mask pixel
+        num_masks: int,  # M + 1
+        pixel_cells: tuple[np.ndarray, np.ndarray],  # mask_pixel_cells(mask_hw, feature_hw)
+        dim: int,
+    ) -> None:
+        cell, pixels_in_cell = pixel_cells  # (Hm Wm,), (C,)
+        num_cells = len(pixels_in_cell)
+        n_mc = np.bincount(dense * num_cells + cell, minlength=num_masks * num_cells)  # (M + 1) C pixel counts
+        pair = np.flatnonzero(n_mc[num_cells:]) + num_cells  # sorted by mask, then cell; no mask pools nothing
+        mask_of, cell_of = pair // num_cells, pair % num_cells
+        num_blocks = -(-num_cells // _BLOCK)
+        key = (cell_of // _BLOCK) * num_masks + mask_of  # (block, mask)
+        order = np.argsort(key, kind="stable")  # within a (block, mask): cells in order
+        self._cell = (cell_of[order] % _BLOCK).astype(np.int32)  # the cell within its block
+        self._base = n_mc[pair[order]].astype(np.float64) ** 2 / pixels_in_cell[cell_of[order]]  # weight / inv_norm
+        self._indptr = np.zeros(num_blocks * num_masks + 1, dtype=np.int32)
+        np.cumsum(np.bincount(key, minlength=num_blocks * num_masks), out=self._indptr[1:])
+        self._num_masks = num_masks
+        self._sum = np.zeros((num_masks, dim), dtype=np.float32)  # (M + 1, D)
+
+    def add(self, b: int, block: np.ndarray, inv_norm: np.ndarray) -> None:
+        """Add block ``b``'s terms: ``block`` (B, D) float32 cells as read, ``inv_norm`` (B,) their 1 / |f_c|."""
+        m = self._num_masks
+        indptr = self._indptr[b * m : (b + 1) * m + 1]
+        lo, hi = int(indptr[0]), int(indptr[-1])
+        if hi == lo:
+            return
+        cell = self._cell[lo:hi]
+        weight = (self._base[lo:hi] * inv_norm[cell]).astype(np.float32)
+        _csr_matvecs(m, len(block), block.shape[1], indptr - lo, cell, weight, block.reshape(-1), self._sum.reshape(-1))
+
+    def pooled(self, min_norm: float) -> np.ndarray:  # (M + 1, D) float32 unit rows (zero: no feature)
+        _unit_rows_(self._sum, min_norm)
+        return self._sum
 
 
 def mask_pooled_features(
@@ -523,15 +658,14 @@ def _unit_rows_(rows: np.ndarray, min_norm: float) -> np.ndarray:  # (U,) bool: 
 class _ColorSum:
     """Running per-primitive RGB sum and count over the key frames that have colour."""
 
-    def __init__(self, num_points: int) -> None:
+    def __init__(self, num_points: int, image_hw: tuple[int, int]) -> None:
         self.total = np.zeros((num_points, 3), dtype=np.float32)  # (N, 3)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
+        self._image_hw = image_hw
 
-    def add(self, bundle: Bundle, frame: Frame, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
-        image = bundle.read_color(frame)  # (H, W, 3) uint8 at the camera size, or None
-        if image is None:
-            return
-        expected = (bundle.camera.height, bundle.camera.width, 3)
+    def add(self, frame: Frame, image: np.ndarray, point_index: np.ndarray, row: np.ndarray, col: np.ndarray) -> None:
+        """Add one frame's colours: ``image`` (H, W, 3) uint8 RGB at the camera size, as ``Bundle.read_color``."""
+        expected = (*self._image_hw, 3)
         if image.shape != expected:
             raise ShapeError(f"colour of frame {frame.id}: expected {expected}, got {image.shape}")
         self.total[point_index] += image[row, col].astype(np.float32) / 255.0

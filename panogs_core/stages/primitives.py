@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
+import types
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,29 @@ from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
+
+# ``import open3d`` also imports ``open3d.visualization.draw_plotly``, a browser viewer built on plotly and dash
+# (which bring IPython, requests, werkzeug, pydantic): 0.5 s of the 0.8 s open3d import, and of a ScanNet-size
+# ``panogs run`` (``python -X importtime``), for a viewer panogs never opens. :func:`_open3d` stands a stub in
+# for that one module before open3d loads.
+_PLOTLY_VIEWER = "open3d.visualization.draw_plotly"
+
+
+def _open3d() -> Any:  # the open3d module
+    """``import open3d``, without its plotly/dash viewer when open3d is not loaded yet (its functions then raise)."""
+    if "open3d" not in sys.modules and _PLOTLY_VIEWER not in sys.modules:
+        stub = types.ModuleType(_PLOTLY_VIEWER, "Stand-in for open3d's plotly viewer, not loaded by panogs.")
+
+        def not_loaded(*args: object, **kwargs: object) -> None:
+            raise RuntimeError(f"{_PLOTLY_VIEWER} was not loaded: panogs imports open3d without it")
+
+        for name in ("get_plotly_fig", "draw_plotly", "draw_plotly_server"):
+            setattr(stub, name, not_loaded)
+        sys.modules[_PLOTLY_VIEWER] = stub
+    import open3d
+
+    return open3d
+
 
 # Fallback for normals open3d cannot estimate (a point with fewer than 3 neighbours in the radius).
 _DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], dtype=np.float32)
@@ -249,7 +274,7 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int) -> np.ndarr
 
     Points open3d cannot fit (fewer than 3 neighbours in ``radius``) get ``(0, 0, 1)``: every row is unit.
     """
-    import open3d as o3d
+    o3d = _open3d()
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
@@ -317,7 +342,7 @@ def _o3d_depth(bundle: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
     Readings outside ``[depth_min, depth_max]`` or non-finite become 0 (no depth). A frame without one valid
     reading is skipped: open3d refuses to integrate a depth image that touches no block.
     """
-    import open3d as o3d
+    o3d = _open3d()
 
     depth = np.array(bundle.read_depth(frame), dtype=np.float32)  # (H, W) copy: we edit it
     valid = np.isfinite(depth) & (depth >= cfg.depth_min) & (depth <= cfg.depth_max)
@@ -329,9 +354,7 @@ def _o3d_depth(bundle: Bundle, frame: Frame, cfg: PrimitivesConfig) -> Any:
 
 def _tensor(array: np.ndarray) -> Any:
     """An open3d tensor over a C-contiguous copy-free view of ``array`` (open3d keeps the array alive)."""
-    import open3d.core as o3c
-
-    return o3c.Tensor.from_numpy(np.ascontiguousarray(array))
+    return _open3d().core.Tensor.from_numpy(np.ascontiguousarray(array))
 
 
 def _extrinsic(frame: Frame) -> Any:
@@ -339,8 +362,8 @@ def _extrinsic(frame: Frame) -> Any:
 
 
 def _new_grid(cfg: PrimitivesConfig, with_color: bool, block_count: int) -> Any:
-    import open3d as o3d
-    import open3d.core as o3c
+    o3d = _open3d()
+    o3c = o3d.core
 
     names, dtypes, channels = ["tsdf", "weight"], [o3c.float32, o3c.float32], [o3c.SizeVector([1])] * 2
     if with_color:
@@ -402,7 +425,7 @@ def _integrate(
 
 def _integrate_frame(grid: Any, bundle: Bundle, frame: Frame, cfg: PrimitivesConfig, with_color: bool) -> bool:
     """Integrate one frame (depth, and colour when the grid has it); False when it has no valid depth."""
-    import open3d as o3d
+    o3d = _open3d()
 
     depth = _o3d_depth(bundle, frame, cfg)
     if depth is None:

@@ -356,3 +356,73 @@ class TestMaskPooling:
     def test_config_range(self) -> None:
         with pytest.raises(ConfigError, match="mask_pooling"):
             FusionConfig(mask_pooling=1.5)
+
+
+class TestBlockwiseRows:
+    """The rows read block by block (``_frame_rows``) equal those read from the whole float32 map, to the bit."""
+
+    @staticmethod
+    def _whole_map(
+        fmap: np.ndarray, src: np.ndarray, masks: np.ndarray | None, pixel: np.ndarray, weight: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        from panogs_core.stages import fusion
+
+        cells, inv_norm = fusion._cells_and_inverse_norms(fmap, 1e-6)
+        if masks is None:
+            cell, index = np.unique(src, return_inverse=True)
+            return cells[cell] * inv_norm[cell, None], index
+        dense, values = fusion._dense_mask_ids(masks)
+        pair, index = np.unique(src * len(values) + dense[pixel], return_inverse=True)
+        cell, mask = pair // len(values), pair % len(values)
+        cell_of_pixel = fusion.mask_pixel_cells(masks.shape, fmap.shape[:2])
+        pooled = fusion._pool_cells(cells, inv_norm, dense, len(values), cell_of_pixel)
+        table = cells[cell] * ((1.0 - weight) * inv_norm[cell])[:, None]
+        return table + (weight * pooled)[mask], index
+
+    @pytest.mark.parametrize("dtype", [np.float16, np.float32])
+    @pytest.mark.parametrize("pooling", [0.0, 0.5])
+    def test_identical_to_whole_map(self, monkeypatch: pytest.MonkeyPatch, dtype: type, pooling: float) -> None:
+        from panogs_core.stages import fusion
+
+        monkeypatch.setattr(fusion, "_BLOCK", 64)  # 9 blocks, the last one partial
+        rng = np.random.default_rng(3)
+        hf, wf, hm, wm = 23, 25, 46, 50
+        fmap = rng.standard_normal((hf, wf, 8)).astype(dtype)
+        fmap[0, 3] = 0.0  # no feature
+        fmap[5, 7, 2] = np.nan  # not finite
+        masks = rng.choice([0, 7, 9, 60000], size=(hm, wm)).astype(np.int32)
+        masks[10:30, 5:40] = 9  # a big mask over many blocks
+        pixel = rng.integers(0, hm * wm, 300)
+        src = fusion.feature_cells(pixel // wm, pixel % wm, (hm, wm), (hf, wf))
+        args = None if pooling == 0.0 else (masks, pixel, pooling)
+        table, index = fusion._frame_rows(fmap, src, 1e-6, fusion._CellBuffers(), args)
+        expected, expected_index = self._whole_map(fmap, src, None if pooling == 0.0 else masks, pixel, pooling)
+        np.testing.assert_array_equal(index, expected_index)
+        assert table.tobytes() == expected.astype(np.float32).tobytes()
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_frames_on_threads_give_the_sequential_result(monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
+    """The frames' rows made on threads, summed in frame order: the same bits as one frame after the other."""
+    from panogs_core.stages import fusion
+
+    rng = np.random.default_rng(5)
+    frames = tuple(_frame(f"f{i}", color=True) for i in range(7))
+    scene = MaskedScene(
+        camera=CAM,
+        frames=frames,
+        features={f.id: rng.standard_normal((3, 4, D)).astype(np.float16) for f in frames},
+        colors={f.id: rng.integers(0, 256, (6, 8, 3), dtype=np.uint8) for f in frames},
+        masks={f.id: rng.integers(0, 3, (6, 8)).astype(np.int32) for f in frames},
+    )
+    seen = {f.id: sorted({(int(p), int(p) % 6, int(p) % 8) for p in rng.choice(20, 12, replace=False)}) for f in frames}
+    vis = _visibility(seen)
+    monkeypatch.setattr(fusion, "decode_threads", lambda: 1)
+    one = fuse_features(scene, vis, 20, FusionConfig())
+    monkeypatch.setattr(fusion, "decode_threads", lambda: workers)
+    many = fuse_features(scene, vis, 20, FusionConfig())
+    assert one.colors is not None
+    assert many.colors is not None
+    for a, b in ((one.features, many.features), (one.weights, many.weights), (one.colors, many.colors)):
+        assert a.tobytes() == b.tobytes()
+    np.testing.assert_array_equal(one.seen_count, many.seen_count)

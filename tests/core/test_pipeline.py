@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -560,3 +561,46 @@ def test_a_stage_added_to_the_table_runs_in_its_place_and_is_reported(
     assert result.instances == first.instances
     for name in ("labels.npz", "instances.json", "panoptic.ply"):
         assert (tmp_path / name).read_bytes() == (out / name).read_bytes()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's niceness is its own on Linux only")
+def test_bundle_hash_thread_runs_at_a_lower_priority(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bundle's hash yields the cores to the stages' threads; the caller's own priority is untouched."""
+    import os
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from panogs_core.pipeline import checkpoints
+
+    def niceness(_: object) -> str:
+        return str(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    monkeypatch.setattr(checkpoints, "hash_bundle", niceness)
+    before = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        inside = int(pool.submit(checkpoints._hash_at_low_priority, None).result())
+    assert inside == min(19, before + checkpoints._HASH_NICENESS)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
+
+
+@pytest.mark.slow
+def test_run_as_the_process_entry_ends_after_its_exit_handlers(tiny_bundle: Path, tmp_path: Path) -> None:
+    """``main()`` with no argv ends a successful ``run`` without the interpreter's teardown: the exit handlers
+    have run, the output streams are flushed and the run folder is complete (what resume reads included)."""
+    import subprocess
+
+    marker = tmp_path / "handlers-ran"
+    code = (
+        "import atexit, pathlib, sys; from panogs_core.cli import main; "
+        f"atexit.register(pathlib.Path({str(marker)!r}).write_text, 'yes'); main(); print('returned')"
+    )
+    out = tmp_path / "run"
+    args = [sys.executable, "-c", code, "run", str(tiny_bundle), "--out", str(out), "--set", "appearance.enabled=false"]
+    root = str(Path(__file__).resolve().parents[2])
+    done = subprocess.run(args, capture_output=True, text=True, cwd=root, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "returned" not in done.stdout  # ended inside main
+    assert "the results are written" in done.stdout  # flushed
+    assert marker.read_text() == "yes"
+    assert (out / "report.json").is_file()
+    assert (out / "stages" / "manifest.json").is_file()

@@ -275,3 +275,19 @@ class TestDownsample:
         assert colors is None
         capped, _ = _downsample_under_cap(points, None, PrimitivesConfig(target_spacing=0.1, max_primitives=1))
         assert len(capped) == 1
+
+
+def test_open3d_loads_without_its_plotly_viewer() -> None:
+    """The stages' open3d import leaves plotly and dash unloaded (0.5 s of a run's start) and open3d works."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np; from panogs_core.stages.primitives import _open3d, estimate_normals; "
+        "o3d = _open3d(); n = estimate_normals(np.random.default_rng(0).random((50, 3)), 0.5, 10); "
+        "print(sorted(m for m in ('dash', 'plotly', 'IPython') if m in sys.modules), np.allclose(np.linalg.norm(n, "
+        "axis=1), 1), hasattr(o3d.t.geometry, 'VoxelBlockGrid'))"
+    )
+    root = str(Path(__file__).resolve().parents[2])
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
+    assert out.stdout.split() == ["[]", "True", "True"]

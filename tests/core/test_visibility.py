@@ -293,3 +293,46 @@ class TestDepthResidual:
             Visibility(frame_ids=("a",), offsets=np.array([0, 2]), point_index=np.zeros(2, np.int32),
                        pixel_row=np.zeros(2, np.int32), pixel_col=np.zeros(2, np.int32),
                        depth_residual=np.zeros(3, np.float16))  # fmt: skip
+
+
+class TestPrefetched:
+    """``prefetched``: results in order, reads ahead on threads, an error raised where its result is due."""
+
+    @pytest.mark.parametrize("workers", [1, 2, 3])
+    def test_order(self, workers: int) -> None:
+        from panogs_core.stages.visibility import prefetched
+
+        assert list(prefetched(lambda x: x * x, list(range(10)), workers)) == [x * x for x in range(10)]
+        assert list(prefetched(str, [], workers)) == []
+
+    def test_error_where_due(self) -> None:
+        from panogs_core.stages.visibility import prefetched
+
+        def read(x: int) -> int:
+            if x == 3:
+                raise ValueError("bad frame 3")
+            return x
+
+        got = prefetched(read, list(range(6)), 2)
+        assert [next(got) for _ in range(3)] == [0, 1, 2]
+        with pytest.raises(ValueError, match="bad frame 3"):
+            next(got)
+
+
+def test_decode_threads_follow_the_lower_of_opencv_and_torch() -> None:
+    """A tile's process narrows torch's threads only: the stages' frame threads follow it."""
+    import cv2
+    import torch
+
+    from panogs_core.stages.visibility import decode_threads
+
+    before_cv, before_torch = cv2.getNumThreads(), torch.get_num_threads()
+    try:
+        cv2.setNumThreads(3)
+        torch.set_num_threads(2)
+        assert decode_threads() == 2
+        torch.set_num_threads(4)
+        assert decode_threads() == 3
+    finally:
+        cv2.setNumThreads(before_cv)
+        torch.set_num_threads(before_torch)
