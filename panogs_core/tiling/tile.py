@@ -5,7 +5,6 @@ folder under ``tiles/`` (docs/method.md §16). Used by the one-process runner (:
 
 from __future__ import annotations
 
-import ctypes
 import gc
 import hashlib
 import json
@@ -16,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from panogs_core.heap import return_freed_heap
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.run_folder import LABELS_NPZ, REPORT_JSON, STAGES_FOLDER, TILES_FOLDER
 from panogs_core.pipeline.config import PipelineConfig
@@ -136,7 +136,4 @@ def release_memory() -> None:
     """Hand what the last tile freed back to the system, so the next tile's peak is its own: the garbage
     collector for cycles, then glibc's ``malloc_trim`` for the freed heap it keeps (a no-op elsewhere)."""
     gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+    return_freed_heap()

@@ -56,13 +56,14 @@ LAYER_RULES: dict[str, tuple[str, ...]] = {
 FLOORS: tuple[Layer, ...] = (
     Layer(
         "base",
-        "value types, errors, progress, threads, colours, point graphs, bounded JSON, stage snapshots",
+        "value types, errors, progress, threads, the heap, colours, point graphs, bounded JSON, stage snapshots",
         (
             "panogs_core",
             "errors",
             "types",
             "progress",
             "threads",
+            "heap",
             "palette",
             "point_graphs",
             "bounded_json",

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from panogs_core.errors import InputError, ShapeError
+from panogs_core.heap import return_freed_heap
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn
 from panogs_core.stages.language_field.config import LanguageFieldConfig
@@ -157,6 +158,7 @@ def fit_language_field(
         )
         train_model(model, data, cfg, on_progress)
         del data  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
+        return_freed_heap()  # the training's freed temporaries would stay resident beside the decoding's output
         model.eval()
         decoded = decode_features(model, points, bounds)  # (N, D)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))
