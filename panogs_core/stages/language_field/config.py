@@ -22,8 +22,8 @@ class LanguageFieldConfig:
     DEPARTURE (schedule, docs/method.md §3.3): 3 epochs (at least 200 steps) at batch 1024 with larger learning
     rates, Adam's second moment at 0.9, the decoder started at the scene's own features and predicting in a 128-d
     basis of them, where the reference trains 11 epochs at batch 256 and lr 1e-3 from PyTorch's init in all D
-    dims; on a CPU the cost is per point, not per step. The reference's shape: ``epochs=4, min_steps=600,
-    betas=(0.9, 0.99), basis_dims=None, decoder_init="uniform"`` (this project's defaults before; 3x the CPU).
+    dims; on a CPU the cost is per point, not per step. The defaults before 2026-12-05, closer to the reference:
+    ``epochs=4, min_steps=600, betas=(0.9, 0.99), basis_dims=None, decoder_init="uniform"`` (about 3x the CPU).
     """
 
     # Metres per tri-plane cell, one per pyramid level (docs/method.md §3.2: ScanNet (0.2, 0.06), Replica (0.1, 0.04)).
