@@ -13,6 +13,7 @@ import {
   jobMaps,
   jobProgressText,
   jobStateText,
+  leftTheQueue,
   pollDelay,
   resultsReady,
   sceneFitted,
@@ -146,6 +147,17 @@ describe("the re-run form's vocabulary", () => {
       classes: [{ name: "shelf", kind: "stuff" }, { name: "rug" }, { name: "lamp", kind: "thing" }],
     });
     assert.deepEqual(vocabularyBody("lamp, rug", "scannet20"), { classes: [{ name: "lamp" }, { name: "rug" }] });
+  });
+});
+
+describe("the upload form's job queued note", () => {
+  it("gives way once the job's row shows it running or done", () => {
+    const other = { id: "other", state: "running" };
+    assert.equal(leftTheQueue([], JOB), false); // not listed yet
+    assert.equal(leftTheQueue([other, { id: JOB, state: "queued" }], JOB), false);
+    assert.equal(leftTheQueue([other, { id: JOB, state: "running" }], JOB), true);
+    assert.equal(leftTheQueue([{ id: JOB, state: "succeeded" }], JOB), true); // a small job done within a poll
+    assert.equal(leftTheQueue([other], JOB), false);
   });
 });
 

@@ -138,3 +138,10 @@ export function startingJobText(scene, maps) {
   const models = maps ? Object.values(maps).join(" and ") : "";
   return `scene ${scene.name} is valid; starting a job${models ? ` (its 2D maps computed by ${models})` : ""} ...`;
 }
+
+// Whether the job the upload form queued has left the queue in the job list (running, or already final): the form's
+// "job queued" note then gives way to the job's row. A job not in the list (yet) has not.
+export function leftTheQueue(jobs, jobId) {
+  const job = jobs.find((j) => j.id === jobId);
+  return job !== undefined && job.state !== "queued";
+}

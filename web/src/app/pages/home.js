@@ -33,6 +33,7 @@ export function homePage(ctx) {
   const listMessage = h("div", { class: "pgs-message" });
   let timer = null;
   ctx.onLeave(() => clearTimeout(timer));
+  let upload = null; // the upload card, made below with refresh as its onQueued
   const refresh = async () => {
     clearTimeout(timer);
     if (!ctx.page.contains(jobsBody)) return;
@@ -45,6 +46,7 @@ export function homePage(ctx) {
       timer = setTimeout(refresh, POLL_RETRY_MS);
       return;
     }
+    upload.showJobs(jobs.data);
     const byId = new Map(scenes.data.map((s) => [s.id, s]));
     // Rows are updated in place and moved only when the order changes: moving an element takes its focus away,
     // and a re-run form open in a row must keep what is being typed into it while other jobs run.
@@ -61,8 +63,9 @@ export function homePage(ctx) {
     scenesList.replaceChildren(...scenes.data.map((s) => sceneItem(s, listMessage, refresh)));
     timer = setTimeout(refresh, pollDelay(jobs.data));
   };
+  upload = uploadCard(refresh);
   ctx.page.replaceChildren(
-    uploadCard(refresh),
+    upload.card,
     h(
       "section",
       { class: "pgs-card" },

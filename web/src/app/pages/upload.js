@@ -5,15 +5,18 @@ import * as tus from "tus-js-client";
 import { h } from "../../dom.js";
 import { APP_HEADER, api, tusError } from "../api-client.js";
 import { showError } from "../messages.js";
-import { jobMaps, startingJobText, uploadProgressText } from "../rules.js";
+import { jobMaps, leftTheQueue, startingJobText, uploadProgressText } from "../rules.js";
 
 const CHUNK_BYTES = 8 * 1024 * 1024;
-// How long "job queued" stays under the form: the job's row in the table below says the rest of its life.
+// How long "job queued" stays under the form at most: the job's row in the table below says the rest of its life,
+// and the note goes sooner when the row shows the job running or done (a small job can finish within this time).
 const QUEUED_NOTE_MS = 6000;
 const RETRY_DELAYS_MS = [0, 1000, 3000, 5000, 10000];
 
-// onQueued(): a job was queued (the job list refreshes)
+// onQueued(): a job was queued (the job list refreshes). Returns the card, and showJobs(jobs): the job list as the
+// page last read it, so that the "job queued" note goes once the queued job's row shows more.
 export function uploadCard(onQueued) {
+  let queuedNote = null; // { text, jobId } while the form says "job queued"
   const file = h("input", {
     type: "file",
     name: "bundle",
@@ -48,18 +51,26 @@ export function uploadCard(onQueued) {
     () => {},
   );
 
+  // The note goes if it is still the one shown (an error or a new upload may have replaced it).
+  const clearQueuedNote = (text) => {
+    if (message.textContent === text) message.textContent = "";
+    if (queuedNote && queuedNote.text === text) queuedNote = null;
+  };
+  const showJobs = (jobs) => {
+    if (queuedNote && leftTheQueue(jobs, queuedNote.jobId)) clearQueuedNote(queuedNote.text);
+  };
+
   const createJob = async (uploadId) => {
     message.textContent = "validating the bundle ...";
     try {
       const scene = await api("POST", "/v1/scenes", { upload_id: uploadId, name: name.value.trim() || undefined });
       const maps = jobMaps(scene, { masks: masksModel.value, features: featuresModel.value });
       message.textContent = startingJobText(scene, maps);
-      await api("POST", "/v1/jobs", { scene_id: scene.id, maps });
+      const job = await api("POST", "/v1/jobs", { scene_id: scene.id, maps });
       const queued = `scene ${scene.name}: job queued (its row is in the jobs below)`;
       message.textContent = queued;
-      setTimeout(() => {
-        if (message.textContent === queued) message.textContent = "";
-      }, QUEUED_NOTE_MS);
+      queuedNote = { text: queued, jobId: job.id };
+      setTimeout(() => clearQueuedNote(queued), QUEUED_NOTE_MS);
       form.reset(); // the selects go back to their first entry
       bar.hidden = true;
       onQueued();
@@ -121,5 +132,5 @@ export function uploadCard(onQueued) {
     models,
     message,
   );
-  return form;
+  return { card: form, showJobs };
 }
