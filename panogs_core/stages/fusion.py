@@ -51,8 +51,8 @@ from panogs_core.errors import ConfigError, InputError, ShapeError
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
-from panogs_core.stages.visibility import Visibility, decode_threads, prefetched
-from panogs_core.threads import torch_threads
+from panogs_core.stages.visibility import Visibility
+from panogs_core.threads import decode_threads, prefetched, torch_threads
 from panogs_core.types import Frame
 
 log = logging.getLogger(__name__)
@@ -364,15 +364,14 @@ class _FrameRows:
 
 
 class _CellBuffers:
-    """The (C, D) float32 rows of one feature map, the blended rows of a frame and the mask pixels' cells, kept
-    from frame to frame.
+    """A block of a feature map's float32 rows, the blended rows of a frame and the mask pixels' cells, kept from
+    frame to frame.
 
     A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself
     (docs/benchmarks.md, "Speed at ScanNet size"); the blended rows' temporaries did the same on a smaller scale.
     """
 
     def __init__(self) -> None:
-        self.cells: np.ndarray | None = None  # (C, D) float32
         self._block: np.ndarray | None = None  # (_BLOCK, D) float32
         self._rows: list[np.ndarray] = []  # two (capacity, D) float32 row buffers
         self._pixel_cells: dict[tuple[tuple[int, int], tuple[int, int]], tuple[np.ndarray, np.ndarray]] = {}
@@ -397,14 +396,6 @@ class _CellBuffers:
             self._block = np.empty((_BLOCK, rows.shape[1]), dtype=np.float32)
         return _to_float32(rows, self._block[: len(rows)])
 
-    def read(self, fmap: np.ndarray) -> np.ndarray:  # (C, D) float32, valid until the next call
-        """The map's cells as float32 rows (a private copy: callers may write into it)."""
-        hf, wf, d = fmap.shape
-        flat = fmap.reshape(hf * wf, d)
-        if self.cells is None or self.cells.shape != flat.shape:
-            self.cells = np.empty(flat.shape, dtype=np.float32)
-        return _to_float32(flat, self.cells)
-
 
 def _to_float32(rows: np.ndarray, out: np.ndarray) -> np.ndarray:
     """Copy (R, D) rows as stored into the float32 ``out`` (same shape) and return it."""
@@ -421,16 +412,14 @@ def _to_float32(rows: np.ndarray, out: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cells_and_inverse_norms(
-    fmap: np.ndarray, min_norm: float, buffers: _CellBuffers | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Every cell of a feature map as a float32 row, and ``1 / |f_c|`` (0 where the cell holds no feature).
+def _cells_and_inverse_norms(fmap: np.ndarray, min_norm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell of a feature map as a float32 row (a private copy), and ``1 / |f_c|`` (0 where the cell holds no
+    feature): ``(C, D)`` and ``(C,)``, the whole map at once (the frame loop reads it by blocks, :func:`_frame_rows`).
 
-    ``(C, D)`` and ``(C,)``. The rows stay as read: the unit scale is folded into whatever reads them (the pooling
-    weights, the primitives' rows), which saves a pass over the map. The whole map is read once: nearly every cell
-    is used by some primitive or some mask.
+    The rows stay as read: the unit scale is folded into whatever reads them (the pooling weights).
     """
-    cells = (buffers or _CellBuffers()).read(fmap)
+    hf, wf, d = fmap.shape
+    cells = _to_float32(fmap.reshape(hf * wf, d), np.empty((hf * wf, d), dtype=np.float32))
     return cells, _inverse_norms_(cells, min_norm)
 
 

@@ -22,14 +22,11 @@ from __future__ import annotations
 
 import logging
 import math
-import sys
 import time
-from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -37,6 +34,7 @@ from panogs_core.errors import ConfigError, ShapeError
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
+from panogs_core.threads import prefetched
 from panogs_core.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -228,48 +226,6 @@ def frame_visibility(
     seen = (d > 0) & (np.abs(z - d) <= tolerance)
     residual = ((z[seen] - d[seen]) / d[seen]).astype(np.float16)  # |residual| <= rtol: float16 keeps 3 digits
     return idx[seen].astype(np.int32), row[seen], col[seen], residual
-
-
-def decode_threads() -> int:
-    """Threads for the stages' per-frame work: OpenCV's thread count (the process's, ``panogs_core.threads``), or
-    torch's where that is lower (a tile's process narrows torch's count to its share of the cores)."""
-    import cv2
-
-    threads = int(cv2.getNumThreads())
-    torch = sys.modules.get("torch")  # never imported here: the count only matters once torch has been set up
-    if torch is not None:
-        threads = min(threads, int(torch.get_num_threads()))
-    return max(1, threads)
-
-
-Item = TypeVar("Item")
-Result = TypeVar("Result")
-
-
-def prefetched(read: Callable[[Item], Result], items: Sequence[Item], workers: int | None = None) -> Iterator[Result]:
-    """``read(item)`` of each item, in order, with up to ``workers`` reads running ahead on threads.
-
-    For the stages' per-frame image decoding (a 640 x 480 16-bit depth PNG: 4-5 ms, a mask PNG or a colour JPEG:
-    1-2 ms): OpenCV decodes without the GIL, so the next frames decode on the other cores while this thread works
-    on the current one, and a stage waits on the slowest of the two instead of their sum. ``workers`` defaults to
-    OpenCV's thread count (the process's, ``panogs_core.threads``); with 1, or a single item, the reads run here,
-    one by one. An exception of a read is raised where its result is due.
-    """
-    workers = decode_threads() if workers is None else workers
-    if workers <= 1 or len(items) <= 1:
-        yield from map(read, items)
-        return
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="prefetch")
-    pending: deque[Future[Result]] = deque()
-    try:
-        for item in items:
-            pending.append(pool.submit(read, item))
-            if len(pending) > workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _inverse_pose(T_world_cam: np.ndarray) -> np.ndarray | None:  # (4, 4) float64 T_cam_world, or None

@@ -135,3 +135,46 @@ def test_torch_threads_sets_the_count_in_the_block_and_restores_it(inside: int |
         assert torch.get_num_threads() == 2  # restored after a failure too
     finally:
         torch.set_num_threads(before)
+
+
+class TestPrefetched:
+    """``prefetched``: results in order, reads ahead on threads, an error raised where its result is due."""
+
+    @pytest.mark.parametrize("workers", [1, 2, 3])
+    def test_order(self, workers: int) -> None:
+        from panogs_core.threads import prefetched
+
+        assert list(prefetched(lambda x: x * x, list(range(10)), workers)) == [x * x for x in range(10)]
+        assert list(prefetched(str, [], workers)) == []
+
+    def test_error_where_due(self) -> None:
+        from panogs_core.threads import prefetched
+
+        def read(x: int) -> int:
+            if x == 3:
+                raise ValueError("bad frame 3")
+            return x
+
+        got = prefetched(read, list(range(6)), 2)
+        assert [next(got) for _ in range(3)] == [0, 1, 2]
+        with pytest.raises(ValueError, match="bad frame 3"):
+            next(got)
+
+
+def test_decode_threads_follow_the_lower_of_opencv_and_torch() -> None:
+    """A tile's process narrows torch's threads only: the stages' frame threads follow it."""
+    import cv2
+    import torch
+
+    from panogs_core.threads import decode_threads
+
+    before_cv, before_torch = cv2.getNumThreads(), torch.get_num_threads()
+    try:
+        cv2.setNumThreads(3)
+        torch.set_num_threads(2)
+        assert decode_threads() == 2
+        torch.set_num_threads(4)
+        assert decode_threads() == 3
+    finally:
+        cv2.setNumThreads(before_cv)
+        torch.set_num_threads(before_torch)
