@@ -119,22 +119,47 @@ class StageKeys(Mapping[str, str]):
     """The stages' checkpoint keys, made from the bundle's hash once it is ready.
 
     Hashing the bundle reads every file of it (2 GB at ScanNet size, about 1.5 CPU s): it runs in a thread (hashlib
-    and file reads release the GIL) while the first stages compute, and a stage waits for it only to look up or to
-    record its checkpoint. The thread runs at a lower priority (:func:`_hash_at_low_priority`).
+    and file reads release the GIL) while stages compute, and a stage waits for it only to look up or to record its
+    checkpoint. The thread runs at a lower priority (:func:`_hash_at_low_priority`). With ``start=False`` it starts
+    on :meth:`start`, or when a key is first asked for: a run with no checkpoint to look up starts it once the
+    stages that keep every core busy are done (``pipeline.run``).
     """
 
-    def __init__(self, scene: Bundle, cfg: PipelineConfig, vocab: Vocabulary, known_hash: str | None = None) -> None:
-        self._hash: Future[str]
-        if known_hash is None:
-            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash-bundle")
-            self._hash = pool.submit(_hash_at_low_priority, scene)
-            pool.shutdown(wait=False)  # the one task runs on; nothing more is submitted
-        else:
-            self._hash = Future()
+    def __init__(
+        self,
+        scene: Bundle,
+        cfg: PipelineConfig,
+        vocab: Vocabulary,
+        known_hash: str | None = None,
+        *,
+        start: bool = True,
+    ) -> None:
+        self._scene = scene
+        self._hash: Future[str] = Future()
+        self._start_lock = threading.Lock()
+        self._started = known_hash is not None
+        if known_hash is not None:
             self._hash.set_result(known_hash)
+        elif start:
+            self.start()
         self._cfg, self._vocab = cfg, vocab
         self._maps = maps_key(scene)
         self._keys: dict[str, str] | None = None
+
+    def start(self) -> None:
+        """Start hashing the bundle in a thread, once (later calls do nothing)."""
+        with self._start_lock:
+            if self._started:
+                return
+            self._started = True
+        # A daemon thread: a run that fails before it needs the hash does not wait for it to exit.
+        threading.Thread(target=self._compute_hash, name="hash-bundle", daemon=True).start()
+
+    def _compute_hash(self) -> None:
+        try:
+            self._hash.set_result(_hash_at_low_priority(self._scene))
+        except BaseException as exc:  # raised where the hash is read
+            self._hash.set_exception(exc)
 
     def ready(self) -> bool:
         """Whether the bundle's hash is done (the keys are then known without waiting)."""
@@ -142,7 +167,8 @@ class StageKeys(Mapping[str, str]):
 
     @property
     def input_hash(self) -> str:
-        """The bundle's SHA-256 (waits for the hashing thread; raises what it raised)."""
+        """The bundle's SHA-256 (starts the hashing if it has not started; waits for it; raises what it raised)."""
+        self.start()
         return self._hash.result()
 
     def _resolved(self) -> dict[str, str]:
@@ -178,6 +204,11 @@ class CheckpointStore:
     def snapshot(self, stage: str, key: str) -> StageSnapshot:
         """Where ``stage`` keeps its partial work under ``key`` (see :mod:`panogs_core.snapshots`)."""
         return self.manifest.snapshot(stage, key)
+
+    def may_reuse(self) -> bool:
+        """Whether a stage might be read back rather than computed (a resumed run folder with a manifest, or a
+        shared store): its key, so the bundle's hash, is then needed as soon as the stages start."""
+        return self.shared is not None or (self.manifest.enabled and bool(self.manifest.manifest))
 
     def load_or_compute(self, spec: StageSpec, keys: StageKeys, compute: Callable[[], Any], stats: StageStats) -> Any:
         """Load the checkpoint of ``spec`` if its key matches (``stats.cached``), else compute and save it.

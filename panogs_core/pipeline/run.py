@@ -65,6 +65,10 @@ log = logging.getLogger(__name__)
 # Values that outlive the last stage reading them: the report, the result and the fitted scene's file read them
 # once the stages are done. (A value no stage reads is never dropped: the export's files, the colours.)
 _KEPT = frozenset({"bundle", "primitives", "labeling"})
+# The stage after which a run that reuses no checkpoint starts hashing its bundle (the hash is needed only to record
+# the checkpoints, at the end): the stages up to it decode frames on every core, and a hash beside them took their
+# cycles; from the language field on (one thread) a core is free for it.
+_HASH_AFTER = "fusion"
 
 
 class _StageProgress:
@@ -130,6 +134,8 @@ class _Run:
                 if last == spec.name and name not in _KEPT:
                     self.values.pop(name, None)
             self._start_keys()
+            if self.keys is not None and spec.name == _HASH_AFTER:
+                self.keys.start()
 
     def _run(self, spec: st.StageSpec) -> Any:
         args = [self.values[name] for name in spec.reads]
@@ -168,13 +174,15 @@ class _Run:
         return result
 
     def _start_keys(self) -> None:
-        """Start hashing the bundle once the bundle and the label set are known (the first stages need not wait
-        for it; a shared store may know the hash already)."""
+        """Make the stages' keys once the bundle and the label set are known (a shared store may know the bundle's
+        hash already). The hashing starts now if a checkpoint may be read back, else after ``_HASH_AFTER``."""
         if self.keys is not None or self.values.get("bundle") is None or self.values.get("vocabulary") is None:
             return
         shared = self.store.shared
         known_hash = None if shared is None else shared.known_input_hash()
-        self.keys = StageKeys(self.values["bundle"], self.cfg, self.values["vocabulary"], known_hash)
+        # With checkpoints to look up, every stage needs its key: hash now. Else the hash waits for the cores.
+        start = self.store.may_reuse()
+        self.keys = StageKeys(self.values["bundle"], self.cfg, self.values["vocabulary"], known_hash, start=start)
         self.hash_to_keep = shared is not None and known_hash is None
 
     def _keys(self) -> StageKeys:

@@ -261,7 +261,7 @@ def gaussian_log_scales(
         from scipy.spatial import cKDTree
 
         tree = cKDTree(np.asarray(points, dtype=np.float64))
-        dist, _ = tree.query(points, k=k + 1)  # (N, k + 1); column 0: the point itself (or a duplicate, at 0)
+        dist, _ = tree.query(points, k=k + 1, workers=-1)  # (N, k + 1); column 0: the point itself (or a duplicate)
         mean_sq = np.mean(np.square(dist[:, 1:]), axis=1)  # (N,)
     else:
         mean_sq = np.zeros(n)  # a lone point has no neighbour: the floor applies

@@ -129,6 +129,25 @@ class TestFitLanguageField:
         finally:
             torch.set_num_threads(before)
 
+    def test_the_decoding_takes_the_callers_threads_and_the_same_bits_at_any_count(self) -> None:
+        """The fit's steps run at ``cpu_threads``; the decoding of every primitive (large products, row by row) runs
+        at the caller's count, which must not move a bit of the features."""
+        import torch
+
+        points, region, anchors = _three_regions(n_per=50, seed=3)
+        field = fit_language_field(points, _fused(anchors[region], np.ones(len(points))), _small_cfg(epochs=1))
+        queries = np.random.default_rng(1).uniform(0, 5, (20_000, 3)).astype(np.float32)
+        before = torch.get_num_threads()
+        decoded = {}
+        try:
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                decoded[threads] = decode_points(field, queries)
+        finally:
+            torch.set_num_threads(before)
+        np.testing.assert_array_equal(decoded[1], decoded[2])
+        assert decoded[1].flags.writeable and decoded[1].dtype == np.float32
+
     def test_deterministic_for_a_seed(self) -> None:
         points, region, anchors = _three_regions(n_per=100, seed=3)
         fused = _fused(anchors[region], np.ones(len(points)))

@@ -583,6 +583,42 @@ def test_bundle_hash_thread_runs_at_a_lower_priority(monkeypatch: pytest.MonkeyP
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
 
 
+@pytest.mark.slow  # a pipeline run, and one resumed from tiny_run's checkpoints
+def test_the_bundle_is_hashed_after_fusion_unless_a_checkpoint_may_be_read_back(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The hash would take a core the frame stages decode on: a run with nothing to read back starts it once
+    fusion is done; a resumed run needs its keys from the first stage on and starts it at once. Both report it."""
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.pipeline import checkpoints
+
+    events: list[str] = []
+    real_hash = checkpoints.hash_bundle
+
+    def recorded(scene: object) -> str:
+        events.append("hash")
+        return real_hash(scene)  # type: ignore[arg-type]
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if not events or events[-1] != stage:
+            events.append(stage)
+
+    monkeypatch.setattr(checkpoints, "hash_bundle", recorded)
+    run_pipeline(tiny_bundle, tmp_path / "fresh", TINY_RUN_CONFIG, on_progress=progress)
+    assert events.count("hash") == 1
+    assert events.index("hash") > len(events) - 1 - events[::-1].index("fusion"), events
+    report = json.loads((tmp_path / "fresh" / "report.json").read_text())
+    assert report["input_sha256"] == real_hash(open_bundle(tiny_bundle))
+
+    events.clear()
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path / "resumed")
+    again = run_pipeline(tiny_bundle, tmp_path / "resumed", TINY_RUN_CONFIG, on_progress=progress)
+    assert next(t for t in again.timings if t.name == "primitives").cached
+    assert events.index("hash") < events.index("visibility"), events  # the cached primitives waited for their key
+    assert again.instances == first.instances
+
+
 @pytest.mark.slow
 def test_run_as_the_process_entry_ends_after_its_exit_handlers(tiny_bundle: Path, tmp_path: Path) -> None:
     """``main()`` with no argv ends a successful ``run`` without the interpreter's teardown: the exit handlers

@@ -157,10 +157,13 @@ def fit_language_field(
             points, features, weights, bounds, resolutions, device, basis_dims=cfg.basis_dims, seed=cfg.seed
         )
         train_model(model, data, cfg, on_progress)
-        del data  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
-        return_freed_heap()  # the training's freed temporaries would stay resident beside the decoding's output
-        model.eval()
-        decoded = decode_features(model, points, bounds)  # (N, D)
+    del data  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
+    return_freed_heap()  # the training's freed temporaries would stay resident beside the decoding's output
+    model.eval()
+    # The decoding is a few large products, row by row (the same to the bit at any thread count): it takes the run's
+    # threads. The set-up and the steps stay at ``cpu_threads``: the basis and the projection, products over 512 and
+    # more terms, change in the last bits with the count (docs/benchmarks.md, "Language field speed").
+    decoded = decode_features(model, points, bounds)  # (N, D)
     return LanguageField(features=decoded, bounds=bounds, state=state_of(model))
 
 

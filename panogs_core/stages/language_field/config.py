@@ -54,11 +54,12 @@ class LanguageFieldConfig:
     # Torch device for training and decoding. The CLI keeps the CPU; a service worker sets "cuda" where it sees a
     # GPU, unless the job names a device (worker/device.py).
     device: str = "cpu"
-    # torch intra-op threads during a CPU fit (restored after it); None keeps torch's setting. One thread: a step's
-    # kernels are small (1024 points), and on the shared 2-core machine a lone fit took 100-250 ms a step with two
-    # threads (spinning against each other and other processes) against 16-28 ms with one (docs/benchmarks.md).
-    # On the AVX2 AMD EPYC: no gain quiet (a reported run), +3-4 % CPU, and under load only the share of the cores
-    # taken from other processes; the decoded features are the same to the bit at 1 and 2 threads
+    # torch intra-op threads during a CPU fit's set-up and steps (restored after it); None keeps torch's setting.
+    # One thread: a step's kernels are small (1024 points), and on the shared 2-core machine a lone fit took
+    # 100-250 ms a step with two threads (spinning against each other and other processes) against 16-28 ms with
+    # one (docs/benchmarks.md). On the AVX2 AMD EPYC: no gain quiet (a reported run), +3-4 % CPU. The set-up's
+    # products (the basis, the projection) change in the last bits with the count, so the labels would too. The
+    # decoding after the fit takes the run's threads: row by row, the same to the bit at any count
     # (docs/benchmarks.md, "Language field speed").
     cpu_threads: int | None = 1
     # DEPARTURE (docs/method.md §3.3): the decoder predicts in the top `basis_dims` directions of the scene's own
