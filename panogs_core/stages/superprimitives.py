@@ -403,16 +403,19 @@ def _fh_merge(
             if w > tau_max:
                 chunk_done(-(-src.size // _EDGE_CHUNK))
                 return
-            root_a = a
-            while parent[root_a] != root_a:
-                root_a = parent[root_a]
-            while parent[a] != root_a:  # path compression
-                parent[a], a = root_a, parent[a]
-            root_b = b
-            while parent[root_b] != root_b:
-                root_b = parent[root_b]
-            while parent[b] != root_b:
-                parent[b], b = root_b, parent[b]
+            # Most points' parent is their root already (compressed paths): one look-up each, no loop.
+            root_a = parent[a]
+            if parent[root_a] != root_a:
+                while parent[root_a] != root_a:
+                    root_a = parent[root_a]
+                while parent[a] != root_a:  # path compression
+                    parent[a], a = root_a, parent[a]
+            root_b = parent[b]
+            if parent[root_b] != root_b:
+                while parent[root_b] != root_b:
+                    root_b = parent[root_b]
+                while parent[b] != root_b:
+                    parent[b], b = root_b, parent[b]
             if root_a == root_b or w > tau[root_a] or w > tau[root_b]:
                 continue
             if features is not None and float(features[root_a] @ features[root_b]) <= merge_cos:

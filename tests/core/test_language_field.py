@@ -146,7 +146,8 @@ class TestFitLanguageField:
         finally:
             torch.set_num_threads(before)
         np.testing.assert_array_equal(decoded[1], decoded[2])
-        assert decoded[1].flags.writeable and decoded[1].dtype == np.float32
+        assert decoded[1].flags.writeable
+        assert decoded[1].dtype == np.float32
 
     def test_deterministic_for_a_seed(self) -> None:
         points, region, anchors = _three_regions(n_per=100, seed=3)
