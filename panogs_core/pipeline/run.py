@@ -11,11 +11,8 @@ there.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -96,20 +93,6 @@ def _quiet(done: int, total: int) -> None:
     """The progress of a value derived between two stages: it reports none."""
 
 
-def _on_a_thread(name: str, make: Callable[[], Any]) -> Future[Any]:
-    """``make()`` on a daemon thread of its own (a run that fails first does not wait for it); its Future."""
-    future: Future[Any] = Future()
-
-    def body() -> None:
-        try:
-            future.set_result(make())
-        except BaseException as exc:  # raised where the value is read
-            future.set_exception(exc)
-
-    threading.Thread(target=body, name=f"beside-{name}", daemon=True).start()
-    return future
-
-
 def _last_readers(specs: Iterable[st.StageSpec]) -> dict[str, str]:
     """For each value, the stage after which no stage reads it (the run drops it there)."""
     last: dict[str, str] = {}
@@ -139,17 +122,11 @@ class _Run:
         self.keys: StageKeys | None = None
         self.hash_to_keep = False  # this run hashes the bundle: a shared store keeps the hash once
         self._drop_after = _last_readers(st.PIPELINE)
-        self._beside: set[str] = set()  # the values made on a thread beside the stages (a Future in ``values``)
 
     def run_stages(self, specs: Iterable[st.StageSpec]) -> None:
-        """Run ``specs`` in order, each writing its value; drop each value after its last reader. A ``beside``
-        value starts on its own thread once what it reads is there (:meth:`_start_beside`)."""
-        specs = list(specs)
-        for at, spec in enumerate(specs):
-            self._start_beside(specs[at + 1 :])
-            if spec.name in self._beside:
-                pass  # started beside the stages before: its value is a Future, read by :meth:`_value`
-            elif spec.runs(self.cfg):
+        """Run ``specs`` in order, each writing its value; drop each value after its last reader."""
+        for spec in specs:
+            if spec.runs(self.cfg):
                 self.values[spec.output] = self._run(spec)
             else:
                 self.values[spec.output] = None
@@ -160,22 +137,8 @@ class _Run:
             if self.keys is not None and spec.name == _HASH_AFTER:
                 self.keys.start()
 
-    def _start_beside(self, later: list[st.StageSpec]) -> None:
-        """Start each later ``beside`` value whose inputs are all there now, on a thread of its own."""
-        for spec in later:
-            ready = all(name in self.values and name not in self._beside for name in spec.reads)
-            if spec.beside and spec.name not in self._beside and spec.runs(self.cfg) and ready:
-                args = [self.values[name] for name in spec.reads]
-                self._beside.add(spec.name)
-                self.values[spec.output] = _on_a_thread(spec.name, partial(spec.call, *args, self.cfg, _quiet))
-
-    def _value(self, name: str) -> Any:
-        """The value ``name``, waiting for it if it is being made beside (and raising what that raised)."""
-        value = self.values[name]
-        return value.result() if name in self._beside else value
-
     def _run(self, spec: st.StageSpec) -> Any:
-        args = [self._value(name) for name in spec.reads]
+        args = [self.values[name] for name in spec.reads]
         if not spec.timed:
             return spec.call(*args, self.cfg, _quiet)
         extra: dict[str, Any] = {}

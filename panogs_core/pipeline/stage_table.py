@@ -80,9 +80,6 @@ class StageSpec:
         when: Runs only when this says so of the config; else its value is None and it is not reported.
         after_results: Runs after the results are written and ``on_results`` is called (the appearance fit): its
             failure leaves the results (``appearance.state`` ``failed``).
-        beside: A value derived between two stages (``timed`` False) made on a thread of its own as soon as every
-            value it reads is there, beside the stages before its place (the fused features' class cosines beside
-            the field's fit, which keeps one core busy); read where its place is, waiting for it if need be.
         resumable: Takes ``snapshot=`` (:class:`StageSnapshot`), to keep and resume its partial work.
         own_checkpoint: Keeps its own checkpoint (not a ``load``ed file): takes ``stats=`` (:class:`StageStats`)
             and sets ``stats.cached`` when it reused it rather than computed.
@@ -101,7 +98,6 @@ class StageSpec:
     timed: bool = True
     when: Callable[[PipelineConfig], bool] | None = None
     after_results: bool = False
-    beside: bool = False
     resumable: bool = False
     own_checkpoint: bool = False
     load: Callable[[Path], Any] | None = None
@@ -429,11 +425,7 @@ PIPELINE: tuple[StageSpec, ...] = (
         key_of=_features_key,
     ),
     StageSpec(
-        "evidence",
-        lambda fused, vocab, _c, _p: fused_evidence(fused, vocab),
-        ("fusion", "vocabulary"),
-        timed=False,
-        beside=True,
+        "evidence", lambda fused, vocab, _c, _p: fused_evidence(fused, vocab), ("fusion", "vocabulary"), timed=False
     ),
     StageSpec("fused_colours", lambda fused, _c, _p: fused_colours(fused), ("fusion",), timed=False),
     StageSpec(

@@ -619,59 +619,6 @@ def test_the_bundle_is_hashed_after_fusion_unless_a_checkpoint_may_be_read_back(
     assert again.instances == first.instances
 
 
-@pytest.mark.slow  # reads tiny_run, a whole pipeline run, and runs the stages after fusion again
-def test_a_beside_value_is_made_on_its_own_thread_while_the_field_fits(
-    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The fused features' class cosines (``evidence``, a ``beside`` value) are made on a thread of their own while
-    the field fits (the fit here waits until they have started: run one after the other, it would time out); the
-    labelling reads them there and the results are the same."""
-    import threading
-
-    from panogs_core.pipeline import stage_table as st
-
-    out, first, _ = tiny_run
-    _copy_checkpoints(out, tmp_path)
-    for stage in STAGES[STAGES.index("language_field") :]:
-        (tmp_path / "stages" / f"{stage}.npz").unlink(missing_ok=True)
-    threads: list[str] = []
-    started = threading.Event()
-    real_evidence, real_fit = st.fused_evidence, st.fit_language_field
-
-    def recorded(fused: object, vocab: object) -> object:
-        threads.append(threading.current_thread().name)
-        started.set()
-        return real_evidence(fused, vocab)  # type: ignore[arg-type]
-
-    def fit_once_started(*args: object, **kwargs: object) -> object:
-        assert started.wait(timeout=60), "the class cosines did not start beside the fit"
-        return real_fit(*args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(st, "fused_evidence", recorded)
-    monkeypatch.setattr(st, "fit_language_field", fit_once_started)
-    result = run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG)
-    assert threads == ["beside-evidence"]
-    assert result.instances == first.instances
-
-
-@pytest.mark.slow  # a pipeline run up to the labelling
-def test_an_error_of_a_beside_value_is_raised_where_it_is_read(
-    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from panogs_core.pipeline import stage_table as st
-
-    def broken(fused: object, vocab: object) -> object:
-        raise ValueError("the class cosines failed")
-
-    monkeypatch.setattr(st, "fused_evidence", broken)
-    seen: list[str] = []
-    with pytest.raises(ValueError, match="class cosines failed"):
-        run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, on_progress=lambda s, d, t: seen.append(s))
-    assert "labeling" not in seen  # raised where the labelling reads it
-    assert "superprimitives" in seen
-    assert not (tmp_path / "labels.npz").exists()
-
-
 @pytest.mark.slow
 def test_run_as_the_process_entry_ends_after_its_exit_handlers(tiny_bundle: Path, tmp_path: Path) -> None:
     """``main()`` with no argv ends a successful ``run`` without the interpreter's teardown: the exit handlers
