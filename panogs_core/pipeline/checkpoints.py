@@ -7,7 +7,7 @@ the key of every checkpoint in place; a stage whose recorded key matches is read
 
 Checkpoints are written by one thread beside the next stages; a key is recorded only once its file is in place, a
 failed write ends the run with its error, and the bundle's hash (SHA-256 over every file) is computed in a thread
-while the first stages run (:class:`StageKeys`). A :class:`SharedCheckpoints` store (the service's, per scene)
+beside the stages (:class:`StageKeys`). A :class:`SharedCheckpoints` store (the service's, per scene)
 is asked for a checkpoint this folder lacks and given each one this run computes.
 """
 
