@@ -65,10 +65,6 @@ log = logging.getLogger(__name__)
 # Values that outlive the last stage reading them: the report, the result and the fitted scene's file read them
 # once the stages are done. (A value no stage reads is never dropped: the export's files, the colours.)
 _KEPT = frozenset({"bundle", "primitives", "labeling"})
-# The stage after which a run that reuses no checkpoint starts hashing its bundle (the hash is needed only to record
-# the checkpoints, at the end): the stages up to it decode frames on every core, and a hash beside them took their
-# cycles; from the language field on (one thread) a core is free for it.
-_HASH_AFTER = "fusion"
 
 
 class _StageProgress:
@@ -122,6 +118,9 @@ class _Run:
         self.keys: StageKeys | None = None
         self.hash_to_keep = False  # this run hashes the bundle: a shared store keeps the hash once
         self._drop_after = _last_readers(st.PIPELINE)
+        # A run that reads no checkpoint back needs the bundle's hash only to record its checkpoints: it starts
+        # hashing after the last stage that keeps every core busy, not beside it.
+        self._hash_after = next((spec.name for spec in reversed(st.PIPELINE) if spec.every_core), None)
 
     def run_stages(self, specs: Iterable[st.StageSpec]) -> None:
         """Run ``specs`` in order, each writing its value; drop each value after its last reader."""
@@ -134,7 +133,7 @@ class _Run:
                 if last == spec.name and name not in _KEPT:
                     self.values.pop(name, None)
             self._start_keys()
-            if self.keys is not None and spec.name == _HASH_AFTER:
+            if self.keys is not None and spec.name == self._hash_after:
                 self.keys.start()
 
     def _run(self, spec: st.StageSpec) -> Any:
@@ -175,7 +174,7 @@ class _Run:
 
     def _start_keys(self) -> None:
         """Make the stages' keys once the bundle and the label set are known (a shared store may know the bundle's
-        hash already). The hashing starts now if a checkpoint may be read back, else after ``_HASH_AFTER``."""
+        hash already). The hashing starts now if a checkpoint may be read back, else after ``_hash_after``."""
         if self.keys is not None or self.values.get("bundle") is None or self.values.get("vocabulary") is None:
             return
         shared = self.store.shared

@@ -80,6 +80,8 @@ class StageSpec:
         when: Runs only when this says so of the config; else its value is None and it is not reported.
         after_results: Runs after the results are written and ``on_results`` is called (the appearance fit): its
             failure leaves the results (``appearance.state`` ``failed``).
+        every_core: Keeps every core busy (frames decoded ahead on threads): a run with no checkpoint to read back
+            starts hashing the bundle only after the last such stage (the hash would take their cycles).
         resumable: Takes ``snapshot=`` (:class:`StageSnapshot`), to keep and resume its partial work.
         own_checkpoint: Keeps its own checkpoint (not a ``load``ed file): takes ``stats=`` (:class:`StageStats`)
             and sets ``stats.cached`` when it reused it rather than computed.
@@ -98,6 +100,7 @@ class StageSpec:
     timed: bool = True
     when: Callable[[PipelineConfig], bool] | None = None
     after_results: bool = False
+    every_core: bool = False
     resumable: bool = False
     own_checkpoint: bool = False
     load: Callable[[Path], Any] | None = None
@@ -389,13 +392,20 @@ PIPELINE: tuple[StageSpec, ...] = (
         timed=False,
     ),
     StageSpec(
-        "primitives", primitives, ("bundle",), load=Primitives.load, inputs=("input",), settings=lambda c: c.primitives
+        "primitives",
+        primitives,
+        ("bundle",),
+        every_core=True,
+        load=Primitives.load,
+        inputs=("input",),
+        settings=lambda c: c.primitives,
     ),
     # "with-depth-residual": checkpoints written before Visibility carried depth residuals must not be reused.
     StageSpec(
         "visibility",
         visibility,
         ("bundle", "primitives"),
+        every_core=True,
         load=Visibility.load,
         inputs=("primitives",),
         settings=lambda c: (c.visibility, "with-depth-residual"),
@@ -404,6 +414,7 @@ PIPELINE: tuple[StageSpec, ...] = (
         "fusion",
         fusion,
         ("bundle", "visibility", "primitives"),
+        every_core=True,
         load=FusedFeatures.load,
         inputs=("visibility", "maps_2d"),
         settings=lambda c: c.fusion,
