@@ -38,15 +38,19 @@ class StageStats:
     wall_s: float = 0.0
     peak_rss_mb: float = 0.0
     cached: bool = False
+    beside: str = ""  # the stage it ran beside (its time overlaps that one's), or "" when it ran alone
 
     def to_json(self) -> dict[str, object]:
-        """Plain dict for report.json."""
-        return {
+        """Plain dict for report.json (``beside`` only for a stage that ran beside another)."""
+        row: dict[str, object] = {
             "stage": self.name,
             "wall_s": round(self.wall_s, 3),
             "peak_rss_mb": round(self.peak_rss_mb, 1),
             "cached": self.cached,
         }
+        if self.beside:
+            row["beside"] = self.beside
+        return row
 
 
 class StageTimer:

@@ -11,8 +11,10 @@ there.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +91,62 @@ def _quiet(done: int, total: int) -> None:
     """The progress of a value derived between two stages: it reports none."""
 
 
+Made = tuple[Any, StageStats | None]  # a stage's value and, for a timed stage, what it cost
+
+
+class _Beside:
+    """Stages made on one thread of their own beside a ``one_core`` stage (``StageSpec.one_core``), in table order;
+    each is taken at its place in the table (:meth:`take`), where its error is raised.
+
+    Their progress is not sent while they run: a job's stage is the one whose place in the table it has reached.
+    """
+
+    def __init__(
+        self,
+        leader: str,
+        specs: list[st.StageSpec],
+        inputs: dict[str, Any],
+        compute: Callable[[st.StageSpec, list[Any], StageProgressFn | None], Made],
+    ) -> None:
+        self.leader = leader
+        futures: list[Future[Made]] = [Future() for _ in specs]
+        self._made = {spec.name: future for spec, future in zip(specs, futures, strict=True)}  # until taken
+        self._thread = threading.Thread(
+            target=self._make, args=(specs, futures, inputs, compute), name=f"beside-{leader}", daemon=True
+        )
+        self._thread.start()
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._made
+
+    def take(self, name: str) -> Made:
+        """The stage's value and cost, once made (its error raised here)."""
+        return self._made.pop(name).result()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+    def _make(
+        self,
+        specs: list[st.StageSpec],
+        futures: list[Future[Made]],  # one per stage: the thread's own references (a stage taken leaves ``_made``)
+        inputs: dict[str, Any],
+        compute: Callable[[st.StageSpec, list[Any], StageProgressFn | None], Made],
+    ) -> None:
+        values = dict(inputs)  # and the values of the stages made here, for the ones after them
+        at = 0
+        try:
+            for at, spec in enumerate(specs):
+                value, stats = compute(spec, [values[name] for name in spec.reads], None)
+                values[spec.output] = value
+                if stats is not None:
+                    stats.beside = self.leader
+                futures[at].set_result((value, stats))
+        except BaseException as exc:  # raised at its place; the stages after it here are not made
+            for future in futures[at:]:
+                future.set_exception(exc)
+
+
 def _last_readers(specs: Iterable[st.StageSpec]) -> dict[str, str]:
     """For each value, the stage after which no stage reads it (the run drops it there)."""
     last: dict[str, str] = {}
@@ -121,11 +179,18 @@ class _Run:
         # A run that reads no checkpoint back needs the bundle's hash only to record its checkpoints: it starts
         # hashing after the last stage that keeps every core busy, not beside it.
         self._hash_after = next((spec.name for spec in reversed(st.PIPELINE) if spec.every_core), None)
+        self._beside: _Beside | None = None  # the stages running beside a ``one_core`` stage
 
     def run_stages(self, specs: Iterable[st.StageSpec]) -> None:
-        """Run ``specs`` in order, each writing its value; drop each value after its last reader."""
-        for spec in specs:
-            if spec.runs(self.cfg):
+        """Run ``specs`` in order, each writing its value; drop each value after its last reader. A ``one_core``
+        stage first starts the later stages that can run beside it (:class:`_Beside`)."""
+        specs = list(specs)
+        for at, spec in enumerate(specs):
+            if self._beside is not None and spec.name in self._beside:
+                self.values[spec.output] = self._take_beside(spec)
+            elif spec.runs(self.cfg):
+                if spec.one_core:
+                    self._start_beside(spec, specs[at + 1 :])
                 self.values[spec.output] = self._run(spec)
             else:
                 self.values[spec.output] = None
@@ -136,17 +201,52 @@ class _Run:
             if self.keys is not None and spec.name == self._hash_after:
                 self.keys.start()
 
+    def settle(self) -> None:
+        """Wait for the stages running beside (a failing run must not close the store under them)."""
+        if self._beside is not None:
+            self._beside.wait()
+
+    def _start_beside(self, leader: st.StageSpec, later: list[st.StageSpec]) -> None:
+        """Start, beside ``leader``, the later stages whose inputs are made now or by a stage started before them."""
+        made = set(self.values)
+        chosen = []
+        for spec in later:
+            if spec.may_run_beside(self.cfg) and all(name in made for name in spec.reads):
+                chosen.append(spec)
+                made.add(spec.output)
+        if chosen:
+            inputs = {name: self.values[name] for spec in chosen for name in spec.reads if name in self.values}
+            self._beside = _Beside(leader.name, chosen, inputs, self._compute)
+
+    def _take_beside(self, spec: st.StageSpec) -> Any:
+        """The value of a stage made beside, at its place: its progress sent (done) and its row kept in order."""
+        assert self._beside is not None
+        value, stats = self._beside.take(spec.name)
+        if stats is not None:
+            progress = _StageProgress(spec.name, self.on_progress)
+            progress(0, 1)
+            progress.finish()
+            self.timings.append(stats)
+        return value
+
     def _run(self, spec: st.StageSpec) -> Any:
-        args = [self.values[name] for name in spec.reads]
+        value, stats = self._compute(spec, [self.values[name] for name in spec.reads], self.on_progress)
+        if stats is not None:
+            self.timings.append(stats)
+        return value
+
+    def _compute(self, spec: st.StageSpec, args: list[Any], sink: StageProgressFn | None) -> Made:
+        """The stage's value (from its checkpoint, or computed and its checkpoint written) and, for a timed stage,
+        what it cost; its progress goes to ``sink``."""
         if not spec.timed:
-            return spec.call(*args, self.cfg, _quiet)
+            return spec.call(*args, self.cfg, _quiet), None
         extra: dict[str, Any] = {}
         if spec.resumable:
             extra["snapshot"] = self.store.snapshot(spec.name, self._keys()[spec.name])
         if spec.load is None:
             if spec.own_checkpoint:
-                return self._timed(spec.name, lambda report, stats: spec.call(*args, self.cfg, report, stats=stats))
-            return self._timed(spec.name, lambda report, _: spec.call(*args, self.cfg, report, **extra))
+                return self._timed(spec.name, sink, lambda rep, stats: spec.call(*args, self.cfg, rep, stats=stats))
+            return self._timed(spec.name, sink, lambda report, _: spec.call(*args, self.cfg, report, **extra))
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> Any:
             def compute() -> Any:
@@ -154,15 +254,16 @@ class _Run:
 
             return self.store.load_or_compute(spec, self._keys(), compute, stats)
 
-        return self._timed(spec.name, load_or_compute)
+        return self._timed(spec.name, sink, load_or_compute)
 
-    def _timed(self, name: str, body: Callable[[ProgressFn, StageStats], Any]) -> Any:
-        report = _StageProgress(name, self.on_progress)
+    def _timed(
+        self, name: str, sink: StageProgressFn | None, body: Callable[[ProgressFn, StageStats], Any]
+    ) -> tuple[Any, StageStats]:
+        report = _StageProgress(name, sink)
         with StageTimer(name) as timer:
             report(0, 1)
             result = body(report, timer.stats)
             report.finish()
-        self.timings.append(timer.stats)
         log.info(
             "stage %s: %.2f s, peak %.0f MB%s",
             name,
@@ -170,7 +271,7 @@ class _Run:
             timer.stats.peak_rss_mb,
             " (checkpoint)" if timer.stats.cached else "",
         )
-        return result
+        return result, timer.stats
 
     def _start_keys(self) -> None:
         """Make the stages' keys once the bundle and the label set are known (a shared store may know the bundle's
@@ -258,6 +359,7 @@ def run_pipeline(
     try:
         result = _run_stages(run, vocabulary, on_results)
     except BaseException:
+        run.settle()
         run.store.close(failing=True)
         raise
     run.store.close()

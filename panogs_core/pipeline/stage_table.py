@@ -82,6 +82,11 @@ class StageSpec:
             failure leaves the results (``appearance.state`` ``failed``).
         every_core: Keeps every core busy (frames decoded ahead on threads): a run with no checkpoint to read back
             starts hashing the bundle only after the last such stage (the hash would take their cycles).
+        one_core: Keeps one core busy for long and leaves the others idle (the language field's fit, one torch
+            thread): the later stages whose inputs are all made already (:meth:`may_run_beside`) run beside it, in
+            table order, on one thread of their own; each is taken at its own place in the table, where its
+            progress is sent and its error raised. Such a stage must not change torch's thread count (the
+            process's: the fit's bits depend on it).
         resumable: Takes ``snapshot=`` (:class:`StageSnapshot`), to keep and resume its partial work.
         own_checkpoint: Keeps its own checkpoint (not a ``load``ed file): takes ``stats=`` (:class:`StageStats`)
             and sets ``stats.cached`` when it reused it rather than computed.
@@ -101,6 +106,7 @@ class StageSpec:
     when: Callable[[PipelineConfig], bool] | None = None
     after_results: bool = False
     every_core: bool = False
+    one_core: bool = False
     resumable: bool = False
     own_checkpoint: bool = False
     load: Callable[[Path], Any] | None = None
@@ -115,6 +121,12 @@ class StageSpec:
 
     def runs(self, cfg: PipelineConfig) -> bool:
         return self.when is None or self.when(cfg)
+
+    def may_run_beside(self, cfg: PipelineConfig) -> bool:
+        """Whether it may run beside a ``one_core`` stage before its place: a plain stage that runs, replaces no
+        earlier value, keeps no partial work of its own and comes before the results."""
+        plain = not (self.writes or self.after_results or self.resumable or self.own_checkpoint)
+        return plain and self.runs(cfg)
 
     def key(self, keys: Mapping[str, str], cfg: PipelineConfig) -> str | None:
         """Its key: a hash of the input keys and the settings; None for a stage without one."""
@@ -424,6 +436,7 @@ PIPELINE: tuple[StageSpec, ...] = (
         language_field,
         ("primitives", "fusion"),
         when=_fits_field,
+        one_core=True,
         load=LanguageField.load,
         inputs=("fusion",),
         settings=lambda c: c.language_field,

@@ -619,6 +619,109 @@ def test_the_bundle_is_hashed_after_fusion_unless_a_checkpoint_may_be_read_back(
     assert again.instances == first.instances
 
 
+@pytest.mark.slow  # reads tiny_run, a whole pipeline run, and runs the stages after fusion again
+def test_the_stages_that_need_no_field_run_beside_its_fit(
+    tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mask look-ups and the kNN graph read nothing of the field: they run on a thread of their own while it
+    fits (the fit here waits until the kNN graph has started: one after the other, it would time out). Their
+    progress still comes at their places in the table, their rows say what they ran beside, the results are the
+    same."""
+    import threading
+    import time
+
+    from panogs_core.pipeline import stage_table as st
+
+    out, first, _ = tiny_run
+    _copy_checkpoints(out, tmp_path)
+    for stage in STAGES[STAGES.index("language_field") :]:
+        (tmp_path / "stages" / f"{stage}.npz").unlink(missing_ok=True)
+    threads: dict[str, str] = {}
+    knn_started = threading.Event()
+    real_masks, real_knn, real_fit = st.observe_masks, st.build_knn, st.fit_language_field
+
+    def masks(*args: object, **kwargs: object) -> object:
+        threads["masks"] = threading.current_thread().name
+        return real_masks(*args, **kwargs)  # type: ignore[arg-type]
+
+    def knn(*args: object, **kwargs: object) -> object:
+        threads["neighbors"] = threading.current_thread().name
+        knn_started.set()
+        time.sleep(1.0)  # still running when the run reaches its place: taken there once it is made
+        return real_knn(*args, **kwargs)  # type: ignore[arg-type]
+
+    def fit_once_started(*args: object, **kwargs: object) -> object:
+        assert knn_started.wait(timeout=60), "the kNN graph did not start beside the fit"
+        return real_fit(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(st, "observe_masks", masks)
+    monkeypatch.setattr(st, "build_knn", knn)
+    monkeypatch.setattr(st, "fit_language_field", fit_once_started)
+    events: list[str] = []
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in events:
+            events.append(stage)
+
+    result = run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, on_progress=progress)
+    assert threads == {"masks": "beside-language_field", "neighbors": "beside-language_field"}
+    assert events[events.index("language_field") :][:4] == ["language_field", "masks", "neighbors", "superprimitives"]
+    rows = json.loads((tmp_path / "report.json").read_text())["stages"]
+    assert [r["stage"] for r in rows] == [s for s in STAGES if s in {r["stage"] for r in rows}]  # the table's order
+    assert {r["stage"]: r.get("beside") for r in rows if "beside" in r} == {
+        "masks": "language_field",
+        "neighbors": "language_field",
+    }
+    assert result.instances == first.instances
+
+
+@pytest.mark.slow  # a pipeline run up to the field
+def test_an_error_of_a_stage_beside_the_field_is_raised_at_its_place(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from panogs_core.pipeline import stage_table as st
+
+    def broken(*args: object, **kwargs: object) -> object:
+        raise ValueError("the mask look-ups failed")
+
+    monkeypatch.setattr(st, "observe_masks", broken)
+    seen: list[str] = []
+    with pytest.raises(ValueError, match="mask look-ups failed"):
+        run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, on_progress=lambda s, d, t: seen.append(s))
+    assert "language_field" in seen  # the field ran to its end: the error waited for the masks' place
+    assert "masks" not in seen
+    assert "superprimitives" not in seen
+    assert not (tmp_path / "labels.npz").exists()
+
+
+@pytest.mark.slow  # a pipeline run up to the field
+def test_a_run_stopped_in_the_field_waits_for_the_stages_beside_it(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop during the fit ends the run only once the stages beside it are done: none is left writing into the
+    run folder after ``run_pipeline`` has raised."""
+    import threading
+    import time
+
+    from panogs_core.pipeline import stage_table as st
+
+    real_knn = st.build_knn
+
+    def slow_knn(*args: object, **kwargs: object) -> object:
+        time.sleep(1.0)
+        return real_knn(*args, **kwargs)  # type: ignore[arg-type]
+
+    def stop_in_the_field(stage: str, done: int, total: int) -> None:
+        if stage == "language_field":
+            raise Cancelled("stopped")
+
+    monkeypatch.setattr(st, "build_knn", slow_knn)
+    with pytest.raises(Cancelled):
+        run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, on_progress=stop_in_the_field)
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("beside-")]
+    assert (tmp_path / "stages" / "neighbors.npz").exists()  # finished, and its checkpoint written before the stop
+
+
 @pytest.mark.slow
 def test_run_as_the_process_entry_ends_after_its_exit_handlers(tiny_bundle: Path, tmp_path: Path) -> None:
     """``main()`` with no argv ends a successful ``run`` without the interpreter's teardown: the exit handlers
