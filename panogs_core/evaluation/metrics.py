@@ -132,11 +132,16 @@ def evaluate(
         raise InputError(f"evaluate: iou_threshold must be in [0, 1), found {iou_threshold}")
     excluded = _ignored(vocabulary, ignore_classes)
     num = len(vocabulary.names)
+    points_of = _points_by_class(ps, gs, num)  # once for all the classes, thresholds and thing / stuff passes
     if mode == "paper":
         excluded |= {i for i, n in enumerate(vocabulary.names) if n.lower() in PAPER_EXCLUDED_NAMES}
         things, stuff = _paper_split(vocabulary, excluded)
         iou, acc, present = semantic_scores(ps, gs, num)
-        pq = [_paper_pq(ps, pi, gs, gi, classes, t) for t in (iou_threshold, 0.5) for classes in (things, stuff)]
+        pq = [
+            _paper_pq(ps, pi, gs, gi, classes, t, points_of=points_of)
+            for t in (iou_threshold, 0.5)
+            for classes in (things, stuff)
+        ]
         points = len(gs)
     else:
         annotated = gs >= 0
@@ -144,7 +149,7 @@ def evaluate(
         things = [c for c in range(num) if vocabulary.is_thing[c] and c not in excluded]
         stuff = [c for c in range(num) if not vocabulary.is_thing[c] and c not in excluded]
         pq = [
-            _standard_pq(ps, pi, gs, gi, classes, t, thing=classes is things)
+            _standard_pq(ps, pi, gs, gi, classes, t, thing=classes is things, points_of=points_of)
             for t in (iou_threshold, 0.5)
             for classes in (things, stuff)
         ]
@@ -257,9 +262,22 @@ def evaluate_ground_truth(
 
 
 def _standard_pq(
-    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float, *, thing: bool
+    ps: np.ndarray,
+    pi: np.ndarray,
+    gs: np.ndarray,
+    gi: np.ndarray,
+    classes: list[int],
+    threshold: float,
+    *,
+    thing: bool,
+    points_of: list[np.ndarray] | None = None,
 ) -> _PQ:
-    """Per-class PQ with per-class counters; see the module docstring."""
+    """Per-class PQ with per-class counters; see the module docstring.
+
+    ``points_of[c]``: the points where ``gs`` or ``ps`` is ``c`` (:func:`_points_by_class`, computed when None).
+    """
+    if points_of is None:
+        points_of = _points_by_class(ps, gs, max(classes, default=-1) + 1)
     void = gs < 0
     if thing:  # a thing point without a ground-truth instance cannot be matched: void for things
         void = void | ((gs >= 0) & (gi < 0))
@@ -267,11 +285,14 @@ def _standard_pq(
     sq: list[float] = []
     rq: list[float] = []
     for c in classes:
+        # Every other point is in no segment of class c on either side and drops out of every count below.
+        at = points_of[c]
+        c_gs, c_ps = gs[at], ps[at]
         if thing:
-            g_ids, p_ids = np.where(gs == c, gi, -1), np.where(ps == c, pi, -1)
+            g_ids, p_ids = np.where(c_gs == c, gi[at], -1), np.where(c_ps == c, pi[at], -1)
         else:  # stuff: one segment per class on each side
-            g_ids, p_ids = np.where(gs == c, 0, -1), np.where(ps == c, 0, -1)
-        tp, fp, fn, iou_sum = _match_class(g_ids, p_ids, void, threshold)
+            g_ids, p_ids = np.where(c_gs == c, 0, -1), np.where(c_ps == c, 0, -1)
+        tp, fp, fn, iou_sum = _match_class(g_ids, p_ids, void[at], threshold)
         if tp + fp + fn == 0:
             continue
         den = tp + 0.5 * fp + 0.5 * fn
@@ -314,10 +335,10 @@ def _iou_matrix(
     p_u: np.ndarray,
     p_size: np.ndarray,
 ) -> np.ndarray:  # (len(g_u), len(p_u)) float64
-    inter = np.zeros((len(g_u), len(p_u)))
-    if both.any():
-        pair, count = np.unique(np.stack([g_ids[both], p_ids[both]], 1), axis=0, return_counts=True)
-        inter[np.searchsorted(g_u, pair[:, 0]), np.searchsorted(p_u, pair[:, 1])] = count
+    # Count the (gt, pred) pairs by their flat cell in the matrix: ids may be any int64, their ranks in g_u / p_u
+    # are small, and a bincount of one int64 key is much cheaper than np.unique(axis=0) over rows.
+    cell = np.searchsorted(g_u, g_ids[both]) * len(p_u) + np.searchsorted(p_u, p_ids[both])
+    inter = np.bincount(cell, minlength=len(g_u) * len(p_u)).reshape(len(g_u), len(p_u)).astype(np.float64)
     union = g_size[:, None] + p_size[None, :] - inter
     return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
 
@@ -327,6 +348,15 @@ def paper_class_match(
 ) -> tuple[int, int, int, float]:  # TP, FP, FN, sum of matched IoUs
     """The reference's matching of one class (docs/method.md §8.2): each ground-truth instance, in ascending id
     order, takes the first unmatched prediction of highest IoU when it is over ``threshold``; -1 is a real id."""
+    at = np.flatnonzero((gs == c) | (ps == c))
+    return _paper_class_match(ps[at], pi[at], gs[at], gi[at], c, threshold)
+
+
+def _paper_class_match(
+    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, c: int, threshold: float
+) -> tuple[int, int, int, float]:
+    """:func:`paper_class_match` on any subset of the points that holds every point where ``gs`` or ``ps`` is
+    ``c`` (the others are in no instance of class c and change no count)."""
     g_ids, p_ids = np.where(gs == c, gi, _NONE), np.where(ps == c, pi, _NONE)
     g_u, g_size = np.unique(g_ids[gs == c], return_counts=True)
     p_u, p_size = np.unique(p_ids[ps == c], return_counts=True)
@@ -347,15 +377,23 @@ def paper_class_match(
 
 
 def _paper_pq(
-    ps: np.ndarray, pi: np.ndarray, gs: np.ndarray, gi: np.ndarray, classes: list[int], threshold: float
+    ps: np.ndarray,
+    pi: np.ndarray,
+    gs: np.ndarray,
+    gi: np.ndarray,
+    classes: list[int],
+    threshold: float,
+    *,
+    points_of: list[np.ndarray],
 ) -> _PQ:
     """The reference's ``panoptic()`` (docs/method.md §8.2), quirks included (cumulative TP / FN / IoU sum,
-    per-class FP)."""
+    per-class FP). ``points_of[c]``: the points where ``gs`` or ``ps`` is ``c`` (:func:`_points_by_class`)."""
     tp = fn = n_valid = 0
     iou_sum = pq = sq = rq = 0.0
     per_class: dict[int, float] = {}
     for c in classes:
-        c_tp, fp, c_fn, c_iou = paper_class_match(ps, pi, gs, gi, c, threshold)
+        at = points_of[c]
+        c_tp, fp, c_fn, c_iou = _paper_class_match(ps[at], pi[at], gs[at], gi[at], c, threshold)
         tp, fn, iou_sum = tp + c_tp, fn + c_fn, iou_sum + c_iou  # cumulative over classes: the reference's quirk
         den = tp + 0.5 * fp + 0.5 * fn
         if tp + fp + fn > 0:
@@ -368,6 +406,22 @@ def _paper_pq(
     if n_valid == 0:  # the reference divides by zero here
         return _PQ(math.nan, math.nan, math.nan, per_class)
     return _PQ(pq / n_valid, sq / n_valid, rq / n_valid, per_class)
+
+
+def _points_by_class(ps: np.ndarray, gs: np.ndarray, num_classes: int) -> list[np.ndarray]:
+    """Per class ``c < num_classes``, the indices of the points where the prediction or the ground truth is c.
+
+    One sort per side instead of full-length masks per class: each class's matching then touches only its own
+    points, which is all it counts. The order within a class is arbitrary (only counts are taken from it).
+    """
+    bounds = np.arange(num_classes + 1)
+    g_order, p_order = np.argsort(gs), np.argsort(ps)
+    g_at, p_at = np.searchsorted(gs[g_order], bounds), np.searchsorted(ps[p_order], bounds)
+    out = []
+    for c in range(num_classes):
+        g_c, p_c = g_order[g_at[c] : g_at[c + 1]], p_order[p_at[c] : p_at[c + 1]]
+        out.append(np.concatenate([g_c, p_c[gs[p_c] != c]]))  # a point of class c on both sides, once
+    return out
 
 
 _NONE = np.iinfo(np.int64).min  # "not in this class" in _paper_pq, where -1 is a real instance id
@@ -403,7 +457,8 @@ def _check_labels(*arrays: np.ndarray, num_classes: int) -> tuple[np.ndarray, ..
     for name, a in zip(names, out):
         if a.ndim != 1 or a.shape != out[2].shape:
             raise ShapeError(f"{name}: expected 1-D of the ground truth's length {out[2].shape}, found {a.shape}")
-        if len(a) and not np.all(np.equal(np.mod(a, 1), 0)):
+        # Integer arrays hold integers: the full-length np.mod pass is only for floats.
+        if len(a) and a.dtype.kind not in "iu" and not np.all(np.equal(np.mod(a, 1), 0)):
             raise InputError(f"{name}: expected integer labels")
     out = tuple(a.astype(np.int64) for a in out)
     for name, a in ((names[0], out[0]), (names[2], out[2])):
