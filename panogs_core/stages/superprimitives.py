@@ -31,7 +31,10 @@ from panogs_core.stages.masks import MaskObservations
 from panogs_core.stages.neighbors import KnnGraph
 
 _EDGE_CHUNK = 1 << 17  # edges per tight-loop chunk between progress reports (and cancellation points)
-_DOT_CHUNK = 2048  # rows per chunk of feature dot products: (2048, K=7, D=512) float32 is 28 MiB
+_DOT_CHUNK = 2048  # pairs per chunk of _pair_dots (the small-segment merge's (2048, D) gathers of mean features)
+# Points per chunk of neighbour dots: the (64, K=7, D=512) float32 gather is 0.9 MiB and stays in a core's L2
+# between its write and the einsum's read (at 2048 points it was 28 MiB: 0.19 s against 0.11 s on 78,556 points).
+_NEIGHBOR_DOT_CHUNK = 64
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -348,10 +351,14 @@ def _pair_dots(rows: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:  #
 
 
 def _neighbor_dots(features: np.ndarray, neighbors: np.ndarray) -> np.ndarray:  # (N, K) float32
-    """``f_i . f_neighbors[i, j]`` in chunks of points, never an (E, D) array."""
+    """``f_i . f_neighbors[i, j]`` in chunks of points, never an (E, D) array.
+
+    The chunk size does not change a bit: einsum reduces each (point, neighbour) pair's D products on its own,
+    with the same kernel for every chunk (the operands' strides do not depend on it).
+    """
     dots = np.zeros(neighbors.shape, dtype=np.float32)
-    for start in range(0, neighbors.shape[0], _DOT_CHUNK):
-        rows = slice(start, start + _DOT_CHUNK)
+    for start in range(0, neighbors.shape[0], _NEIGHBOR_DOT_CHUNK):
+        rows = slice(start, start + _NEIGHBOR_DOT_CHUNK)
         dots[rows] = np.einsum("nd,nkd->nk", features[rows], features[neighbors[rows]])
     return dots
 
@@ -418,7 +425,9 @@ def _fh_merge(
                     parent[b], b = root_b, parent[b]
             if root_a == root_b or w > tau[root_a] or w > tau[root_b]:
                 continue
-            if features is not None and float(features[root_a] @ features[root_b]) <= merge_cos:
+            # ndarray.dot and @ both end in numpy's float32 dot (cblas_sdot) for two 1-D rows: the same bits,
+            # without the matmul ufunc's dispatch (1.2 against 1.7 us a call, ~87k calls on 78,556 points).
+            if features is not None and float(features[root_a].dot(features[root_b])) <= merge_cos:
                 continue
             if rank[root_a] > rank[root_b]:
                 root_a, root_b = root_b, root_a  # attach the lower-rank root under the other

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from panogs_core.errors import Cancelled, ConfigError, InputError, ShapeError
+from panogs_core.stages import superprimitives
 from panogs_core.stages.masks import MaskObservations
 from panogs_core.stages.neighbors import KnnGraph, build_knn
 from panogs_core.stages.superprimitives import (
@@ -66,6 +67,25 @@ def _noisy_cloud(n: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray, n
     return points, normals.astype(np.float32), features.astype(np.float32)
 
 
+def _near_threshold_cloud(n: int, dim: int, cos: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A flat patch whose features put many neighbour dots within ~40 float32 ulps of ``cos``, on both sides.
+
+    Half the rows are one of a few base directions, the others ``c * base + sqrt(1 - c^2) * side`` with ``c``
+    a few ulps from ``cos``: a base row next to a mixed row of the same base has a dot right at the threshold.
+    """
+    rng = np.random.default_rng(seed)
+    points = np.c_[rng.uniform(0, 2, (n, 2)), np.zeros(n)].astype(np.float32)
+    normals = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (n, 1))
+    base = rng.normal(size=(3, dim))[rng.integers(0, 3, n)]
+    base /= np.linalg.norm(base, axis=1, keepdims=True)
+    side = rng.normal(size=(2, dim))[rng.integers(0, 2, n)]
+    side -= np.sum(side * base, axis=1, keepdims=True) * base
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    c = (cos + rng.integers(-40, 41, n) * 2.0**-26)[:, None]
+    mixed = np.where(rng.random((n, 1)) < 0.5, base, c * base + np.sqrt(1 - c**2) * side).astype(np.float32)
+    return points, normals, mixed / np.linalg.norm(mixed, axis=1, keepdims=True).astype(np.float32)
+
+
 def _oracle_labels(
     n: int, src: np.ndarray, dst: np.ndarray, weights: np.ndarray, features: np.ndarray | None, cfg
 ) -> np.ndarray:
@@ -119,6 +139,50 @@ class TestEdgeWeights:
             if 1.0 - float(features[a] @ features[b]) > 0.1:
                 expected *= 20.0
             assert w[e] == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+    @pytest.mark.parametrize("chunk", [1, 3, 64, 2048])
+    def test_language_penalty_exact_at_threshold(self, chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+        # Dots that are exactly the float32 values on either side of edge_cosine (a base row e0 against a row
+        # (d, sqrt(1 - d^2), 0, ...) dots to d with no rounding): the penalty must fall on exactly the edges below
+        # the threshold, whatever the chunking, and an approximate path that skipped one of them would fail here.
+        monkeypatch.setattr(superprimitives, "_NEIGHBOR_DOT_CHUNK", chunk)
+        cfg = SuperPrimitiveConfig()
+        first_similar = np.float32(cfg.edge_cosine - 1e-6)
+        while 1.0 - first_similar > np.float32(1.0 - cfg.edge_cosine):
+            first_similar = np.nextafter(first_similar, np.float32(2))
+        steps = np.arange(-4, 4)  # ulps from the first similar dot: -4..-1 are dissimilar, 0..3 similar
+        cosines = first_similar + steps * np.spacing(first_similar)
+        rng = np.random.default_rng(11)
+        n = 700
+        points = np.c_[rng.uniform(0, 2, (n, 2)), np.zeros(n)]
+        normals = np.c_[rng.normal(0, 0.1, (n, 2)), np.ones(n)]  # tilted: every edge weighs > 0, the penalty shows
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        pick = rng.integers(0, cosines.size, n)
+        features = np.zeros((n, 16), np.float32)
+        features[:, 0] = cosines[pick]
+        features[:, 1] = np.sqrt(1.0 - cosines[pick].astype(np.float64) ** 2)
+        base = rng.random(n) < 0.5
+        features[base] = np.eye(16, dtype=np.float32)[0]
+        nbrs = build_knn(points, cfg.k_neighbors).neighbors[:, : cfg.k_neighbors]
+        _, _, plain = edge_weights(points, normals, None, nbrs, cfg)
+        _, _, w = edge_weights(points, normals, features, nbrs, cfg)
+        src, dst = np.repeat(np.arange(n), cfg.k_neighbors), nbrs.reshape(-1)
+        at = base[src] & ~base[dst]  # these edges' dots are exactly cosines[pick[dst]]
+        below = steps[pick[dst[at]]] < 0
+        assert (plain > 0).all()
+        assert below.any()
+        assert not below.all()
+        assert np.array_equal(w[at], np.where(below, plain[at] * cfg.language_penalty, plain[at]))
+
+    @pytest.mark.parametrize("chunk", [1, 3, 64, 2048])
+    def test_neighbor_dots_do_not_depend_on_chunking(self, chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+        # The float32 bits of every neighbour dot are those of one unchunked einsum: the chunk size is a speed
+        # setting only, and no edge near edge_cosine can cross it when the chunk changes.
+        monkeypatch.setattr(superprimitives, "_NEIGHBOR_DOT_CHUNK", chunk)
+        points, _, features = _near_threshold_cloud(700, 64, 0.9, seed=11)
+        nbrs = build_knn(points, 7).neighbors
+        expected = np.einsum("nd,nkd->nk", features, features[nbrs])
+        assert np.array_equal(superprimitives._neighbor_dots(features, nbrs).view(np.int32), expected.view(np.int32))
 
     def test_orient_invariant(self) -> None:
         points = np.array([[0, 0, 0], [0.1, 0, 0]], np.float64)
@@ -241,6 +305,17 @@ class TestGraphCut:
         expected = _oracle_labels(points.shape[0], src, dst, w, feats, cfg)
         assert sp.count > 5
         assert (sp.labels == expected).all()
+
+    def test_merge_check_exact_at_threshold(self) -> None:
+        # Root pairs whose dots sit within a few ulps of merge_cosine: the FH merge decides as the oracle's
+        # ``features[a] @ features[b]`` does.
+        points, normals, features = _near_threshold_cloud(1500, 64, 0.9, seed=12)
+        cfg = SuperPrimitiveConfig(k_thresh=5.0, min_size=1, small_merge_order="construction")
+        knn = build_knn(points, cfg.k_neighbors)
+        sp = graph_cut_superprimitives(points, normals, features, knn, cfg)
+        src, dst, w = edge_weights(points.astype(np.float64), normals.astype(np.float64), features, knn.neighbors, cfg)
+        assert 1 < sp.count < points.shape[0] // 2
+        assert (sp.labels == _oracle_labels(points.shape[0], src, dst, w, features, cfg)).all()
 
     @pytest.mark.parametrize("order", ["weight", "language"])
     def test_small_merge_orders_leave_no_small_segment(self, order: str) -> None:
