@@ -38,7 +38,14 @@ from panogs_core.snapshots import StageSnapshot
 from panogs_core.stages.affinity import AffinityConfig, segment_affinity
 from panogs_core.stages.clustering import Clusters, progressive_clustering
 from panogs_core.stages.fusion import FusedFeatures, fuse_features
-from panogs_core.stages.labeling import FusedEvidence, PanopticLabels, assign_panoptic, unit_embeddings
+from panogs_core.stages.labeling import (
+    FusedEvidence,
+    NearestSeen,
+    PanopticLabels,
+    assign_panoptic,
+    nearest_seen,
+    unit_embeddings,
+)
 from panogs_core.stages.language_field import LanguageField, fit_language_field
 from panogs_core.stages.maps2d import MapModels
 from panogs_core.stages.maps2d.stage import SharedFolders, with_computed_maps
@@ -327,6 +334,7 @@ def labeling(
     knn: KnnGraph,
     clusters: Clusters,
     vocab: Vocabulary,
+    nearest: NearestSeen | None,
     cfg: PipelineConfig,
     progress: ProgressFn | None = None,
 ) -> PanopticLabels:
@@ -340,6 +348,7 @@ def labeling(
         cfg.labeling,
         neighbors=knn.neighbors,
         fused=fused,
+        nearest=nearest,
     )
 
 
@@ -468,6 +477,15 @@ PIPELINE: tuple[StageSpec, ...] = (
         inputs=("primitives",),
         settings=lambda c: c.superprimitives.k_neighbors,
     ),
+    # The labelling's first search for the unseen primitives (``labeling.unseen`` ``segment-field``): it reads no
+    # value of the field, so it is made beside the field's fit (``one_core``).
+    StageSpec(
+        "nearest_seen",
+        lambda prims, knn, evidence, _c, _p: nearest_seen(prims.points, knn.neighbors, ~evidence.seen),
+        ("primitives", "neighbors", "evidence"),
+        timed=False,
+        when=lambda c: c.labeling.unseen == "segment-field",
+    ),
     StageSpec(
         "superprimitives",
         superprimitives,
@@ -487,7 +505,16 @@ PIPELINE: tuple[StageSpec, ...] = (
     StageSpec(
         "labeling",
         labeling,
-        ("primitives", "features", "evidence", "superprimitives", "neighbors", "clustering", "vocabulary"),
+        (
+            "primitives",
+            "features",
+            "evidence",
+            "superprimitives",
+            "neighbors",
+            "clustering",
+            "vocabulary",
+            "nearest_seen",
+        ),
         load=PanopticLabels.load,
         inputs=("clustering", "superprimitives", "neighbors", "features", "fusion", "vocabulary"),
         settings=lambda c: c.labeling,

@@ -529,6 +529,34 @@ class TestLabellingRules:
         third[:, CHAIR] = 0.3
         assert (label_unseen(cls, third, wall, nbr, segs, "segment-field", 0.04)[0] == plain).all()
 
+    def test_the_unseen_rules_first_search_may_come_made_for_the_same_unseen_primitives(self) -> None:
+        """The pipeline makes ``segment-field``'s first graph search beside the field's fit: made for the same
+        unseen primitives, it is the one used (the same labels as searching here); made for others, it is not."""
+        from panogs_core.stages.labeling import NearestSeen, label_unseen, nearest_seen
+        from panogs_core.stages.neighbors import build_knn
+
+        ys, zs = np.meshgrid(np.arange(0, 2.0, 0.04), np.arange(0, 2.0, 0.04))
+        wall = np.stack([np.zeros(ys.size), ys.ravel(), zs.ravel()], 1)  # float64: converted as the labelling does
+        thin = (wall[:, 1] > 0.6) & (wall[:, 1] < 1.4) & (wall[:, 2] > 1.5)
+        seen = (wall[:, 2] < 1.0) | (thin & (wall[:, 2] < 1.6))
+        cls = np.where(seen, np.where(thin, TABLE, WALL), -1).astype(np.int64)
+        sims = 0.2 * np.eye(4, dtype=np.float32)[np.where(thin, TABLE, WALL)]
+        nbr = build_knn(wall.astype(np.float32), 6).neighbors
+        segs = np.zeros(len(wall), np.int64)
+        pts = wall.astype(np.float32)
+        searched, counts = label_unseen(cls, sims, pts, nbr, segs, "segment-field", 0.04)
+        made = nearest_seen(wall, nbr, cls < 0)
+        given, given_counts = label_unseen(cls, sims, pts, nbr, segs, "segment-field", 0.04, made)
+        assert np.array_equal(given, searched)
+        assert given_counts == counts
+        assert counts["field"] > 0
+        # A search that says every unseen primitive's nearest seen one is a wall primitive: used, it changes labels.
+        a_wall_point = int(np.flatnonzero(seen & ~thin)[0])
+        wrong = NearestSeen(made.unseen, np.where(made.source >= 0, a_wall_point, -1))
+        assert not np.array_equal(label_unseen(cls, sims, pts, nbr, segs, "segment-field", 0.04, wrong)[0], searched)
+        other = NearestSeen(~made.unseen, wrong.source)  # made for other unseen primitives: searched here instead
+        assert np.array_equal(label_unseen(cls, sims, pts, nbr, segs, "segment-field", 0.04, other)[0], searched)
+
     def test_field_checked_unseen_rule_keeps_the_floor_under_a_table(self) -> None:
         from panogs_core.stages.labeling import label_unseen
         from panogs_core.stages.neighbors import build_knn

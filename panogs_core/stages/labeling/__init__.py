@@ -29,17 +29,19 @@ from panogs_core.language.label_sets import default_temperature
 from panogs_core.stages.labeling.config import LabelingConfig, point_spacing, scaled_to_spacing
 from panogs_core.stages.labeling.instances import assemble, assemble_components, assemble_split, instance_infos
 from panogs_core.stages.labeling.output import PanopticLabels, instances_to_json
-from panogs_core.stages.labeling.unseen import label_unseen
+from panogs_core.stages.labeling.unseen import NearestSeen, label_unseen, nearest_seen
 from panogs_core.stages.labeling.votes import FusedEvidence, primitive_classes, vote_in_segments, vote_islands
 from panogs_core.types import Vocabulary
 
 __all__ = [
     "FusedEvidence",
     "LabelingConfig",
+    "NearestSeen",
     "PanopticLabels",
     "assign_panoptic",
     "instances_to_json",
     "label_unseen",
+    "nearest_seen",
     "point_spacing",
     "primitive_classes",
     "scaled_to_spacing",
@@ -66,6 +68,7 @@ def assign_panoptic(
     *,
     neighbors: np.ndarray | None = None,  # (N, K) int64 kNN of the points (self excluded), or None
     fused: np.ndarray | FusedEvidence | None = None,  # (N, D) fused mean features (zero rows = unseen), or None
+    nearest: NearestSeen | None = None,  # the unseen primitives' first graph search, made already, or None
 ) -> PanopticLabels:
     """Class and instance for every primitive, and the instance table.
 
@@ -79,6 +82,9 @@ def assign_panoptic(
         neighbors: kNN graph of ``points`` (self excluded) for the class split; built when None.
         fused: The fused mean features, or their :class:`FusedEvidence` (what the pipeline passes: it drops the
             ``(N, D)`` features once the field is fitted); None labels from ``features`` alone.
+        nearest: :func:`nearest_seen` of ``points``, ``neighbors`` and the primitives ``fused`` says no key frame
+            saw (the pipeline makes it beside the field's fit); used where the unseen primitives are those, else
+            the search is made here.
 
     Returns:
         Per primitive: class (-1 = no evidence) and instance id (-1 = none). Thing instances: with
@@ -132,7 +138,7 @@ def assign_panoptic(
         cls = vote_islands(cls, segments, nbr, cfg.island_points, cfg.vote_min_fraction, scores, margin)
     if fused is not None and nbr is not None:
         lead = temperature * float(np.log(cfg.unseen_field_ratio))  # the field's lead that overrules a segment
-        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, lead)
+        cls, unseen_counts = label_unseen(cls, field_sims, pts, nbr, segments, cfg.unseen, lead, nearest)
     if cfg.instances != "clusters" and nbr is not None:
         semantic, instance, inst_class = assemble_components(cls, cluster, vocabulary.is_thing, pts, nbr, cfg, seen)
     elif cfg.split_classes and nbr is not None:

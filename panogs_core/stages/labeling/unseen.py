@@ -2,12 +2,36 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
 from panogs_core.point_graphs import fill_nearest_seen
 from panogs_core.stages.labeling.votes import vote_in_segments
+
+
+@dataclass(frozen=True)
+class NearestSeen:
+    """The seen primitive nearest along the kNN graph to every primitive, for one set of unseen ones.
+
+    The first graph search of ``segment-field`` (:func:`label_unseen`) needs only the points, the kNN graph and
+    which primitives no key frame saw: the pipeline makes it beside the field's fit, before the labelling.
+    """
+
+    unseen: np.ndarray  # (N,) bool the primitives no key frame saw, the search's non-seeds
+    source: np.ndarray  # (N,) int64 nearest seen primitive along the graph, -1 where none is reached
+
+
+def nearest_seen(points: np.ndarray, neighbors: np.ndarray, unseen: np.ndarray) -> NearestSeen:
+    """:class:`NearestSeen` of ``points`` ``(N, 3)`` over the kNN ``neighbors`` ``(N, K)``, as the labelling
+    converts them (float32 points, int64 neighbours), so that its search gives the same answer to the bit."""
+    unseen = np.asarray(unseen, bool)
+    pts, nbr = np.asarray(points, np.float32), np.asarray(neighbors, np.int64)
+    if not unseen.any() or unseen.all():  # the labelling searches nothing then
+        return NearestSeen(unseen, np.full(len(unseen), -1, np.int64))
+    return NearestSeen(unseen, _nearest_seen_along_graph(pts, nbr, unseen))
 
 
 def label_unseen(
@@ -18,6 +42,7 @@ def label_unseen(
     segments: np.ndarray,  # (N,) int64 super-primitive
     mode: str,
     field_margin: float = 0.0,  # ``segment-field``: the field's lead, in cosine units, that overrules a segment
+    nearest: NearestSeen | None = None,  # ``segment-field``'s first search, made already (used if for these unseen)
 ) -> tuple[np.ndarray, dict[str, int]]:  # (N,) int64 classes, how many unseen were labelled how
     """A class for every primitive no key frame saw, and how many were labelled by each rule.
 
@@ -49,7 +74,10 @@ def label_unseen(
         by_segment = unseen & (filled >= 0)
         out[by_segment] = filled[by_segment]
         if mode == "segment-field":
-            source = _nearest_seen_along_graph(points, neighbors, unseen)  # from what a key frame saw only
+            if nearest is not None and np.array_equal(nearest.unseen, unseen):
+                source = nearest.source
+            else:
+                source = _nearest_seen_along_graph(points, neighbors, unseen)  # from what a key frame saw only
             overrule = _field_picks_nearest(out, classes, source, by_segment, field_sims, field_margin)
             out[overrule] = classes[source[overrule]]
             counts["field"] = int(overrule.sum())
