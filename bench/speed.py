@@ -102,7 +102,10 @@ def main() -> None:
     print("| stage | wall s | peak RSS MB |")
     print("|---|---:|---:|")
     for st in report["stages"]:
-        print(f"| {st['stage']} | {st['wall_s']:.2f} | {st['peak_rss_mb']:.0f} |")
+        beside = f" (beside {st['beside']})" if "beside" in st else ""  # its time overlaps that stage's
+        print(f"| {st['stage']}{beside} | {st['wall_s']:.2f} | {st['peak_rss_mb']:.0f} |")
+    if "results_wall_s" in report:
+        print(f"| to the results (in-process) | {report['results_wall_s']:.1f} | |")
     print(f"| **total (in-process)** | **{report['total_wall_s']:.1f}** | **{report['peak_rss_mb']:.0f}** |")
     print(f"\nwhole command incl. interpreter start and imports: {wall:.1f} s")
 

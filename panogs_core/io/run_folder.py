@@ -135,10 +135,11 @@ CAMERAS_JSON = RunFile(
 REPORT_JSON = RunFile(
     "report.json",
     JSON,
-    "per stage: wall time, peak memory, device (`cpu`, `cuda`) and whether it came from a checkpoint; config, "
-    "input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), and `unseen_primitives`: how "
-    "many primitives no key frame saw and how each was labelled (`segment`, `graph`, `nearest`). Written when "
-    "the results are (`appearance.state` `running`), again when the fit ends (`succeeded`, `skipped`, `failed` "
+    "per stage: wall time, peak memory, device (`cpu`, `cuda`), whether it came from a checkpoint and the stage "
+    "it ran `beside` (if any); config, input hash, versions, `appearance` (the fit's PSNR / SSIM before and after), "
+    "and `unseen_primitives`: how many primitives no key frame saw and how each was labelled (`segment`, `graph`, "
+    "`nearest`). Written when the results are (`appearance.state` `running`, `results_wall_s`; the input hash may "
+    "be null there while it is still being computed), again when the fit ends (`succeeded`, `skipped`, `failed` "
     "or `canceled`, with `error`). A tiled run's (`panogs run --tiles`) has `tiling`: the plan and per tile its core "
     "and halo primitives, frames, wall time and peak memory",
     _REPORT,

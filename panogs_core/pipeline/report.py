@@ -69,7 +69,7 @@ def write_report(
     scene: Bundle,
     cfg: PipelineConfig,
     vocabulary_spec: str | Vocabulary | None,
-    input_hash: str,
+    input_hash: str | None,
     result: PipelineResult,
     stages: list[dict[str, object]],
     *,
@@ -82,7 +82,8 @@ def write_report(
         scene: The run's bundle.
         cfg: The run's settings.
         vocabulary_spec: The run's ``vocabulary`` argument (:func:`vocabulary_label` says what it was).
-        input_hash: The bundle's SHA-256.
+        input_hash: The bundle's SHA-256; None while it is being computed (the results' report of a run with no
+            checkpoint to read back, on a busy machine: the run's last report has it).
         result: The run's result: counts, unseen primitives, the fit's state and the wall time so far.
         stages: Per stage its row (:func:`stage_rows`).
         tiling: A tiled run's plan and tiles; absent from an untiled run's report.
@@ -103,6 +104,8 @@ def write_report(
         "vocabulary": vocabulary_label(vocabulary_spec, scene),
         "stages": stages,
         "total_wall_s": round(result.total_s, 3),
+        # The time to the results (the labels and their files, before the appearance fit); absent from a tiled run.
+        **({"results_wall_s": round(result.results_s, 3)} if result.results_s else {}),
         "peak_rss_mb": round(lifetime_peak_rss_bytes() / 2**20, 1),
     }
     if tiling is not None:

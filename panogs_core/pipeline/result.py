@@ -57,6 +57,7 @@ class PipelineResult:
     unseen: dict[str, int] = field(default_factory=dict)  # primitives no key frame saw, and how each was labelled
     appearance: dict[str, Any] = field(default_factory=dict)  # the Gaussian scene's fit: state, PSNR before/after
     total_s: float = 0.0  # wall time of the run so far
+    results_s: float = 0.0  # wall time to the results (their files written, before the fit); 0 until then
 
     @property
     def fit_state(self) -> str:

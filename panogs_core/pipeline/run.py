@@ -289,18 +289,31 @@ class _Run:
         assert self.keys is not None, "a stage with a key runs before the bundle and the vocabulary are known"
         return self.keys
 
-    def report(self, result: PipelineResult, vocabulary_spec: str | Vocabulary | None, t_start: float) -> None:
-        """Write ``report.json`` once every pending checkpoint is written and recorded."""
+    def report(
+        self, result: PipelineResult, vocabulary_spec: str | Vocabulary | None, t_start: float, *, results: bool = False
+    ) -> None:
+        """Write ``report.json`` once every pending checkpoint is written; recorded too, unless ``results``.
+
+        The results' report (``results``) waits for no bundle hash: the hash only names the checkpoints for a later
+        run, it runs at a lower priority, and on a busy machine it could hold the results back for many seconds
+        (its ``input_sha256`` is then null). Every later report, the run's last among them, waits for it.
+        """
         keys = self._keys()
-        self.store.record_checkpoints(keys, wait=True)
+        if results:
+            result.results_s = time.perf_counter() - t_start
+            self.store.flush()
+            self.store.record_checkpoints(keys, wait=False)  # those the hash is known for already
+        else:
+            self.store.record_checkpoints(keys, wait=True)
+        input_hash = keys.input_hash if keys.ready() else None
         shared = self.store.shared
-        if shared is not None and self.hash_to_keep:
-            shared.keep_input_hash(keys.input_hash)
+        if shared is not None and self.hash_to_keep and input_hash is not None:
+            shared.keep_input_hash(input_hash)
             self.hash_to_keep = False
         result.total_s = time.perf_counter() - t_start
         scene: Bundle = self.values["bundle"]
         rows = stage_rows(self.timings, torch_devices(scene, self.cfg))
-        write_report(self.out, scene, self.cfg, vocabulary_spec, keys.input_hash, result, rows)
+        write_report(self.out, scene, self.cfg, vocabulary_spec, input_hash, result, rows)
 
 
 def run_pipeline(
@@ -371,7 +384,7 @@ def _run_stages(run: _Run, vocabulary: str | Vocabulary | None, on_results: Resu
     t_start = time.perf_counter()
     run.run_stages(spec for spec in st.PIPELINE if not spec.after_results)
     result = _results(run)
-    run.report(result, vocabulary, t_start)
+    run.report(result, vocabulary, t_start, results=True)
     if on_results is not None:
         on_results(result)
 

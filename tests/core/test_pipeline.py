@@ -619,6 +619,43 @@ def test_the_bundle_is_hashed_after_fusion_unless_a_checkpoint_may_be_read_back(
     assert again.instances == first.instances
 
 
+@pytest.mark.slow  # a pipeline run
+def test_the_results_do_not_wait_for_the_bundles_hash(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a busy machine the low-priority hash can lag far behind the stages: the results (their files, their
+    report, ``on_results``) come without it, and the run's last report and the checkpoints' manifest have it."""
+    import threading
+
+    from panogs_core.io.bundle import open_bundle
+    from panogs_core.pipeline import checkpoints
+
+    release = threading.Event()
+    real_hash = checkpoints.hash_bundle
+
+    def lagging(scene: object) -> str:
+        assert release.wait(timeout=120), "the results never came"
+        return real_hash(scene)  # type: ignore[arg-type]
+
+    at_results: dict[str, object] = {}
+
+    def on_results(result: object) -> None:
+        at_results.update(json.loads((tmp_path / "report.json").read_text()))
+        at_results["labels"] = (tmp_path / "labels.npz").exists()
+        release.set()  # the hash ends only once the results are out: waiting for it first would time out
+
+    monkeypatch.setattr(checkpoints, "hash_bundle", lagging)
+    run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, on_results=on_results)
+    assert at_results["labels"]
+    assert at_results["input_sha256"] is None
+    assert 0 < at_results["results_wall_s"] <= at_results["total_wall_s"]  # type: ignore[operator]
+    final = json.loads((tmp_path / "report.json").read_text())
+    assert final["input_sha256"] == real_hash(open_bundle(tiny_bundle))
+    assert final["results_wall_s"] == at_results["results_wall_s"]
+    manifest = json.loads((tmp_path / "stages" / "manifest.json").read_text())
+    assert {"primitives", "fusion", "labeling"} <= set(manifest)  # recorded once the hash was known
+
+
 @pytest.mark.slow  # reads tiny_run, a whole pipeline run, and runs the stages after fusion again
 def test_the_stages_that_need_no_field_run_beside_its_fit(
     tiny_bundle: Path, tiny_run: tuple[Path, object, list], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
