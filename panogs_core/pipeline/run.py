@@ -42,6 +42,7 @@ from panogs_core.pipeline.stage_table import STAGES, resolve_scene_vocabulary
 from panogs_core.progress import ProgressFn
 from panogs_core.stages.maps2d import MapModels
 from panogs_core.stages.maps2d.stage import forget_maps
+from panogs_core.threads import decode_threads
 from panogs_core.types import Vocabulary
 
 # What the callers of a run import from here (the worker, the tiled run, the CLI, the benchmarks).
@@ -207,7 +208,10 @@ class _Run:
             self._beside.wait()
 
     def _start_beside(self, leader: st.StageSpec, later: list[st.StageSpec]) -> None:
-        """Start, beside ``leader``, the later stages whose inputs are made now or by a stage started before them."""
+        """Start, beside ``leader``, the later stages whose inputs are made now or by a stage started before them;
+        none in a process given one thread (``--threads 1``, a tile's share of the cores): no core is left idle."""
+        if decode_threads() < 2:
+            return
         made = set(self.values)
         chosen = []
         for spec in later:

@@ -667,7 +667,10 @@ def test_the_stages_that_need_no_field_run_beside_its_fit(
     import threading
     import time
 
+    from panogs_core.pipeline import run as run_module
     from panogs_core.pipeline import stage_table as st
+
+    monkeypatch.setattr(run_module, "decode_threads", lambda: 2)  # two cores' worth, whatever the test's share
 
     out, first, _ = tiny_run
     _copy_checkpoints(out, tmp_path)
@@ -712,11 +715,39 @@ def test_the_stages_that_need_no_field_run_beside_its_fit(
     assert result.instances == first.instances
 
 
+@pytest.mark.slow  # a pipeline run
+def test_a_process_given_one_thread_runs_nothing_beside_the_field(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--threads 1`` (or a tile's one-core share): the stages run one after the other, on the run's thread."""
+    import threading
+
+    from panogs_core.pipeline import run as run_module
+    from panogs_core.pipeline import stage_table as st
+
+    monkeypatch.setattr(run_module, "decode_threads", lambda: 1)
+    threads: list[str] = []
+    real_knn = st.build_knn
+
+    def knn(*args: object, **kwargs: object) -> object:
+        threads.append(threading.current_thread().name)
+        return real_knn(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(st, "build_knn", knn)
+    run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG)
+    assert threads == [threading.current_thread().name]
+    rows = json.loads((tmp_path / "report.json").read_text())["stages"]
+    assert not [r for r in rows if "beside" in r]
+
+
 @pytest.mark.slow  # a pipeline run up to the field
 def test_an_error_of_a_stage_beside_the_field_is_raised_at_its_place(
     tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from panogs_core.pipeline import run as run_module
     from panogs_core.pipeline import stage_table as st
+
+    monkeypatch.setattr(run_module, "decode_threads", lambda: 2)  # two cores' worth, whatever the test's share
 
     def broken(*args: object, **kwargs: object) -> object:
         raise ValueError("the mask look-ups failed")
@@ -740,7 +771,10 @@ def test_a_run_stopped_in_the_field_waits_for_the_stages_beside_it(
     import threading
     import time
 
+    from panogs_core.pipeline import run as run_module
     from panogs_core.pipeline import stage_table as st
+
+    monkeypatch.setattr(run_module, "decode_threads", lambda: 2)  # two cores' worth, whatever the test's share
 
     real_knn = st.build_knn
 
