@@ -273,6 +273,13 @@ class Tracker:
         reused = [s for s in (self.shared.reused if self.shared else []) if s not in self.computed_before]
         return {"stage_timings": dict(self.timings), "cached_stages": list(dict.fromkeys([*self.cached, *reused]))}
 
+    def raise_stops(self) -> None:
+        """Raise what ends the job now without a write (a lost lease, the worker's shutdown); the job's stage stays."""
+        if self.lost:
+            raise LeaseLost(f"{self.row.label}: another worker holds it now")
+        if self.env.shutdown.is_set():
+            raise Interrupted("the worker is shutting down")
+
     def close_stage(self, now: float) -> None:
         # A stage that a previous attempt finished keeps that attempt's time (a resumed stage takes ~0 s).
         if self.stage is not None and self.stage not in self.timings:
@@ -285,10 +292,7 @@ class Tracker:
             self.close_stage(now)
             self.stage, self.stage_started = stage, now
             self.push_outputs()  # the stage before this one has its checkpoint: store it
-        if self.lost:
-            raise LeaseLost(f"{self.row.label}: another worker holds it now")
-        if self.env.shutdown.is_set():
-            raise Interrupted("the worker is shutting down")
+        self.raise_stops()
         if not changed and now - self.last_write < self.env.settings.progress_interval_s:
             return
         self.last_write = now

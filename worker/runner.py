@@ -21,6 +21,7 @@ stop becomes an outcome) is ``worker/leased.py``'s, shared with the tile runner;
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -220,6 +221,21 @@ def _run(job: Job, tracker: Tracker, env: JobEnv) -> JobState | None:
     return in_workspace(tracker, ending, plan, body)
 
 
+def _waiting(tracker: Tracker) -> Callable[[str], None]:
+    """The shared checkpoints' ``on_wait(stage)`` for a job run on this thread: a wait on another job's checkpoint
+    shows as the job's stage; from a stage made beside the field (another thread, docs/architecture.md "The stage
+    table"), it only stops the job when it must, and the job's stage stays the one the run has reached."""
+    pipeline_thread = threading.current_thread()
+
+    def on_wait(stage: str) -> None:
+        if threading.current_thread() is pipeline_thread:
+            tracker.on_progress(stage, 0, 1)
+        else:
+            tracker.raise_stops()
+
+    return on_wait
+
+
 def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace) -> JobState | None:
     env = tracker.env
     bundles = bundle_cache(env)
@@ -228,7 +244,7 @@ def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, wor
         job.scene_id,
         owner=f"job {job.id} lease {tracker.lease}",
         lease_s=env.settings.heartbeat_timeout_s,
-        on_wait=lambda stage: tracker.on_progress(stage, 0, 1),
+        on_wait=_waiting(tracker),
         on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
         local_copies=None if bundles is None else bundles.stages_folder(job.scene_id),
     )

@@ -11,10 +11,8 @@ there.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +20,7 @@ from panogs_core.errors import Cancelled
 from panogs_core.io.bundle import Bundle
 from panogs_core.io.run_folder import GAUSSIANS_PLY, STAGES_FOLDER
 from panogs_core.pipeline import stage_table as st
+from panogs_core.pipeline.beside import Beside, Made
 from panogs_core.pipeline.checkpoints import CheckpointStore, SharedCheckpoints, StageKeys
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.input_hash import hash_bundle
@@ -92,62 +91,6 @@ def _quiet(done: int, total: int) -> None:
     """The progress of a value derived between two stages: it reports none."""
 
 
-Made = tuple[Any, StageStats | None]  # a stage's value and, for a timed stage, what it cost
-
-
-class _Beside:
-    """Stages made on one thread of their own beside a ``one_core`` stage (``StageSpec.one_core``), in table order;
-    each is taken at its place in the table (:meth:`take`), where its error is raised.
-
-    Their progress is not sent while they run: a job's stage is the one whose place in the table it has reached.
-    """
-
-    def __init__(
-        self,
-        leader: str,
-        specs: list[st.StageSpec],
-        inputs: dict[str, Any],
-        compute: Callable[[st.StageSpec, list[Any], StageProgressFn | None], Made],
-    ) -> None:
-        self.leader = leader
-        futures: list[Future[Made]] = [Future() for _ in specs]
-        self._made = {spec.name: future for spec, future in zip(specs, futures, strict=True)}  # until taken
-        self._thread = threading.Thread(
-            target=self._make, args=(specs, futures, inputs, compute), name=f"beside-{leader}", daemon=True
-        )
-        self._thread.start()
-
-    def __contains__(self, name: object) -> bool:
-        return name in self._made
-
-    def take(self, name: str) -> Made:
-        """The stage's value and cost, once made (its error raised here)."""
-        return self._made.pop(name).result()
-
-    def wait(self) -> None:
-        self._thread.join()
-
-    def _make(
-        self,
-        specs: list[st.StageSpec],
-        futures: list[Future[Made]],  # one per stage: the thread's own references (a stage taken leaves ``_made``)
-        inputs: dict[str, Any],
-        compute: Callable[[st.StageSpec, list[Any], StageProgressFn | None], Made],
-    ) -> None:
-        values = dict(inputs)  # and the values of the stages made here, for the ones after them
-        at = 0
-        try:
-            for at, spec in enumerate(specs):
-                value, stats = compute(spec, [values[name] for name in spec.reads], None)
-                values[spec.output] = value
-                if stats is not None:
-                    stats.beside = self.leader
-                futures[at].set_result((value, stats))
-        except BaseException as exc:  # raised at its place; the stages after it here are not made
-            for future in futures[at:]:
-                future.set_exception(exc)
-
-
 def _last_readers(specs: Iterable[st.StageSpec]) -> dict[str, str]:
     """For each value, the stage after which no stage reads it (the run drops it there)."""
     last: dict[str, str] = {}
@@ -180,11 +123,11 @@ class _Run:
         # A run that reads no checkpoint back needs the bundle's hash only to record its checkpoints: it starts
         # hashing after the last stage that keeps every core busy, not beside it.
         self._hash_after = next((spec.name for spec in reversed(st.PIPELINE) if spec.every_core), None)
-        self._beside: _Beside | None = None  # the stages running beside a ``one_core`` stage
+        self._beside: Beside | None = None  # the stages running beside a ``one_core`` stage
 
     def run_stages(self, specs: Iterable[st.StageSpec]) -> None:
         """Run ``specs`` in order, each writing its value; drop each value after its last reader. A ``one_core``
-        stage first starts the later stages that can run beside it (:class:`_Beside`)."""
+        stage first starts the later stages that can run beside it (:class:`Beside`)."""
         specs = list(specs)
         for at, spec in enumerate(specs):
             if self._beside is not None and spec.name in self._beside:
@@ -220,7 +163,7 @@ class _Run:
                 made.add(spec.output)
         if chosen:
             inputs = {name: self.values[name] for spec in chosen for name in spec.reads if name in self.values}
-            self._beside = _Beside(leader.name, chosen, inputs, self._compute)
+            self._beside = Beside(leader.name, chosen, inputs, self._compute)
 
     def _take_beside(self, spec: st.StageSpec) -> Any:
         """The value of a stage made beside, at its place: its progress sent (done) and its row kept in order."""

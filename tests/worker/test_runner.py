@@ -450,3 +450,37 @@ def test_fit_outcome_reads_the_pipeline_result() -> None:
     )
     assert runner.fit_outcome(object()) == (FitState.SUCCEEDED, None)
     assert runner.fit_outcome(Result({"state": "skipped"})) == (FitState.SKIPPED, None)
+
+
+def test_a_wait_on_a_shared_checkpoint_moves_the_jobs_stage_only_from_the_pipelines_thread() -> None:
+    """A stage made beside the field (docs/architecture.md, "The stage table") that waits on another job's
+    checkpoint must not move the job's stage (it would flip between the field and that stage); it still stops."""
+    from worker.runner import _waiting
+
+    class Tracker:
+        def __init__(self) -> None:
+            self.calls: list[tuple[str, str]] = []
+
+        def on_progress(self, stage: str, done: int, total: int) -> None:
+            self.calls.append(("progress", stage))
+
+        def raise_stops(self) -> None:
+            self.calls.append(("stops", threading.current_thread().name))
+            raise InputError("stopped")  # what a lost lease or a shutdown raises, here any error
+
+    tracker = Tracker()
+    on_wait = _waiting(tracker)  # type: ignore[arg-type]
+    on_wait("masks")
+    raised: list[BaseException] = []
+
+    def beside() -> None:
+        try:
+            on_wait("masks")
+        except InputError as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=beside, name="beside-language_field")
+    thread.start()
+    thread.join()
+    assert tracker.calls == [("progress", "masks"), ("stops", "beside-language_field")]
+    assert len(raised) == 1
