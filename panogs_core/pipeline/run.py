@@ -247,9 +247,9 @@ class _Run:
         """
         keys = self._keys()
         if results:
-            result.results_s = time.perf_counter() - t_start
             self.store.flush()
             self.store.record_checkpoints(keys, wait=False)  # those the hash is known for already
+            result.results_s = time.perf_counter() - t_start  # the results are out once their report is written
         else:
             self.store.record_checkpoints(keys, wait=True)
         input_hash = keys.input_hash if keys.ready() else None
