@@ -210,10 +210,11 @@ def _run(job: Job, tracker: Tracker, env: JobEnv) -> JobState | None:
         )
     plan = workspace_plan(env, "job", job.scene_id, scene.bundle_path)
     ending = JobEnding(job.id, tracker)
+    archive_sha256 = scene.bundle_sha256
 
     def body(work: Workspace) -> JobState | None:
         try:
-            return run_leased(tracker, ending, work, lambda: _run_in(job, tracker, vocabulary, work))
+            return run_leased(tracker, ending, work, lambda: _run_in(job, tracker, vocabulary, work, archive_sha256))
         finally:
             if tracker.shared is not None:
                 tracker.shared.release_all()  # a stage that never stored its key: the next taker computes it
@@ -236,7 +237,11 @@ def _waiting(tracker: Tracker) -> Callable[[str], None]:
     return on_wait
 
 
-def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace) -> JobState | None:
+def _run_in(
+    job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace, archive_sha256: str | None
+) -> JobState | None:
+    """Run the job's pipeline in ``work``; ``archive_sha256``: the scene's upload's, from which the stage keys start
+    (``worker/shared_checkpoints.py``: no job hashes an uploaded bundle)."""
     env = tracker.env
     bundles = bundle_cache(env)
     shared = SceneCheckpoints(
@@ -247,6 +252,7 @@ def _run_in(job: Job, tracker: Tracker, vocabulary: str | Vocabulary | None, wor
         on_wait=_waiting(tracker),
         on_stored=lambda size: _count_scene_bytes(env, job.scene_id, size),
         local_copies=None if bundles is None else bundles.stages_folder(job.scene_id),
+        archive_sha256=archive_sha256,
     )
     tracker.shared = shared
     work.push.skip = shared.kept  # a checkpoint the scene's store keeps is not stored again with the job

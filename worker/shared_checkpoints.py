@@ -22,9 +22,13 @@ fetches those checkpoints instead of computing them: ``scenes/<scene id>/stages/
   stores it with the job.
 - **Counted and deleted with the scene.** Each stored checkpoint's bytes are added to the scene's ``size_bytes``
   (the tenant's quota); deleting the scene deletes its prefix, checkpoints included.
-- **The bundle's hash once.** The keys hash the bundle (2 GB at ScanNet size, about half of a re-run's time): the
-  first job keeps the hash under the scene (``input.json``, with the hashing rule it was made by) and the scene's
-  later jobs read it instead of hashing the bundle again (a scene's bundle never changes).
+- **No job hashes an uploaded bundle.** The keys start from a hash of the bundle. A scene made from an upload has
+  its archive's SHA-256, computed while the bytes arrived (``service/uploads.py``), and the archive's bytes decide
+  every file extracted from it: the keys start from a hash of that (:func:`archive_input_hash`), so no job, the
+  scene's first included, reads the 2 GB bundle (ScanNet size) to hash it before its first stage. A scene without
+  one (made otherwise) has its first job hash the bundle and keep the hash under the scene (``input.json``, with
+  the hashing rule it was made by); the scene's later jobs read it instead of hashing the bundle again (a scene's
+  bundle never changes). A kept hash comes first: the scene's stored checkpoints were filed under it.
 - **A copy on the worker's disk** (object storage only, :attr:`SceneCheckpoints.local_copies`): what a worker
   fetched or stored stays beside its cached bundle of the scene (``worker/bundle_cache.py``), so that a re-run on
   the same worker reads no checkpoint from the store: at ScanNet size those reads were a third of a re-run's time
@@ -34,6 +38,7 @@ fetches those checkpoints instead of computing them: ``scenes/<scene id>/stages/
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -50,6 +55,18 @@ from service.storage.objects import AlreadyExists, ObjectNotFound, StorageError
 
 logger = logging.getLogger(__name__)
 
+# The rule of :func:`archive_input_hash`, in the hash's own bytes, so that no other rule's input can make it.
+ARCHIVE_HASH_RULE = "sha256:upload-archive-sha256:v1"
+
+
+def archive_input_hash(archive_sha256: str) -> str:
+    """The input hash of a bundle extracted from an archive whose SHA-256 is ``archive_sha256`` (64 hex digits)."""
+    return hashlib.sha256(f"{ARCHIVE_HASH_RULE}\n{archive_sha256}".encode()).hexdigest()
+
+
+def _is_sha256(value: object) -> bool:
+    return isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)
+
 
 class SceneCheckpoints:
     """``panogs_core.pipeline.run.SharedCheckpoints`` over the storage, under one scene."""
@@ -65,8 +82,11 @@ class SceneCheckpoints:
         on_wait: Callable[[str], None] | None = None,
         on_stored: Callable[[int], None] | None = None,
         local_copies: Path | None = None,
+        archive_sha256: str | None = None,
     ) -> None:
         self.storage = storage
+        # The SHA-256 of the archive the scene's bundle was extracted from (the scene's ``bundle_sha256``), if any.
+        self.archive_sha256 = archive_sha256 if _is_sha256(archive_sha256) else None
         self.prefix = f"{storage.scene_prefix(scene_id)}stages/"
         self.owner = owner
         self.lease_s = lease_s
@@ -134,18 +154,23 @@ class SceneCheckpoints:
         return True
 
     def known_input_hash(self) -> str | None:
-        """The scene's bundle hash as a job of the scene kept it (``<prefix>input.json``), or None (none kept, kept
-        by code that hashed otherwise, or not a hash)."""
+        """The scene's bundle hash as a job of the scene kept it (``<prefix>input.json``), else the one its upload's
+        archive gives (:func:`archive_input_hash`), else None (the job hashes the bundle)."""
+        kept = self._kept_input_hash()
+        if kept is not None:
+            return kept
+        return None if self.archive_sha256 is None else archive_input_hash(self.archive_sha256)
+
+    def _kept_input_hash(self) -> str | None:
+        """The hash in ``<prefix>input.json``, or None (none kept, kept by code that hashed otherwise, or not a
+        hash)."""
         try:
             kept = json.loads(self.storage.objects.get_bytes(self._input_hash_key()))
         except (ObjectNotFound, ValueError):
             return None
-        if not isinstance(kept, dict) or kept.get("rule") != HASH_RULE:
+        if not isinstance(kept, dict) or kept.get("rule") != HASH_RULE or not _is_sha256(kept.get("sha256")):
             return None
-        sha256 = kept.get("sha256")
-        if not (isinstance(sha256, str) and len(sha256) == 64 and all(c in "0123456789abcdef" for c in sha256)):
-            return None
-        return sha256
+        return str(kept["sha256"])
 
     def keep_input_hash(self, sha256: str) -> None:
         """Keep the bundle's hash for the scene's later jobs (the first writer's stays: every job computes the same)."""

@@ -3,6 +3,7 @@ backend and on S3 (SeaweedFS on loopback), alternating.
 
 Usage:
     python bench/service/bench_reuse.py [--bundle DIR] [--preset scannet-size] [--rounds 2] [--backends local s3]
+        [--scenes uploaded unhashed] [--jobs first clustering labeling clustering-cold]
 
 Each round and backend gets a scene of its own (so nothing is shared across them) on one bundle: ``--bundle``, or
 the ``--preset`` room generated into ``--work`` when it is missing. On that scene the worker's
@@ -13,12 +14,19 @@ copies of the scene's checkpoints are removed (``clustering-cold``: a re-run on 
 bundle; with local files it is one more re-run). The database is the embedded SQLite of each backend's
 data folder; the bundle is placed once per backend (hard links for local, uploaded for S3) and each scene points at
 it. Prints per job its seconds, the stages taken from the scene's checkpoints, the seconds spent fetching those
-checkpoints (``SceneCheckpoints.fetch``) and, on S3, fetching the bundle into the task's scratch folder.
+checkpoints (``SceneCheckpoints.fetch``) and, on S3, fetching the bundle into the task's scratch folder, and its
+seconds to the results (``results_at`` less ``started_at``: the labels served, before the appearance fit).
+
+``--scenes``: an ``uploaded`` scene carries its archive's SHA-256, as a scene made from an upload does (the stage
+keys start from it: no job hashes the bundle, ``worker/shared_checkpoints.py``); here a stand-in value, since the
+bundle is placed as a folder. An ``unhashed`` scene has none, as one made otherwise: its first job hashes the bundle
+before its first stage and keeps the hash. Both kinds alternate within a round.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -97,8 +105,10 @@ def place_bundle(settings: Settings, storage: Storage, bundle: Path) -> float:
     return time.perf_counter() - start
 
 
-def new_scene(settings: Settings, tenant: uuid.UUID, bundle: Path) -> uuid.UUID:
+def new_scene(settings: Settings, tenant: uuid.UUID, bundle: Path, kind: str) -> uuid.UUID:
     meta = json.loads((bundle / "scene.json").read_text())
+    # A stand-in for an upload's archive SHA-256 (any 64 hex digits name the bytes for this bench's scenes).
+    archive_sha256 = hashlib.sha256(f"bench archive {bundle}".encode()).hexdigest() if kind == "uploaded" else None
     features = meta.get("features", {})
     with session_scope(get_session_factory(settings.database)) as session:
         scene = Scene(
@@ -110,6 +120,7 @@ def new_scene(settings: Settings, tenant: uuid.UUID, bundle: Path) -> uuid.UUID:
             has_vocabulary=True,
             has_ground_truth=True,
             bundle_path=BUNDLE_PREFIX,
+            bundle_sha256=archive_sha256,
         )
         session.add(scene)
         session.commit()
@@ -159,11 +170,13 @@ def run_job(env: leased.JobEnv, tenant: uuid.UUID, scene: uuid.UUID, config: dic
         row = session.get(Job, job_id)
         assert row is not None
         public = jobs.to_public(row)
+        started, results = row.started_at, row.results_at
     if state is not JobState.SUCCEEDED:
         raise RuntimeError(f"job {job_id} ended {state}: {public.error}")
     cached = [stage for stage, hit in public.stage_cached.items() if hit]
     return {
         "seconds": seconds,
+        "results_s": (results - started).total_seconds() if started and results else None,
         "cached": cached,
         "fetch_s": sum(FETCHED_S),
         "bundle_s": sum(bundle_s),
@@ -188,6 +201,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("bench/results/reuse"))
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--backends", nargs="+", choices=["local", "s3"], default=["local", "s3"])
+    ap.add_argument("--scenes", nargs="+", choices=["uploaded", "unhashed"], default=["uploaded", "unhashed"])
+    ap.add_argument("--jobs", nargs="+", choices=list(JOBS), default=list(JOBS))
     args = ap.parse_args()
     bundle = args.bundle
     if bundle is None:
@@ -220,16 +235,19 @@ def main() -> None:
             envs[backend] = (env, new_tenant(settings))
         for round_ in range(args.rounds):
             order = args.backends if round_ % 2 == 0 else list(reversed(args.backends))
-            for backend in order:
+            kinds = args.scenes if round_ % 2 == 0 else list(reversed(args.scenes))
+            for backend, kind in [(backend, kind) for backend in order for kind in kinds]:
                 env, tenant = envs[backend]
-                scene = new_scene(env.settings, tenant, bundle)
-                for name, config in JOBS.items():
+                scene = new_scene(env.settings, tenant, bundle, kind)
+                for name in args.jobs:
+                    config = JOBS[name]
                     if name == COLD:
                         forget_checkpoint_copies(env, scene)
                     load_before = load_average()
                     row = {
                         "round": round_ + 1,
                         "backend": backend,
+                        "scene": kind,
                         "job": name,
                         "load": load_before,
                         **run_job(env, tenant, scene, config),
@@ -237,16 +255,25 @@ def main() -> None:
                     rows.append(row)
                     print(json.dumps(row), flush=True)
     print(
-        "\n| round | backend | job | seconds | of the first run | stages cached | checkpoint fetch s | bundle fetch s |"
+        "\n| round | backend | scene | job | seconds | to the results s | of the first run | stages cached "
+        "| checkpoint fetch s | bundle fetch s |"
     )
-    print("|---|---|---|---:|---:|---:|---:|---:|")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|")
     for row in rows:
         first = next(
-            r for r in rows if r["round"] == row["round"] and r["backend"] == row["backend"] and r["job"] == "first"
+            (
+                r
+                for r in rows
+                if (r["round"], r["backend"], r["scene"], r["job"])
+                == (row["round"], row["backend"], row["scene"], "first")
+            ),
+            None,
         )
+        of_first = "" if first is None else f"{row['seconds'] / first['seconds']:.3f}"
+        results = "" if row["results_s"] is None else f"{row['results_s']:.1f}"
         print(
-            f"| {row['round']} | {row['backend']} | {row['job']} | {row['seconds']:.1f} | "
-            f"{row['seconds'] / first['seconds']:.3f} | {len(row['cached'])} | {row['fetch_s']:.2f} | "
+            f"| {row['round']} | {row['backend']} | {row['scene']} | {row['job']} | {row['seconds']:.1f} | {results} | "
+            f"{of_first} | {len(row['cached'])} | {row['fetch_s']:.2f} | "
             f"{row['bundle_s']:.1f} |"
         )
     (args.work / f"{run_dir.name}.json").write_text(json.dumps(rows, indent=1))

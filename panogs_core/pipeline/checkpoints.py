@@ -49,8 +49,10 @@ class SharedCheckpoints(Protocol):
         ...
 
     def known_input_hash(self) -> str | None:
-        """The bundle's hash (:func:`hash_bundle`) as an earlier run of this same bundle kept it, or None: a
-        scene's bundle never changes, and hashing it is most of a re-run's time at ScanNet size."""
+        """A hash that names this bundle's bytes, known without reading them, or None (then the run hashes the
+        bundle, :func:`hash_bundle`): as an earlier run of the same bundle kept it (a scene's bundle never changes,
+        and hashing it is most of a re-run's time at ScanNet size), or made from the SHA-256 of the archive it was
+        uploaded as (the service's ``worker/shared_checkpoints.py``)."""
         ...
 
     def keep_input_hash(self, sha256: str) -> None:

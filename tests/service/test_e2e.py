@@ -35,6 +35,8 @@ from service_harness import (
     temp_postgres,
 )
 
+from worker.shared_checkpoints import archive_input_hash
+
 pytestmark = pytest.mark.slow
 
 PREFERRED_QUERY = "chair"
@@ -142,7 +144,10 @@ def test_session(deployment: str, request: pytest.FixtureRequest, bundle: tuple[
 
         ply = _download(client, job["id"], "panoptic.ply", ranged=True)
         _check_ply(ply, instances, len(np.load(labels)["instance"]))
-        _check_devices(json.loads(_download(client, job["id"], "report.json").read_text()))
+        report = json.loads(_download(client, job["id"], "report.json").read_text())
+        _check_devices(report)
+        # The stage keys started from the upload's archive hash: no job hashes an uploaded bundle.
+        assert report["input_sha256"] == archive_input_hash(hashlib.sha256(archive.read_bytes()).hexdigest())
 
 
 def _upload_scene(client: httpx.Client, archive: Path) -> str:

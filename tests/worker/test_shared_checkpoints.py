@@ -4,6 +4,7 @@ the bytes count in the scene's size, and deleting the scene deletes them."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 import uuid
@@ -125,8 +126,6 @@ def test_a_dead_holders_lease_is_taken_over(settings: Settings, tmp_path: Path) 
 
 
 def test_the_bundle_hash_is_kept_once_and_read_only_when_made_by_the_same_rule(settings: Settings) -> None:
-    import json
-
     from panogs_core.pipeline.input_hash import HASH_RULE
 
     scene_id = uuid.uuid4()
@@ -141,6 +140,29 @@ def test_the_bundle_hash_is_kept_once_and_read_only_when_made_by_the_same_rule(s
         objects.delete(key)
         objects.put_bytes(key, json.dumps(kept).encode())
         assert later.known_input_hash() is None, kept  # another rule's hash, or not a hash: computed again
+
+
+def test_an_uploaded_scenes_jobs_start_from_its_archives_hash_and_a_kept_hash_comes_first(settings: Settings) -> None:
+    """A scene made from an upload knows its archive's SHA-256: every job of it, the first included, has the keys'
+    hash without reading the bundle; a hash a job kept (the scene's checkpoints are filed under it) stays first."""
+    from panogs_core.pipeline.input_hash import HASH_RULE
+    from worker.shared_checkpoints import archive_input_hash
+
+    scene_id, archive = uuid.uuid4(), "0123456789abcdef" * 4
+    first = _shared(settings, scene_id, "first", archive_sha256=archive)
+    derived = first.known_input_hash()
+    assert derived == archive_input_hash(archive)
+    assert derived is not None
+    assert len(derived) == 64
+    assert derived != archive  # its own rule's value, not the archive's
+    assert archive_input_hash("f" * 64) != derived  # another archive, another hash
+    assert _shared(settings, scene_id, "later", archive_sha256=archive).known_input_hash() == derived
+    assert _shared(settings, scene_id, "odd", archive_sha256="../x").known_input_hash() is None  # not a SHA-256
+    objects = Storage(settings.storage).objects
+    objects.put_bytes(
+        f"scenes/{scene_id}/stages/input.json", json.dumps({"rule": HASH_RULE, "sha256": "c" * 64}).encode()
+    )
+    assert first.known_input_hash() == "c" * 64
 
 
 def test_a_checkpoint_being_stored_is_not_pushed_with_the_job(settings: Settings, tmp_path: Path) -> None:
