@@ -58,11 +58,16 @@ class Beside:
         compute: Callable[[st.StageSpec, list[Any], StageProgressFn | None], Made],
     ) -> None:
         values = dict(inputs)  # and the values of the stages made here, for the ones after them
+        inputs.clear()  # ``values`` is this thread's one reference to each: dropped after its last reader here
+        last_reader = {name: at for at, spec in enumerate(specs) for name in spec.reads}
         at = 0
         try:
             for at, spec in enumerate(specs):
                 value, stats = compute(spec, [values[name] for name in spec.reads], None)
                 values[spec.output] = value
+                for name in spec.reads:
+                    if last_reader[name] == at:  # the fused features, once their cosines and colours are made
+                        values.pop(name, None)
                 if stats is not None:
                     stats.beside = self.leader
                 futures[at].set_result((value, stats))

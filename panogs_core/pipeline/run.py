@@ -135,7 +135,7 @@ class _Run:
             elif spec.runs(self.cfg):
                 if spec.one_core:
                     self._start_beside(spec, specs[at + 1 :])
-                self.values[spec.output] = self._run(spec)
+                self.values[spec.output] = self._run(spec, specs[at + 1 :])
             else:
                 self.values[spec.output] = None
             for name, last in self._drop_after.items():
@@ -176,11 +176,31 @@ class _Run:
             self.timings.append(stats)
         return value
 
-    def _run(self, spec: st.StageSpec) -> Any:
-        value, stats = self._compute(spec, [self.values[name] for name in spec.reads], self.on_progress)
+    def _run(self, spec: st.StageSpec, later: list[st.StageSpec]) -> Any:
+        value, stats = self._compute(spec, self._arguments(spec, later), self.on_progress)
         if stats is not None:
             self.timings.append(stats)
         return value
+
+    def _arguments(self, spec: st.StageSpec, later: list[st.StageSpec]) -> list[Any]:
+        """The values ``spec`` reads; those it takes in a :class:`~panogs_core.pipeline.stage_table.Handover`,
+        which is the run's only reference to one no later stage on this thread reads (the stages made beside hold
+        their own): the stage frees it by taking it out."""
+        read_later = {
+            name
+            for later_spec in later
+            if later_spec.runs(self.cfg) and not (self._beside is not None and later_spec.name in self._beside)
+            for name in later_spec.reads
+        }
+        args = []
+        for name in spec.reads:
+            if name not in spec.takes:
+                args.append(self.values[name])
+            elif name in read_later or name in _KEPT:
+                args.append(st.Handover(self.values[name]))
+            else:
+                args.append(st.Handover(self.values.pop(name)))
+        return args
 
     def _compute(self, spec: st.StageSpec, args: list[Any], sink: StageProgressFn | None) -> Made:
         """The stage's value (from its checkpoint, or computed and its checkpoint written) and, for a timed stage,

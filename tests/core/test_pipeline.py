@@ -678,7 +678,7 @@ def test_the_stages_that_need_no_field_run_beside_its_fit(
         (tmp_path / "stages" / f"{stage}.npz").unlink(missing_ok=True)
     threads: dict[str, str] = {}
     knn_started = threading.Event()
-    real_masks, real_knn, real_fit = st.observe_masks, st.build_knn, st.fit_language_field
+    real_masks, real_knn, real_fit = st.observe_masks, st.build_knn, st.set_up_language_field
 
     def masks(*args: object, **kwargs: object) -> object:
         threads["masks"] = threading.current_thread().name
@@ -696,7 +696,7 @@ def test_the_stages_that_need_no_field_run_beside_its_fit(
 
     monkeypatch.setattr(st, "observe_masks", masks)
     monkeypatch.setattr(st, "build_knn", knn)
-    monkeypatch.setattr(st, "fit_language_field", fit_once_started)
+    monkeypatch.setattr(st, "set_up_language_field", fit_once_started)
     events: list[str] = []
 
     def progress(stage: str, done: int, total: int) -> None:
@@ -738,6 +738,45 @@ def test_a_process_given_one_thread_runs_nothing_beside_the_field(
     assert threads == [threading.current_thread().name]
     rows = json.loads((tmp_path / "report.json").read_text())["stages"]
     assert not [r for r in rows if "beside" in r]
+
+
+@pytest.mark.slow  # a pipeline run
+@pytest.mark.parametrize("threads", [2, 1])
+def test_the_fused_features_are_freed_before_the_field_decodes(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads: int
+) -> None:
+    """The field takes the fused features: once its training set is built and the stages beside it have their
+    cosines and colours, nothing holds them, so the decoding's (N, D) output is never made beside them. On one
+    thread (nothing beside) the class cosines come after the field: the run keeps them for that."""
+    import time
+    import weakref
+
+    from panogs_core.pipeline import run as run_module
+    from panogs_core.pipeline import stage_table as st
+    from panogs_core.stages.language_field import triplane
+
+    monkeypatch.setattr(run_module, "decode_threads", lambda: threads)
+    fused_ref: list[weakref.ref[np.ndarray]] = []
+    alive_at_decode: list[bool] = []
+    real_fusion, real_decode = st.fuse_features, triplane.decode_features
+
+    def fusion(*args: object, **kwargs: object) -> object:
+        fused = real_fusion(*args, **kwargs)  # type: ignore[arg-type]
+        fused_ref.append(weakref.ref(fused.features))
+        return fused
+
+    def decode(*args: object, **kwargs: object) -> object:
+        deadline = time.monotonic() + 30  # the thread beside may still be making the cosines (a loaded host)
+        while fused_ref[0]() is not None and time.monotonic() < deadline and threads > 1:
+            time.sleep(0.01)
+        alive_at_decode.append(fused_ref[0]() is not None)
+        return real_decode(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(st, "fuse_features", fusion)
+    monkeypatch.setattr(triplane, "decode_features", decode)
+    result = run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG)
+    assert alive_at_decode == [threads == 1]
+    assert result.instances
 
 
 @pytest.mark.slow  # a pipeline run up to the field

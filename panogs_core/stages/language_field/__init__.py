@@ -137,15 +137,35 @@ def fit_language_field(
         >>> field.features.shape, decode_points(field, points[:5]).shape
         ((200, 8), (5, 8))
     """
+    return finish_language_field(set_up_language_field(points, fused, cfg), on_progress=on_progress)
+
+
+@dataclass
+class FieldSetUp:
+    """A field ready to fit: its model at its start and its training set, made from the fused features.
+
+    With the scene's feature basis (``basis_dims``, the default) the training set holds the targets' coefficients
+    only, not the fused ``(N, D)`` features: a caller that drops its own reference to them after
+    :func:`set_up_language_field` frees them before the decoding makes its ``(N, D)`` output (161 MB each at
+    ScanNet size; the pipeline does, ``StageSpec.takes``).
+    """
+
+    points: np.ndarray  # (N, 3) float32, the primitives' centres, as checked
+    bounds: np.ndarray  # (2, 3) float32, the tri-plane box
+    model: Any  # triplane._TriplaneDecoder at its start
+    data: Any  # triplane.TrainingSet, or None once the fit is done
+    cfg: LanguageFieldConfig
+
+
+def set_up_language_field(points: np.ndarray, fused: FusedFeatures, cfg: LanguageFieldConfig) -> FieldSetUp:
+    """The first part of :func:`fit_language_field`: the inputs checked, the model made, the training set built.
+
+    Raises:
+        ShapeError, InputError: as :func:`fit_language_field`.
+    """
     import torch
 
-    from panogs_core.stages.language_field.triplane import (
-        TrainingSet,
-        decode_features,
-        init_model,
-        state_of,
-        train_model,
-    )
+    from panogs_core.stages.language_field.triplane import TrainingSet, init_model
 
     points, features, weights = _check_inputs(points, fused)
     device = torch.device(cfg.device)
@@ -156,15 +176,30 @@ def fit_language_field(
         data = TrainingSet(
             points, features, weights, bounds, resolutions, device, basis_dims=cfg.basis_dims, seed=cfg.seed
         )
-        train_model(model, data, cfg, on_progress)
-    del data  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
+    return FieldSetUp(points=points, bounds=bounds, model=model, data=data, cfg=cfg)
+
+
+def finish_language_field(setup: FieldSetUp, *, on_progress: ProgressFn | None = None) -> LanguageField:
+    """The rest of :func:`fit_language_field`: the fit, then every primitive decoded.
+
+    Raises:
+        NumericalError: if the loss becomes NaN or infinite.
+    """
+    import torch
+
+    from panogs_core.stages.language_field.triplane import decode_features, state_of, train_model
+
+    cfg, model = setup.cfg, setup.model
+    with torch_threads(cfg.cpu_threads if torch.device(cfg.device).type == "cpu" else None):
+        train_model(model, setup.data, cfg, on_progress)
+    setup.data = None  # its corners and targets (about 40 MB at ScanNet size) are not held while the decoding's are
     return_freed_heap()  # the training's freed temporaries would stay resident beside the decoding's output
     model.eval()
     # The decoding is a few large products, row by row (the same to the bit at any thread count): it takes the run's
     # threads. The set-up and the steps stay at ``cpu_threads``: the basis and the projection, products over 512 and
     # more terms, change in the last bits with the count (docs/benchmarks.md, "Language field speed").
-    decoded = decode_features(model, points, bounds)  # (N, D)
-    return LanguageField(features=decoded, bounds=bounds, state=state_of(model))
+    decoded = decode_features(model, setup.points, setup.bounds)  # (N, D)
+    return LanguageField(features=decoded, bounds=setup.bounds, state=state_of(model))
 
 
 def decode_points(
