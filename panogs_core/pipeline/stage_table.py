@@ -26,6 +26,7 @@ import numpy as np
 
 from panogs_core.errors import InputError
 from panogs_core.gaussians import GaussianScene, fit_appearance
+from panogs_core.heap import return_freed_heap
 from panogs_core.io.bundle import Bundle, open_bundle
 from panogs_core.io.run_folder import BUNDLE_FOLDER, STAGES_FOLDER
 from panogs_core.language.label_sets import builtin_vocabulary, ensure_embeddings
@@ -288,7 +289,9 @@ def fusion(
     geometry's first, so fusing them would read every colour frame for nothing). The input's hash, in the key,
     says which."""
     settings = cfg.fusion if prims.colors is None else dataclasses.replace(cfg.fusion, fuse_colors=False)
-    return fuse_features(bundle, vis, int(prims.points.shape[0]), settings, on_progress=progress)
+    fused = fuse_features(bundle, vis, int(prims.points.shape[0]), settings, on_progress=progress)
+    return_freed_heap()  # the maps its threads read stay resident once freed, else: the field's peak comes next
+    return fused
 
 
 def language_field(

@@ -364,24 +364,26 @@ class _FrameRows:
 
 
 class _CellBuffers:
-    """A block of a feature map's float32 rows, the blended rows of a frame and the mask pixels' cells, kept from
-    frame to frame.
+    """A block of a feature map's float32 rows, the rows of a frame and the mask pixels' cells, kept from frame to
+    frame.
 
     A fresh 40 MB array per frame (a 160 x 120 x 512 map) cost more in page faults than the conversion itself
-    (docs/benchmarks.md, "Speed at ScanNet size"); the blended rows' temporaries did the same on a smaller scale.
+    (docs/benchmarks.md, "Speed at ScanNet size"); the rows' temporaries did the same on a smaller scale. One set
+    per frame in flight: where a frame's primitives fill most of its map (a small room seen whole, frame after
+    frame), its rows are about as many as the map's cells, so the set holds one row buffer, grown by a quarter.
     """
 
     def __init__(self) -> None:
         self._block: np.ndarray | None = None  # (_BLOCK, D) float32
-        self._rows: list[np.ndarray] = []  # two (capacity, D) float32 row buffers
+        self._rows: np.ndarray | None = None  # (capacity, D) float32
         self._pixel_cells: dict[tuple[tuple[int, int], tuple[int, int]], tuple[np.ndarray, np.ndarray]] = {}
 
-    def rows(self, count: int, dim: int) -> tuple[np.ndarray, np.ndarray]:  # two (count, D) float32 views
-        """Two row buffers of ``count`` rows, valid until the next call."""
-        if not self._rows or self._rows[0].shape[0] < count or self._rows[0].shape[1] != dim:
-            capacity = max(count, 2 * self._rows[0].shape[0] if self._rows else 0)
-            self._rows = [np.empty((capacity, dim), dtype=np.float32) for _ in range(2)]
-        return self._rows[0][:count], self._rows[1][:count]
+    def rows(self, count: int, dim: int) -> np.ndarray:  # (count, D) float32 view
+        """A row buffer of ``count`` rows, valid until the next call."""
+        if self._rows is None or self._rows.shape[0] < count or self._rows.shape[1] != dim:
+            grown = self._rows.shape[0] + self._rows.shape[0] // 4 if self._rows is not None else 0
+            self._rows = np.empty((max(count, grown), dim), dtype=np.float32)
+        return self._rows[:count]
 
     def pixel_cells(self, mask_hw: tuple[int, int], feature_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """:func:`mask_pixel_cells` of these sizes, computed once (every frame of a bundle has the same)."""
@@ -391,10 +393,14 @@ class _CellBuffers:
         return self._pixel_cells[key]
 
     def block(self, rows: np.ndarray) -> np.ndarray:  # (B, D) float32, valid until the next call
-        """Rows of a map (as stored) as float32, in a kept buffer of ``_BLOCK`` rows (a private copy)."""
-        if self._block is None or self._block.shape[1] != rows.shape[1]:
-            self._block = np.empty((_BLOCK, rows.shape[1]), dtype=np.float32)
-        return _to_float32(rows, self._block[: len(rows)])
+        """Rows of a map (as stored) as float32, in the kept buffer of ``_BLOCK`` rows (a private copy)."""
+        return _to_float32(rows, self.scratch(len(rows), rows.shape[1]))
+
+    def scratch(self, count: int, dim: int) -> np.ndarray:  # (count, D) float32, count <= _BLOCK
+        """The kept buffer of ``_BLOCK`` rows (what :meth:`block` writes), valid until the next call."""
+        if self._block is None or self._block.shape[1] != dim:
+            self._block = np.empty((_BLOCK, dim), dtype=np.float32)
+        return self._block[:count]
 
 
 def _to_float32(rows: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -459,7 +465,7 @@ def _frame_rows(
         pair, index = np.unique(src * num_masks + dense[mask_pixel], return_inverse=True)  # (U,), (T_v,)
         cell, mask = pair // num_masks, pair % num_masks
         pooling = _BlockPooling(dense, num_masks, buffers.pixel_cells(mask_ids.shape, (hf, wf)), d)
-    table, blend = buffers.rows(len(cell), d)  # (U, D) each
+    table = buffers.rows(len(cell), d)  # (U, D)
     table_t = torch.from_numpy(table)
     starts = range(0, num_cells, _BLOCK)
     bounds = np.searchsorted(cell, [*starts, num_cells])  # the rows of each block's cells (cell is sorted)
@@ -477,7 +483,11 @@ def _frame_rows(
     if pooling is not None and mask is not None:
         pooled = pooling.pooled(min_norm)  # (M + 1, D), row 0 zero
         scaled_pool = torch.from_numpy(weight * pooled)  # (weight pool)[m] is weight (pool[m]), exactly
-        table += torch.index_select(scaled_pool, 0, torch.from_numpy(mask), out=torch.from_numpy(blend)).numpy()
+        mask_t = torch.from_numpy(mask)
+        for lo in range(0, len(mask), _BLOCK):  # through the block buffer: no second (U, D) buffer a frame
+            ids = mask_t[lo : lo + _BLOCK]
+            part = torch.index_select(scaled_pool, 0, ids, out=torch.from_numpy(buffers.scratch(len(ids), d)))
+            table[lo : lo + len(ids)] += part.numpy()
     return table, index.reshape(-1)
 
 

@@ -400,6 +400,30 @@ class TestBlockwiseRows:
         np.testing.assert_array_equal(index, expected_index)
         assert table.tobytes() == expected.astype(np.float32).tobytes()
 
+    def test_a_frame_takes_one_row_buffer(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """The masks' pooled features are added through the block buffer: a frame holds one (U, D) buffer of rows
+        (three frames are in flight on two threads; where a frame's rows are about its map's cells, a second
+        buffer was 40 MB a frame at 160 x 120 x 512)."""
+        import tracemalloc
+
+        from panogs_core.stages import fusion
+
+        monkeypatch.setattr(fusion, "_BLOCK", 64)
+        rng = np.random.default_rng(4)
+        hf, wf, hm, wm = 40, 50, 80, 100
+        fmap = rng.standard_normal((hf, wf, 512)).astype(np.float16)
+        masks = rng.choice([0, 3, 4], size=(hm, wm)).astype(np.int32)
+        pixel = np.arange(hm * wm)  # every pixel: about three rows a cell
+        src = fusion.feature_cells(pixel // wm, pixel % wm, (hm, wm), (hf, wf))
+        tracemalloc.start()
+        try:
+            table, _ = fusion._frame_rows(fmap, src, 1e-6, fusion._CellBuffers(), (masks, pixel, 0.5))
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert table.shape[0] > 2 * hf * wf  # rows per (cell, mask) pair
+        assert peak < 1.5 * table.nbytes, (peak, table.nbytes)
+
 
 @pytest.mark.parametrize("workers", [2, 3])
 def test_frames_on_threads_give_the_sequential_result(monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
