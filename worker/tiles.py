@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import uuid
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -52,6 +52,10 @@ from worker.leased import (
     workspace_plan,
     write_retried,
 )
+from worker.shared_checkpoints import archive_input_hash
+
+if TYPE_CHECKING:
+    from panogs_core.io.bundle import Bundle
 
 logger = logging.getLogger(__name__)
 
@@ -359,7 +363,8 @@ def _merge(
     result, seam_joins = merge_run(scene, plan, points, vocab, work.out, timings, progress)
     # The work of the job (the plan, every tile and the merge, on whichever workers), not the time since it began.
     result.total_s = sum(t.wall_s for t in result.timings)
-    write_report(work.out, scene, env.make_config(job.config or {}), vocabulary, plan, reports, seam_joins, result)
+    write_report(work.out, scene, env.make_config(job.config or {}), vocabulary, plan, reports, seam_joins, result,
+                 input_hash=_input_hash(env, job, scene))  # fmt: skip
     tracker.push_outputs()
     merged = result.timings[-1]
     artifacts = collect_artifacts(job.id, work.out, env.storage)
@@ -380,6 +385,17 @@ def _merge(
         raise LeaseLost(f"merge {row.id}: another worker holds it now, or its job ended")
     logger.info("job %s: merged %d tiles in %.1f s (%d seam joins)", job.id, len(tiles), merged.wall_s, seam_joins)
     return TileState.SUCCEEDED
+
+
+def _input_hash(env: JobEnv, job: Job, scene: Bundle) -> str:
+    """The bundle's hash for the merged report: from the scene's upload's archive (no read of the bundle,
+    ``worker/shared_checkpoints.py``), else the bundle hashed."""
+    from panogs_core.pipeline.input_hash import hash_bundle
+
+    with session_scope(env.session_factory) as session:
+        row = crud.get_scene(session, job.scene_id)
+        archive = None if row is None else row.bundle_sha256
+    return hash_bundle(scene) if archive is None else archive_input_hash(archive)
 
 
 def record_crash(tile_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:

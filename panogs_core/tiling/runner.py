@@ -107,9 +107,12 @@ def run_tiled(
     timings = [*([maps_stats] if maps_stats else []), plan_stats, *(stats for _, stats in done)]
     result, seam_joins = merge_run(scene, plan, points, vocab, out, timings, on_progress)
     result.total_s = time.perf_counter() - t_start
-    write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result)
+    # The results first, as an untiled run's: their report has no bundle hash (it reads every file of the bundle,
+    # 9.4 GB for the design's building); the last report, after them, has it.
+    write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result, input_hash=None)
     if on_results is not None:
         on_results(result)
+    write_report(out, scene, cfg, vocabulary, plan, tile_rows, seam_joins, result, input_hash=hash_bundle(scene))
     return result
 
 
@@ -266,9 +269,12 @@ def write_report(
     tile_rows: list[dict[str, Any]],
     seam_joins: int,
     result: PipelineResult,
+    *,
+    input_hash: str | None,
 ) -> None:
     """``report.json`` of a tiled run: an untiled run's fields (every stage on the CPU: the fit does not run), with
-    ``tiling`` (the plan and every tile)."""
+    ``tiling`` (the plan and every tile). ``input_hash``: the bundle's (:func:`hash_bundle`, or one the caller
+    knows), None while it is not known."""
     tiling = {**plan.to_json(), "tiles": tile_rows, "seam_joins": seam_joins}
-    write_run_report(out, scene, cfg, vocabulary_spec, hash_bundle(scene), result, stage_rows(result.timings),
+    write_run_report(out, scene, cfg, vocabulary_spec, input_hash, result, stage_rows(result.timings),
                      tiling=tiling)  # fmt: skip

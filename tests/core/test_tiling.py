@@ -232,11 +232,23 @@ def tiled_run(tiny_building_tiled_run: Path) -> Path:
 
 @pytest.mark.slow
 def test_tiled_cli_run_is_deterministic_in_one_process_or_two_and_reported(
-    building: Path, tiled_run: Path, tmp_path: Path
+    building: Path, tiled_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from panogs_core.tiling import runner
+
     runs = [tiled_run, tmp_path / "b"]  # one after another (the fixture's), then side by side
     argv = ["run", str(building), "--out", str(runs[1]), *TILED_ARGV, "--tile-workers", "2"]
+    at_hash: list[object] = []
+    real_hash = runner.hash_bundle
+
+    def hash_after_the_results(scene: object) -> str:  # the results' report is written first, without the hash
+        at_hash.append(json.loads((runs[1] / "report.json").read_text())["input_sha256"])
+        return real_hash(scene)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(runner, "hash_bundle", hash_after_the_results)
     assert cli_main(argv) == 0
+    assert at_hash == [None]
+    assert json.loads((runs[1] / "report.json").read_text())["input_sha256"] == real_hash(open_bundle(building))
     for name in ("labels.npz", "instances.json", "instance_features.npy", "panoptic.ply"):
         assert (runs[0] / name).read_bytes() == (runs[1] / name).read_bytes(), name
     report = json.loads((runs[0] / "report.json").read_text())

@@ -29,6 +29,7 @@ from service.reaper import sweep
 from service.settings import Settings
 from service.storage import Storage
 from worker import leased, runner, tasks, tiles
+from worker.shared_checkpoints import archive_input_hash
 
 pytestmark = pytest.mark.slow
 
@@ -61,7 +62,7 @@ def _env(settings: Settings, sender: Recorder) -> leased.JobEnv:
     )  # fmt: skip
 
 
-def _job(settings: Settings, building: Path, tiling: dict[str, Any]) -> uuid.UUID:
+def _job(settings: Settings, building: Path, tiling: dict[str, Any], archive_sha256: str | None = None) -> uuid.UUID:
     storage = Storage(settings.storage)
     with session_scope(get_session_factory(settings.database)) as session:
         key = ApiKey(name="t", prefix=uuid.uuid4().hex[:12], key_hash="0" * 64)
@@ -72,7 +73,7 @@ def _job(settings: Settings, building: Path, tiling: dict[str, Any]) -> uuid.UUI
         shutil.copytree(building, bundle)
         session.add(Scene(id=scene_id, api_key_id=key.id, name="b", feature_dim=512, feature_space=SPACE,
                           num_frames=28, has_vocabulary=True, has_ground_truth=True,
-                          bundle_path=storage.rel(bundle)))  # fmt: skip
+                          bundle_path=storage.rel(bundle), bundle_sha256=archive_sha256))  # fmt: skip
         session.flush()
         job = Job(api_key_id=key.id, scene_id=scene_id, state=JobState.QUEUED, queue="cpu", request_hash="h",
                   stage_timings={}, config=NO_FIT, tiling=tiling)  # fmt: skip
@@ -101,7 +102,8 @@ def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
 ) -> None:
     sender = Recorder()
     env = _env(settings, sender)
-    job_id = _job(settings, building, {"tiles": "2x1"})
+    archive = "ab" * 32  # the scene came from an upload: the merged report's hash is made from its archive's
+    job_id = _job(settings, building, {"tiles": "2x1"}, archive_sha256=archive)
 
     assert runner.execute_job(job_id, lease="job-1", worker="w/1", env=env) == JobState.RUNNING
     rows = _rows(env, job_id)
@@ -165,6 +167,7 @@ def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
         assert (out / name).read_bytes() == (cli / name).read_bytes(), name
     report = json.loads((out / "report.json").read_text())
     assert [t["name"] for t in report["tiling"]["tiles"]] == [r.name for r in final[:2]]
+    assert report["input_sha256"] == archive_input_hash(archive)
 
 
 def test_a_failed_tile_fails_the_job_and_stops_its_siblings(settings: Settings, building: Path) -> None:
