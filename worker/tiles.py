@@ -321,7 +321,8 @@ def _tile(
     cfg = tile_config(env.make_config(job.config or {}))
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     progress = stopping_on_storage_errors(tracker.on_progress)
-    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True)
+    # A scene from an upload: the tile's hash is made from the archive's, no file of the tile is read to hash it.
+    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True, _archive_hash(env, job))
     del scene, points
     release_memory()
     tracker.push_outputs()
@@ -387,15 +388,20 @@ def _merge(
     return TileState.SUCCEEDED
 
 
-def _input_hash(env: JobEnv, job: Job, scene: Bundle) -> str:
-    """The bundle's hash for the merged report: from the scene's upload's archive (no read of the bundle,
-    ``worker/shared_checkpoints.py``), else the bundle hashed."""
-    from panogs_core.pipeline.input_hash import hash_bundle
-
+def _archive_hash(env: JobEnv, job: Job) -> str | None:
+    """The job's scene's bundle hash made from its upload's archive (``worker/shared_checkpoints.py``: nothing of
+    the bundle read), or None for a scene made otherwise."""
     with session_scope(env.session_factory) as session:
         row = crud.get_scene(session, job.scene_id)
         archive = None if row is None else row.bundle_sha256
-    return hash_bundle(scene) if archive is None else archive_input_hash(archive)
+    return None if archive is None else archive_input_hash(archive)
+
+
+def _input_hash(env: JobEnv, job: Job, scene: Bundle) -> str:
+    """The bundle's hash for the merged report: the archive's (:func:`_archive_hash`), else the bundle hashed."""
+    from panogs_core.pipeline.input_hash import hash_bundle
+
+    return _archive_hash(env, job) or hash_bundle(scene)
 
 
 def record_crash(tile_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:

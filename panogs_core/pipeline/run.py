@@ -112,8 +112,10 @@ class _Run:
         resume: bool,
         on_progress: StageProgressFn | None,
         shared: SharedCheckpoints | None,
+        input_hash: str | None = None,
     ) -> None:
         self.out, self.cfg, self.values = out, cfg, values
+        self.input_hash = input_hash  # known to the caller: the bundle is not hashed
         self.on_progress = on_progress
         self.store = CheckpointStore(STAGES_FOLDER.path(out), resume, shared)
         self.timings: list[StageStats] = []
@@ -246,7 +248,7 @@ class _Run:
         if self.keys is not None or self.values.get("bundle") is None or self.values.get("vocabulary") is None:
             return
         shared = self.store.shared
-        known_hash = None if shared is None else shared.known_input_hash()
+        known_hash = self.input_hash or (None if shared is None else shared.known_input_hash())
         # With checkpoints to look up, every stage needs its key: hash now. Else the hash waits for the cores.
         start = self.store.may_reuse()
         self.keys = StageKeys(self.values["bundle"], self.cfg, self.values["vocabulary"], known_hash, start=start)
@@ -294,6 +296,7 @@ def run_pipeline(
     on_results: ResultsFn | None = None,
     shared: SharedCheckpoints | None = None,
     map_models: MapModels | None = None,
+    input_hash: str | None = None,
 ) -> PipelineResult:
     """Run every stage on a bundle and write the outputs (docs/architecture.md, "Outputs of a run") into ``out_dir``.
 
@@ -318,6 +321,9 @@ def run_pipeline(
             stage's key, given each checkpoint this run computes.
         map_models: The models that compute the 2D maps the bundle lacks (docs/method.md §17); None, or None for
             a kind: the bundle must bring it. A kind the bundle brings is never recomputed.
+        input_hash: A hash known to name the bundle's bytes, used instead of hashing them (a tile's: made from its
+            scene's hash and the tile, :func:`panogs_core.tiling.tile.tile_input_hash`); None: the bundle is hashed
+            (or ``shared`` knows it).
 
     Returns:
         The result summary; files are in ``out_dir``. ``appearance["state"]`` says how the fit ended.
@@ -334,7 +340,7 @@ def run_pipeline(
     if not resume:
         forget_maps(STAGES_FOLDER.path(out))
     values: dict[str, Any] = {"source": bundle, "out": out, "vocabulary_spec": vocabulary, "map_models": map_models}
-    run = _Run(out, cfg, values, resume=resume, on_progress=on_progress, shared=shared)
+    run = _Run(out, cfg, values, resume=resume, on_progress=on_progress, shared=shared, input_hash=input_hash)
     values["shared"] = run.store.shared  # None without resume: nothing is then fetched
     try:
         result = _run_stages(run, vocabulary, on_results)

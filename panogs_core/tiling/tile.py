@@ -58,15 +58,19 @@ def run_tile(
     out: Path,
     on_progress: StageProgressFn | None,
     resume: bool,
+    scene_hash: str | None = None,
 ) -> tuple[dict[str, Any], StageStats]:
     """Run one tile's stages 1-8 in its own folder; its report row and its timing.
 
     A tile finished before under the same inputs, settings and vocabulary (``tile.json``) is not run again; a
-    finished tile's bulky checkpoints are removed (``_KEPT_CHECKPOINTS``)."""
+    finished tile's bulky checkpoints are removed (``_KEPT_CHECKPOINTS``). ``scene_hash``: the scene's bundle hash,
+    when known: the tile's is made from it (:func:`tile_input_hash`) instead of reading the tile's files to hash
+    them (about 1 GB a tile of the design's building, its frames read again by every tile that shares them)."""
     view, core = tile_bundle(scene, plan, tile, points)
     folder = tile_folder(out, tile)
     label = f"tile {tile.index + 1}/{len(plan.tiles)}"
-    done = _finished_tile(folder, view, cfg, vocab) if resume else None
+    view_hash = None if scene_hash is None else tile_input_hash(scene_hash, plan, tile)
+    done = _finished_tile(folder, view, cfg, vocab, view_hash) if resume else None
     if done is not None:
         log.info("%s: finished before, kept", label)
         return done
@@ -76,7 +80,9 @@ def run_tile(
             on_progress(f"{label} {stage}", done, total)
 
     start = time.perf_counter()
-    result = run_pipeline(view, folder, cfg, vocabulary=vocab, on_progress=progress, resume=resume)
+    result = run_pipeline(
+        view, folder, cfg, vocabulary=vocab, on_progress=progress, resume=resume, input_hash=view_hash
+    )
     wall = time.perf_counter() - start
     # Peak of the tile: the highest of its stages' sampled peaks (the process's lifetime peak would carry the
     # tiles before it).
@@ -100,6 +106,14 @@ def run_tile(
     return row, stats
 
 
+def tile_input_hash(scene_hash: str, plan: TilePlan, tile: TileSpec) -> str:
+    """A tile's input hash made from its scene's: the scene's bytes and where the tile lies (its name digests its
+    cells, halo box and frames; the plan's grid places the cells) decide every byte the tile's run reads."""
+    grid = [[float(v) for v in plan.origin], float(plan.cell_m), int(plan.halo_cells)]
+    text = json.dumps(["tile:v1", scene_hash, tile.name, grid])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def _tile_key(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary, maps: str) -> str:
     """``maps``: the computed maps' key (stages/maps2d/stage.py), which the bundle's hash does not cover."""
     text = json.dumps([input_hash, cfg.to_dict(), list(vocab.names), [bool(t) for t in vocab.is_thing], maps])
@@ -107,14 +121,15 @@ def _tile_key(input_hash: str, cfg: PipelineConfig, vocab: Vocabulary, maps: str
 
 
 def _finished_tile(
-    folder: Path, view: Bundle, cfg: PipelineConfig, vocab: Vocabulary
+    folder: Path, view: Bundle, cfg: PipelineConfig, vocab: Vocabulary, view_hash: str | None
 ) -> tuple[dict[str, Any], StageStats] | None:
-    """The row and timing of a tile finished under the same key, else None (the tile's files hashed again)."""
+    """The row and timing of a tile finished under the same key, else None (``view_hash``: the tile's input hash
+    when known, else the tile's files hashed again)."""
     path = folder / _TILE_DONE
     if not path.is_file() or not LABELS_NPZ.path(folder).is_file():
         return None
     doc = json.loads(path.read_text())
-    if doc.get("key") != _tile_key(hash_bundle(view), cfg, vocab, maps_key(view)):
+    if doc.get("key") != _tile_key(view_hash or hash_bundle(view), cfg, vocab, maps_key(view)):
         return None
     index = doc["row"]["index"]
     return doc["row"], StageStats(name=f"tile {index}", wall_s=doc["wall_s"], peak_rss_mb=doc["peak_rss_mb"])

@@ -340,6 +340,18 @@ def test_the_cli_refuses_bad_tiles_and_rooms(tmp_path: Path, capsys: pytest.Capt
     assert "expected N or NxM rooms" in capsys.readouterr().err
 
 
+def test_a_tiles_input_hash_follows_its_scene_and_where_it_lies(building: Path, points: np.ndarray) -> None:
+    from panogs_core.tiling.tile import tile_input_hash
+
+    plan = plan_tiles(open_bundle(building), EXACT, (2, 1), points=points)
+    first, second = plan.tiles
+    made = tile_input_hash("a" * 64, plan, first)
+    assert made == tile_input_hash("a" * 64, plan, first)
+    assert len(made) == 64
+    assert made != tile_input_hash("b" * 64, plan, first)  # another scene
+    assert made != tile_input_hash("a" * 64, plan, second)  # another tile
+
+
 def test_a_saved_plan_rebuilds_the_same_tiles(building: Path, points: np.ndarray, tmp_path: Path) -> None:
     plan = plan_tiles(open_bundle(building), EXACT, (2, 1), points=points)
     plan.save(tmp_path / "plan.json")

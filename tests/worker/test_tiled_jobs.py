@@ -19,6 +19,8 @@ from torch_threads import one_torch_thread  # noqa: F401  (autouse fixture: the 
 
 from panogs_core.errors import PanoGSError
 from panogs_core.pipeline.run import STAGES, run_pipeline
+from panogs_core.tiling.plan import TilePlan
+from panogs_core.tiling.tile import plan_path, tile_input_hash
 from service import jobs
 from service.broker import TaskName
 from service.db import crud
@@ -98,8 +100,17 @@ def _job_row(env: leased.JobEnv, job_id: uuid.UUID) -> Job:
 
 
 def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
-    settings: Settings, building: Path, tiny_building_tiled_run: Path
+    settings: Settings, building: Path, tiny_building_tiled_run: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from panogs_core.pipeline import checkpoints
+    from panogs_core.tiling import tile as tile_module
+
+    def never(scene: object) -> str:
+        raise AssertionError("a tile or the merge of an uploaded scene hashed its files")
+
+    # The scene came from an upload: its tiles' hashes and the merged report's are made from its archive's.
+    monkeypatch.setattr(checkpoints, "hash_bundle", never)
+    monkeypatch.setattr(tile_module, "hash_bundle", never)
     sender = Recorder()
     env = _env(settings, sender)
     archive = "ab" * 32  # the scene came from an upload: the merged report's hash is made from its archive's
@@ -168,6 +179,10 @@ def test_tiled_job_fans_out_survives_a_lost_tile_and_merges_once(
     report = json.loads((out / "report.json").read_text())
     assert [t["name"] for t in report["tiling"]["tiles"]] == [r.name for r in final[:2]]
     assert report["input_sha256"] == archive_input_hash(archive)
+    plan = TilePlan.load(plan_path(out))
+    for spec in plan.tiles:  # each tile's run was keyed from the scene's hash and where the tile lies
+        tile_report = json.loads((out / "tiles" / spec.name / "report.json").read_text())
+        assert tile_report["input_sha256"] == tile_input_hash(archive_input_hash(archive), plan, spec)
 
 
 def test_a_failed_tile_fails_the_job_and_stops_its_siblings(settings: Settings, building: Path) -> None:
