@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import uuid
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -53,9 +53,6 @@ from worker.leased import (
     write_retried,
 )
 from worker.shared_checkpoints import archive_input_hash
-
-if TYPE_CHECKING:
-    from panogs_core.io.bundle import Bundle
 
 logger = logging.getLogger(__name__)
 
@@ -253,9 +250,12 @@ def execute_part(tile_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) ->
     else:  # the plan and its own folder, which it writes
         paths = {"fetch": (TILES_KEY + "plan.json", f"{TILES_KEY}{row.name}/"), "push": f"{TILES_KEY}{row.name}/"}
     plan = workspace_plan(env, row.kind, job.scene_id, scene.bundle_path, **paths)
+    # A scene from an upload: its bundle's hash is made from the archive's (worker/shared_checkpoints.py), so no
+    # tile and no merge reads the bundle's files to hash them; None for a scene made otherwise.
+    scene_hash = None if scene.bundle_sha256 is None else archive_input_hash(scene.bundle_sha256)
 
     def body(work: Workspace) -> TileState | None:
-        return run_leased(tracker, ending, work, lambda: _run_in(job, row, tracker, vocabulary, work))
+        return run_leased(tracker, ending, work, lambda: _run_in(job, row, tracker, vocabulary, work, scene_hash))
 
     return in_workspace(tracker, ending, plan, body)
 
@@ -287,12 +287,17 @@ def _end_job(
 
 
 def _run_in(
-    job: Job, row: JobTile, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace
+    job: Job,
+    row: JobTile,
+    tracker: Tracker,
+    vocabulary: str | Vocabulary | None,
+    work: Workspace,
+    scene_hash: str | None,
 ) -> TileState | None:
     with tracker.beating():
         if row.kind == TileKind.MERGE:
-            return _merge(job, row, tracker, vocabulary, work)
-        return _tile(job, row, tracker, vocabulary, work)
+            return _merge(job, row, tracker, vocabulary, work, scene_hash)
+        return _tile(job, row, tracker, vocabulary, work, scene_hash)
 
 
 def _scene_and_plan(work: Workspace) -> tuple[Any, Any, Any]:
@@ -309,7 +314,12 @@ def _scene_and_plan(work: Workspace) -> tuple[Any, Any, Any]:
 
 
 def _tile(
-    job: Job, row: JobTile, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace
+    job: Job,
+    row: JobTile,
+    tracker: Tracker,
+    vocabulary: str | Vocabulary | None,
+    work: Workspace,
+    scene_hash: str | None,
 ) -> TileState | None:
     from panogs_core.pipeline.run import resolve_scene_vocabulary
     from panogs_core.tiling.runner import tile_config
@@ -321,8 +331,7 @@ def _tile(
     cfg = tile_config(env.make_config(job.config or {}))
     vocab = resolve_scene_vocabulary(scene, vocabulary)
     progress = stopping_on_storage_errors(tracker.on_progress)
-    # A scene from an upload: the tile's hash is made from the archive's, no file of the tile is read to hash it.
-    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True, _archive_hash(env, job))
+    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True, scene_hash)
     del scene, points
     release_memory()
     tracker.push_outputs()
@@ -343,8 +352,14 @@ def _tile(
 
 
 def _merge(
-    job: Job, row: JobTile, tracker: Tracker, vocabulary: str | Vocabulary | None, work: Workspace
+    job: Job,
+    row: JobTile,
+    tracker: Tracker,
+    vocabulary: str | Vocabulary | None,
+    work: Workspace,
+    scene_hash: str | None,
 ) -> TileState | None:
+    from panogs_core.pipeline.input_hash import hash_bundle
     from panogs_core.pipeline.profiling import StageStats
     from panogs_core.pipeline.run import resolve_scene_vocabulary
     from panogs_core.tiling.runner import merge_run, write_report
@@ -365,7 +380,7 @@ def _merge(
     # The work of the job (the plan, every tile and the merge, on whichever workers), not the time since it began.
     result.total_s = sum(t.wall_s for t in result.timings)
     write_report(work.out, scene, env.make_config(job.config or {}), vocabulary, plan, reports, seam_joins, result,
-                 input_hash=_input_hash(env, job, scene))  # fmt: skip
+                 input_hash=scene_hash or hash_bundle(scene))  # fmt: skip
     tracker.push_outputs()
     merged = result.timings[-1]
     artifacts = collect_artifacts(job.id, work.out, env.storage)
@@ -386,22 +401,6 @@ def _merge(
         raise LeaseLost(f"merge {row.id}: another worker holds it now, or its job ended")
     logger.info("job %s: merged %d tiles in %.1f s (%d seam joins)", job.id, len(tiles), merged.wall_s, seam_joins)
     return TileState.SUCCEEDED
-
-
-def _archive_hash(env: JobEnv, job: Job) -> str | None:
-    """The job's scene's bundle hash made from its upload's archive (``worker/shared_checkpoints.py``: nothing of
-    the bundle read), or None for a scene made otherwise."""
-    with session_scope(env.session_factory) as session:
-        row = crud.get_scene(session, job.scene_id)
-        archive = None if row is None else row.bundle_sha256
-    return None if archive is None else archive_input_hash(archive)
-
-
-def _input_hash(env: JobEnv, job: Job, scene: Bundle) -> str:
-    """The bundle's hash for the merged report: the archive's (:func:`_archive_hash`), else the bundle hashed."""
-    from panogs_core.pipeline.input_hash import hash_bundle
-
-    return _archive_hash(env, job) or hash_bundle(scene)
 
 
 def record_crash(tile_id: uuid.UUID, lease: str, exc: BaseException, env: JobEnv) -> None:
