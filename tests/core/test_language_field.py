@@ -329,17 +329,19 @@ class TestGeometry:
 class TestTraining:
     """The training step's hand-written parts against torch's own: autograd's gradients, torch.optim.Adam."""
 
+    # Outputs of 4 take the last layer through the prediction (D < 2 H), of 20 through the Gram matrix.
+    @pytest.mark.parametrize("out_dim", [4, 20])
     @pytest.mark.parametrize("hidden", [(8,), (8, 6)])
-    def test_gradients_are_autograds(self, hidden: tuple[int, ...]) -> None:
+    def test_gradients_are_autograds(self, hidden: tuple[int, ...], out_dim: int) -> None:
         import torch
 
         from panogs_core.stages.language_field.triplane import _cosine_loss_and_gradients
 
         gen = torch.Generator().manual_seed(0)
-        widths = [5, *hidden, 12]
+        widths = [5, *hidden, out_dim]
         mlp = [torch.randn((o, i), generator=gen, dtype=torch.float64) for i, o in itertools.pairwise(widths)]
         latent = torch.randn((40, 5), generator=gen, dtype=torch.float64)
-        targets = torch.randn((40, 12), generator=gen, dtype=torch.float64) * 3.0  # not unit: scaled inside
+        targets = torch.randn((40, out_dim), generator=gen, dtype=torch.float64) * 3.0  # not unit: scaled inside
         weights = torch.rand(40, generator=gen, dtype=torch.float64)
         loss, latent_grad, grads = _cosine_loss_and_gradients(mlp, latent, targets, 1 / targets.norm(dim=1), weights)
 
@@ -356,6 +358,23 @@ class TestTraining:
         for by_hand, leaf in zip(grads, leaves, strict=True):
             assert leaf.grad is not None
             np.testing.assert_allclose(by_hand.numpy(), leaf.grad.numpy(), rtol=1e-9, atol=1e-14)
+
+    def test_both_forms_of_the_last_layer_agree(self) -> None:
+        import torch
+
+        from panogs_core.stages.language_field.triplane import _last_layer_by_gram, _last_layer_by_prediction
+
+        gen = torch.Generator().manual_seed(2)
+        h = torch.relu(torch.randn((50, 8), generator=gen, dtype=torch.float64))
+        h[3] = 0.0  # a zero prediction: the 1e-8 floor, no gradient through the norm
+        last = torch.randn((6, 8), generator=gen, dtype=torch.float64)
+        targets = torch.randn((50, 6), generator=gen, dtype=torch.float64) * 2.0
+        weights = torch.rand(50, generator=gen, dtype=torch.float64)
+        by_prediction = _last_layer_by_prediction(h, last, targets, 1 / targets.norm(dim=1), weights)
+        by_gram = _last_layer_by_gram(h, last, targets, 1 / targets.norm(dim=1), weights)
+        assert float(by_prediction[0]) == pytest.approx(float(by_gram[0]), rel=1e-12)
+        for a, b in zip(by_prediction[1:], by_gram[1:], strict=True):
+            np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-9, atol=1e-14)
 
     @pytest.mark.parametrize("fused", [True, False])
     def test_adam_is_torchs(self, fused: bool) -> None:

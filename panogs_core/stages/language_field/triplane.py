@@ -267,12 +267,10 @@ def _cosine_loss_and_gradients(
 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:  # loss (), latent's gradient (B, C), each layer's
     """``mean_i w_i (1 - cos(W h_i, t_i))`` and its gradients, forward and backward by hand.
 
-    With the last layer ``W`` (D, H) linear and bias-free, ``W h . t = h . (W^T t)`` and
-    ``|W h|^2 = h^T (W^T W) h``: the ``(B, D)`` prediction is never formed, and the targets' lengths scale the
-    ``(B, H)`` product (the same cosine as torch.cosine_similarity, eps 1e-8, against unit targets). The backward
-    reuses ``h (W^T W)`` for the gradient of the norm, where autograd computes a second ``(B, H) x (H, H)``
-    product, and it runs no autograd graph (its bookkeeping was a third of a step at ScanNet size). The matrix
-    products are most of the training time on a CPU.
+    No autograd graph is built (its bookkeeping was a third of a step at ScanNet size); the matrix products are most
+    of the training time on a CPU. The last layer ``W`` (D, H) is linear and bias-free, and its part is taken in the
+    cheaper of two exact forms (:func:`_last_layer_by_prediction`, :func:`_last_layer_by_gram`): the same cosine as
+    torch.cosine_similarity (eps 1e-8) against unit targets, whose lengths scale the products instead.
     """
     inputs, pre_activations = [latent], []
     h = latent
@@ -282,6 +280,60 @@ def _cosine_loss_and_gradients(
         h = torch.relu(pre)
         inputs.append(h)
     last = mlp[-1]  # (D, H)
+    out_dim, width = last.shape
+    # Per batch the prediction form takes three (B, D, H) products, the Gram form two and two (B, H, H) ones: with
+    # the scene's 128-d basis and 128 hidden units (the defaults) 3 against 4, with D = 512 and no basis 6 against 5.
+    last_layer = _last_layer_by_prediction if out_dim < 2 * width else _last_layer_by_gram
+    loss, d_h, d_last = last_layer(h, last, targets, inverse_norms, sample_weights)
+    grads = [d_last]
+    for weight, pre, layer_input in zip(
+        reversed(mlp[:-1]), reversed(pre_activations), reversed(inputs[:-1]), strict=True
+    ):
+        d_pre = d_h * (pre > 0)  # relu
+        grads.append(d_pre.t() @ layer_input)  # (out, in)
+        d_h = d_pre @ weight  # (B, in)
+    grads.reverse()
+    return loss, d_h, grads
+
+
+def _last_layer_by_prediction(
+    h: torch.Tensor,  # (B, H) the last hidden layer
+    last: torch.Tensor,  # (D, H)
+    targets: torch.Tensor,  # (B, D) as fused
+    inverse_norms: torch.Tensor,  # (B,)
+    sample_weights: torch.Tensor,  # (B,)
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # loss (), d loss / d h (B, H), d loss / d W (D, H)
+    """The loss through the ``(B, D)`` prediction ``P = h W^T``: cheaper where ``D < 2 H`` (the scene's basis).
+
+    ``cos = P . t / (|P| |t|)``; ``d cos / d P = t / (|t| |P|) - cos P / |P|^2``; then ``dW = dP^T h`` and
+    ``dh = dP W``.
+    """
+    pred = h @ last.t()  # (B, D)
+    dot = (pred * targets).sum(dim=1) * inverse_norms  # (B,) P . t / |t|
+    norm = (pred * pred).sum(dim=1).sqrt()  # (B,) |P|
+    live = norm > 1e-8  # where the 1e-8 floor holds, the cosine does not depend on the norm
+    norm_floor = norm.clamp_min(1e-8)
+    cos = dot / norm_floor
+    loss = (sample_weights * (1.0 - cos)).mean()
+    d_cos = sample_weights * (-1.0 / sample_weights.shape[0])  # (B,) d loss / d cos
+    along_target = d_cos * inverse_norms / norm_floor  # (B,)
+    along_pred = torch.where(live, -d_cos * cos / norm_floor**2, 0.0)  # (B,)
+    d_pred = targets * along_target.unsqueeze(1) + pred * along_pred.unsqueeze(1)  # (B, D)
+    return loss, d_pred @ last, d_pred.t() @ h
+
+
+def _last_layer_by_gram(
+    h: torch.Tensor,  # (B, H) the last hidden layer
+    last: torch.Tensor,  # (D, H)
+    targets: torch.Tensor,  # (B, D) as fused
+    inverse_norms: torch.Tensor,  # (B,)
+    sample_weights: torch.Tensor,  # (B,)
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # loss (), d loss / d h (B, H), d loss / d W (D, H)
+    """The loss without the ``(B, D)`` prediction: cheaper where ``D >= 2 H`` (the fused 512-d rows, no basis).
+
+    ``W h . t = h . (W^T t)`` and ``|W h|^2 = h^T (W^T W) h``; the backward reuses ``h (W^T W)`` for the gradient of
+    the norm, where autograd computes a second ``(B, H) x (H, H)`` product.
+    """
     projected = (targets @ last) * inverse_norms.unsqueeze(1)  # (B, H), as if the targets were unit rows
     gram = last.t() @ last  # (H, H)
     h_gram = h @ gram  # (B, H)
@@ -300,15 +352,7 @@ def _cosine_loss_and_gradients(
     d_last = targets.t() @ (h * (d_dot * inverse_norms).unsqueeze(1))  # (D, H)
     d_gram = h.t() @ (h * d_sq.unsqueeze(1))  # (H, H), symmetric
     d_last.addmm_(last, d_gram, alpha=2.0)
-    grads = [d_last]
-    for weight, pre, layer_input in zip(
-        reversed(mlp[:-1]), reversed(pre_activations), reversed(inputs[:-1]), strict=True
-    ):
-        d_pre = d_h * (pre > 0)  # relu
-        grads.append(d_pre.t() @ layer_input)  # (out, in)
-        d_h = d_pre @ weight  # (B, in)
-    grads.reverse()
-    return loss, d_h, grads
+    return loss, d_h, d_last
 
 
 def train_model(
