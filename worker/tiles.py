@@ -255,7 +255,8 @@ def execute_part(tile_id: uuid.UUID, *, lease: str, worker: str, env: JobEnv) ->
     scene_hash = None if scene.bundle_sha256 is None else archive_input_hash(scene.bundle_sha256)
 
     def body(work: Workspace) -> TileState | None:
-        return run_leased(tracker, ending, work, lambda: _run_in(job, row, tracker, vocabulary, work, scene_hash))
+        part = _Part(job, row, tracker, vocabulary, work, scene_hash)
+        return run_leased(tracker, ending, work, lambda: _run_in(part))
 
     return in_workspace(tracker, ending, plan, body)
 
@@ -286,18 +287,21 @@ def _end_job(
         logger.info("job %s: %s (%s %s)", row.job_id, state, row.kind, row.name)
 
 
-def _run_in(
-    job: Job,
-    row: JobTile,
-    tracker: Tracker,
-    vocabulary: str | Vocabulary | None,
-    work: Workspace,
-    scene_hash: str | None,
-) -> TileState | None:
-    with tracker.beating():
-        if row.kind == TileKind.MERGE:
-            return _merge(job, row, tracker, vocabulary, work, scene_hash)
-        return _tile(job, row, tracker, vocabulary, work, scene_hash)
+@dataclass(frozen=True)
+class _Part:
+    """A tile or the merge of a tiled job, as one worker runs it."""
+
+    job: Job
+    row: JobTile
+    tracker: Tracker  # beats for the row's lease
+    vocabulary: str | Vocabulary | None  # the job's label set
+    work: Workspace  # the part's folder, fetched from and pushed to the job's storage
+    scene_hash: str | None  # the bundle's hash made from the upload's archive; None for a scene made otherwise
+
+
+def _run_in(part: _Part) -> TileState | None:
+    with part.tracker.beating():
+        return _merge(part) if part.row.kind == TileKind.MERGE else _tile(part)
 
 
 def _scene_and_plan(work: Workspace) -> tuple[Any, Any, Any]:
@@ -313,25 +317,19 @@ def _scene_and_plan(work: Workspace) -> tuple[Any, Any, Any]:
     return scene, plan, geometry.points
 
 
-def _tile(
-    job: Job,
-    row: JobTile,
-    tracker: Tracker,
-    vocabulary: str | Vocabulary | None,
-    work: Workspace,
-    scene_hash: str | None,
-) -> TileState | None:
+def _tile(part: _Part) -> TileState | None:
     from panogs_core.pipeline.run import resolve_scene_vocabulary
     from panogs_core.tiling.runner import tile_config
     from panogs_core.tiling.tile import release_memory, run_tile
 
+    job, row, tracker, work = part.job, part.row, part.tracker, part.work
     env = tracker.env
     scene, plan, points = _scene_and_plan(work)
     tile = plan.tiles[row.tile_index]
     cfg = tile_config(env.make_config(job.config or {}))
-    vocab = resolve_scene_vocabulary(scene, vocabulary)
+    vocab = resolve_scene_vocabulary(scene, part.vocabulary)
     progress = stopping_on_storage_errors(tracker.on_progress)
-    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True, scene_hash)
+    report, stats = run_tile(scene, plan, tile, points, cfg, vocab, work.out, progress, True, part.scene_hash)
     del scene, points
     release_memory()
     tracker.push_outputs()
@@ -351,19 +349,13 @@ def _tile(
     return TileState.SUCCEEDED
 
 
-def _merge(
-    job: Job,
-    row: JobTile,
-    tracker: Tracker,
-    vocabulary: str | Vocabulary | None,
-    work: Workspace,
-    scene_hash: str | None,
-) -> TileState | None:
+def _merge(part: _Part) -> TileState | None:
     from panogs_core.pipeline.input_hash import hash_bundle
     from panogs_core.pipeline.profiling import StageStats
     from panogs_core.pipeline.run import resolve_scene_vocabulary
     from panogs_core.tiling.runner import merge_run, write_report
 
+    job, row, tracker, work, vocabulary = part.job, part.row, part.tracker, part.work, part.vocabulary
     env = tracker.env
     scene, plan, points = _scene_and_plan(work)
     vocab = resolve_scene_vocabulary(scene, vocabulary)
@@ -380,7 +372,7 @@ def _merge(
     # The work of the job (the plan, every tile and the merge, on whichever workers), not the time since it began.
     result.total_s = sum(t.wall_s for t in result.timings)
     write_report(work.out, scene, env.make_config(job.config or {}), vocabulary, plan, reports, seam_joins, result,
-                 input_hash=scene_hash or hash_bundle(scene))  # fmt: skip
+                 input_hash=part.scene_hash or hash_bundle(scene))  # fmt: skip
     tracker.push_outputs()
     merged = result.timings[-1]
     artifacts = collect_artifacts(job.id, work.out, env.storage)

@@ -188,6 +188,8 @@ class _Run:
         """The values ``spec`` reads; those it takes in a :class:`~panogs_core.pipeline.stage_table.Handover`,
         which is the run's only reference to one no later stage on this thread reads (the stages made beside hold
         their own): the stage frees it by taking it out."""
+        if not spec.takes:
+            return [self.values[name] for name in spec.reads]
         read_later = {
             name
             for later_spec in later
