@@ -13,9 +13,10 @@ file order, never densified or pruned. Here:
   ``max_primitives``. The reference never does this (it always starts from the ground-truth mesh); a service
   needs it for captures that come without a mesh.
 
-In both paths the normals are open3d ``estimate_normals`` (hybrid radius 0.1 m, 30 neighbours), NOT oriented
-(docs/method.md §4.1, pitfall 10), and the Gaussians are initialised as in docs/method.md §2: isotropic log scale
-from the mean squared distance to the 3 nearest neighbours, opacity 0.5 (logit 0).
+In both paths the normals are open3d's ``estimate_normals`` (hybrid radius 0.1 m, 30 neighbours), NOT oriented
+(docs/method.md §4.1, pitfall 10), made by :mod:`panogs_core.point_normals` without importing open3d, and the
+Gaussians are initialised as in docs/method.md §2: isotropic log scale from the mean squared distance to the 3
+nearest neighbours, opacity 0.5 (logit 0).
 
 The photometric 3DGS refinement (L1 + D-SSIM against the colour frames; docs/method.md §2, §9) is the next
 stage, :mod:`panogs_core.gaussians`, with the centres kept on the vertices by default (reference ``fix_ply``;
@@ -30,7 +31,7 @@ import sys
 import types
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +40,9 @@ from panogs_core.io.bundle import Bundle
 from panogs_core.io.npz import save_npz
 from panogs_core.progress import ProgressFn, report
 from panogs_core.types import Frame
+
+if TYPE_CHECKING:  # scipy loads with the stage's work, not with its settings (the API reads those)
+    from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 
@@ -223,8 +227,11 @@ def build_primitives(bundle: Bundle, cfg: PrimitivesConfig, *, on_progress: Prog
     else:
         points, colors = _tsdf_points(bundle, cfg, on_progress)
         source = "tsdf"
-    normals = estimate_normals(points, cfg.normal_radius, cfg.normal_max_nn)
-    scales = gaussian_log_scales(points, cfg.scale_neighbors, cfg.min_sq_distance, cfg.point_size)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.asarray(points, dtype=np.float64))  # the normals' and the scales' neighbours
+    normals = estimate_normals(points, cfg.normal_radius, cfg.normal_max_nn, tree)
+    scales = gaussian_log_scales(points, cfg.scale_neighbors, cfg.min_sq_distance, cfg.point_size, tree)
     opacities = np.zeros(points.shape[0], dtype=np.float32)  # logit(0.5) = 0; docs/method.md §2
     log.info("primitives: %d from %s", points.shape[0], source)
     return Primitives(points=points, normals=normals, colors=colors, scales=scales, opacities=opacities, source=source)
@@ -235,6 +242,7 @@ def gaussian_log_scales(
     neighbors: int = 3,
     min_sq_distance: float = 1e-7,
     point_size: float = 0.05,
+    tree: cKDTree | None = None,  # a tree of ``points`` as float64, when the caller has one
 ) -> np.ndarray:  # (N, 3) float32
     """Isotropic 3DGS log scales as in the reference initialisation (section 2).
 
@@ -260,7 +268,7 @@ def gaussian_log_scales(
     if k >= 1:
         from scipy.spatial import cKDTree
 
-        tree = cKDTree(np.asarray(points, dtype=np.float64))
+        tree = cKDTree(np.asarray(points, dtype=np.float64)) if tree is None else tree
         dist, _ = tree.query(points, k=k + 1, workers=-1)  # (N, k + 1); column 0: the point itself (or a duplicate)
         mean_sq = np.mean(np.square(dist[:, 1:]), axis=1)  # (N,)
     else:
@@ -269,16 +277,20 @@ def gaussian_log_scales(
     return np.repeat(log_scale[:, None], 3, axis=1).astype(np.float32)
 
 
-def estimate_normals(points: np.ndarray, radius: float, max_nn: int) -> np.ndarray:  # (N, 3) float32
+def estimate_normals(
+    points: np.ndarray,  # (N, 3)
+    radius: float,
+    max_nn: int,
+    tree: cKDTree | None = None,  # a tree of ``points`` as float64, when the caller has one
+) -> np.ndarray:  # (N, 3) float32
     """Unit normals by open3d's hybrid-search PCA, deliberately NOT oriented (docs/method.md §4.1, pitfall 10).
 
-    Points open3d cannot fit (fewer than 3 neighbours in ``radius``) get ``(0, 0, 1)``: every row is unit.
+    open3d's construction, signs included (:func:`panogs_core.point_normals.pca_normals`). Points it cannot fit
+    (fewer than 3 neighbours in ``radius``) get ``(0, 0, 1)``: every row is unit.
     """
-    o3d = _open3d()
+    from panogs_core.point_normals import pca_normals
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
-    normals = np.asarray(pcd.normals, dtype=np.float64)  # (N, 3)
+    normals = pca_normals(points, radius, max_nn, tree)  # (N, 3) float64
     norm = np.linalg.norm(normals, axis=1, keepdims=True)  # (N, 1)
     good = np.isfinite(norm[:, 0]) & (norm[:, 0] > 1e-6)
     out = np.empty_like(normals, dtype=np.float32)

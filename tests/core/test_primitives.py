@@ -283,8 +283,9 @@ def test_open3d_loads_without_its_plotly_viewer() -> None:
     import sys
 
     code = (
-        "import sys, numpy as np; from panogs_core.stages.primitives import _open3d, estimate_normals; "
-        "o3d = _open3d(); n = estimate_normals(np.random.default_rng(0).random((50, 3)), 0.5, 10); "
+        "import sys, numpy as np; from panogs_core.stages.primitives import _open3d; o3d = _open3d(); "
+        "c = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).random((50, 3)))); "
+        "c.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=10)); n = np.asarray(c.normals); "
         "print(sorted(m for m in ('dash', 'plotly', 'IPython') if m in sys.modules), np.allclose(np.linalg.norm(n, "
         "axis=1), 1), hasattr(o3d.t.geometry, 'VoxelBlockGrid'))"
     )
