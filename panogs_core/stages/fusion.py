@@ -59,9 +59,6 @@ log = logging.getLogger(__name__)
 
 ConfidenceMode = Literal["code", "paper", "none"]
 _CONFIDENCE_MODES = ("code", "paper", "none")
-# Primitives accumulated per step: the reused (chunk, D) float32 gather buffer (16 MB at D = 512). Torch's
-# index_add_ from it: numpy's ``sum[idx] += rows`` was 10-20x slower into a large (N, D) sum.
-_CHUNK = 8192
 # Feature-map cells per block of :func:`_frame_rows`: a (1024, 512) float32 block is 2 MB, an L2 cache's worth.
 _BLOCK = 1024
 
@@ -295,32 +292,39 @@ def _frames_by_id(bundle: Bundle, visibility: Visibility) -> list[Frame]:
 class _FeatureSum:
     """Running per-primitive sum of unit pixel features and observation count.
 
-    Each frame's unit rows (:class:`_FrameRows`) are added to their primitives with torch's ``index_add_`` on a
-    view of the numpy sum (no copy), through one reused (chunk, D) gather buffer.
+    Each frame's unit rows (:class:`_FrameRows`) are added to their primitives in one pass by scipy's CSR kernel
+    (``csr_matvecs``, which accumulates into its output and releases the interpreter lock): a matrix with one entry
+    of 1 per primitive the frame sees, times the frame's rows. Each primitive gets one ``sum += row`` per frame, in
+    frame order, as with an indexed add: the sums are the same to the bit. It replaced torch's ``index_select`` into
+    a buffer then ``index_add_`` from it, which read and wrote every added row twice (docs/benchmarks.md, "Fusion and
+    primitives speed").
     """
 
     def __init__(self, num_points: int, dim: int) -> None:
-        import torch  # here, not at module level: importing the config must stay light (no torch in the API)
-
         self.total = np.zeros((num_points, dim), dtype=np.float32)  # (N, D)
         self.count = np.zeros(num_points, dtype=np.int32)  # (N,)
-        self._total_t = torch.from_numpy(self.total)  # shares memory with self.total
-        self._buffer = torch.empty((_CHUNK, dim), dtype=torch.float32)  # (chunk, D)
+        self._row_starts = np.zeros(num_points + 1, dtype=np.int64)  # (N + 1,) the CSR rows of a frame, reused
+        self._ones = np.ones(0, dtype=np.float32)  # the matrix's entries, grown as needed
 
     def add(self, frame: _FrameRows) -> None:
         """Add one frame's unit rows to the primitives that read them."""
-        import torch
-
-        if frame.table.shape[1] != self.total.shape[1]:
-            raise ShapeError(f"features: expected {self.total.shape[1]} dimensions, got {frame.table.shape[1]}")
+        num_points, dim = self.total.shape
+        if frame.table.shape[1] != dim:
+            raise ShapeError(f"features: expected {dim} dimensions, got {frame.table.shape[1]}")
         targets, rows = frame.targets, frame.rows
         self.count[targets] += 1  # indices are unique within a frame, so fancy-index += is exact
-        table_t = torch.from_numpy(frame.table)
-        for lo in range(0, targets.size, _CHUNK):
-            n = min(_CHUNK, targets.size - lo)
-            gathered = self._buffer[:n]
-            torch.index_select(table_t, 0, torch.from_numpy(rows[lo : lo + n]), out=gathered)
-            self._total_t.index_add_(0, torch.from_numpy(targets[lo : lo + n]), gathered)
+        if targets.size > 1 and not (targets[1:] > targets[:-1]).all():  # CSR entries go in row order
+            order = np.argsort(targets)
+            targets, rows = targets[order], rows[order]
+        starts = self._row_starts
+        starts.fill(0)
+        starts[targets + 1] = 1
+        np.cumsum(starts, out=starts)  # row t holds entry starts[t] (one entry) or none
+        if self._ones.size < targets.size:
+            self._ones = np.ones(targets.size, dtype=np.float32)
+        table = np.ascontiguousarray(frame.table)
+        _csr_matvecs(num_points, table.shape[0], dim, starts, rows, self._ones[: targets.size], table.reshape(-1),
+                     self.total.reshape(-1))  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -450,3 +450,26 @@ def test_frames_on_threads_give_the_sequential_result(monkeypatch: pytest.Monkey
     for a, b in ((one.features, many.features), (one.weights, many.weights), (one.colors, many.colors)):
         assert a.tobytes() == b.tobytes()
     np.testing.assert_array_equal(one.seen_count, many.seen_count)
+
+
+@pytest.mark.parametrize("order", ["ascending", "shuffled"])
+def test_frame_rows_add_as_an_indexed_add_would(order: str) -> None:
+    """Each seen primitive gets its row added once a frame, in frame order, whatever order the frame lists them in:
+    the same bits as ``sum[targets] += table[rows]`` frame after frame."""
+    from panogs_core.stages.fusion import _CellBuffers, _FeatureSum, _FrameRows
+
+    rng = np.random.default_rng(3)
+    num_points, dim = 50, 6
+    sums, expected = _FeatureSum(num_points, dim), np.zeros((num_points, dim), np.float32)
+    seen = []
+    for _ in range(4):
+        table = rng.normal(size=(7, dim)).astype(np.float32)
+        targets = np.sort(rng.choice(num_points, 20, replace=False)).astype(np.int64)
+        if order == "shuffled":
+            targets = rng.permutation(targets)
+        rows = rng.integers(0, 7, 20).astype(np.int64)
+        sums.add(_FrameRows(table=table, targets=targets, rows=rows, buffers=_CellBuffers()))
+        expected[targets] += table[rows]
+        seen.append(targets)
+    np.testing.assert_array_equal(sums.total, expected)
+    np.testing.assert_array_equal(np.bincount(np.concatenate(seen), minlength=num_points), sums.count)
