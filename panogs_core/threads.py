@@ -12,7 +12,7 @@ set by :func:`set_torch_threads` in the process that runs the work (after any fo
 (``panogs run``, ``panogs worker``) call these with explicit numbers; the core itself reads no environment.
 
 The stages' per-frame work (visibility, fusion) runs a few frames ahead on that many threads: :func:`prefetched`,
-sized by :func:`decode_threads`.
+sized by :func:`decode_threads`; a stage made beside another that keeps a core runs on one (:func:`on_one_core`).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator, MutableMapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -132,9 +133,32 @@ def torch_threads(threads: int | None) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+_this_thread = threading.local()  # ``one_core``: set by :func:`on_one_core` for the thread it runs in
+
+
+@contextmanager
+def on_one_core() -> Iterator[None]:
+    """Inside the block, this thread's stage work asks for one thread: :func:`decode_threads` and
+    :func:`query_workers` give 1 (a stage made beside the language field's fit, which keeps the other core)."""
+    before = getattr(_this_thread, "one_core", False)
+    _this_thread.one_core = True
+    try:
+        yield
+    finally:
+        _this_thread.one_core = before
+
+
+def query_workers() -> int:
+    """``workers`` for scipy's cKDTree queries: every core (-1), or 1 in :func:`on_one_core`."""
+    return 1 if getattr(_this_thread, "one_core", False) else -1
+
+
 def decode_threads() -> int:
     """Threads for the stages' per-frame work: OpenCV's thread count (the process's, set as above), or
-    torch's where that is lower (a tile's process narrows torch's count to its share of the cores)."""
+    torch's where that is lower (a tile's process narrows torch's count to its share of the cores); 1 in
+    :func:`on_one_core`."""
+    if getattr(_this_thread, "one_core", False):
+        return 1
     import cv2
 
     threads = int(cv2.getNumThreads())

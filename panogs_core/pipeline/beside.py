@@ -1,7 +1,8 @@
 """Stages made on a thread beside a stage that keeps one core (``StageSpec.one_core``: the language field's fit).
 
 :func:`panogs_core.pipeline.run.run_pipeline` starts them when it reaches that stage and takes each at its own place
-in the stage table (docs/architecture.md, "The stage table").
+in the stage table (docs/architecture.md, "The stage table"). Each computes on one thread, in turns on the run's
+background lane with the checkpoint writes and the bundle's hash (:mod:`panogs_core.pipeline.lane`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 from panogs_core.pipeline import stage_table as st
 from panogs_core.pipeline.profiling import StageStats
 from panogs_core.pipeline.result import StageProgressFn
+from panogs_core.threads import on_one_core
 
 Made = tuple[Any, StageStats | None]  # a stage's value and, for a timed stage, what it cost
 
@@ -62,15 +64,16 @@ class Beside:
         last_reader = {name: at for at, spec in enumerate(specs) for name in spec.reads}
         at = 0
         try:
-            for at, spec in enumerate(specs):
-                value, stats = compute(spec, [values[name] for name in spec.reads], None)
-                values[spec.output] = value
-                for name in spec.reads:
-                    if last_reader[name] == at:  # the fused features, once their cosines and colours are made
-                        values.pop(name, None)
-                if stats is not None:
-                    stats.beside = self.leader
-                futures[at].set_result((value, stats))
+            with on_one_core():  # the leader keeps a core: the stages here ask for one thread each
+                for at, spec in enumerate(specs):
+                    value, stats = compute(spec, [values[name] for name in spec.reads], None)
+                    values[spec.output] = value
+                    for name in spec.reads:
+                        if last_reader[name] == at:  # the fused features, once their cosines and colours are made
+                            values.pop(name, None)
+                    if stats is not None:
+                        stats.beside = self.leader
+                    futures[at].set_result((value, stats))
         except BaseException as exc:  # raised at its place; the stages after it here are not made
             for future in futures[at:]:
                 future.set_exception(exc)

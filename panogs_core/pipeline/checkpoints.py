@@ -26,6 +26,7 @@ from typing import Any, Protocol
 from panogs_core.io.bundle import Bundle
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.input_hash import hash_bundle
+from panogs_core.pipeline.lane import background_turn
 from panogs_core.pipeline.profiling import StageStats
 from panogs_core.pipeline.stage_table import Checkpoint, StageSpec, stage_keys
 from panogs_core.snapshots import StageSnapshot
@@ -273,7 +274,8 @@ class CheckpointStore:
         """Save ``result`` as the checkpoint of ``name`` (in the writer thread: no stage changes a stage's output
         in place, so it is the output as computed) and record or store it under its key."""
         tmp = path.with_suffix(".tmp.npz")
-        result.save(tmp)
+        with background_turn():  # the file's write only: the key below may wait for the hash, which takes turns too
+            result.save(tmp)
         shared = self.shared
         key = None if shared is None else keys[name]  # the shared store files it under its key: wait for it
         with self._book:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import hashlib
 from typing import TYPE_CHECKING
 
+from panogs_core.pipeline.lane import background_turn
+
 if TYPE_CHECKING:
     from panogs_core.io.bundle import Bundle
 
@@ -33,8 +35,10 @@ def hash_bundle(scene: Bundle) -> str:
         if (scene.root / extra).is_file():
             paths.append(scene.root / extra)
     for path in paths:
-        digest.update(str(path.relative_to(scene.root)).encode())
         with open(path, "rb") as fh:
-            while chunk := fh.read(1 << 20):
-                digest.update(chunk)
+            chunk = str(path.relative_to(scene.root)).encode()  # the file's name, then its bytes
+            while chunk:
+                with background_turn():  # a chunk at a time, in turns with the run's other background work
+                    digest.update(chunk)
+                    chunk = fh.read(1 << 20)
     return digest.hexdigest()

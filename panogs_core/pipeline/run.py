@@ -13,6 +13,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
+from contextlib import AbstractContextManager, nullcontext
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +26,7 @@ from panogs_core.pipeline.beside import Beside, Made
 from panogs_core.pipeline.checkpoints import CheckpointStore, SharedCheckpoints, StageKeys
 from panogs_core.pipeline.config import PipelineConfig
 from panogs_core.pipeline.input_hash import hash_bundle
+from panogs_core.pipeline.lane import background_turn
 from panogs_core.pipeline.profiling import StageStats, StageTimer
 from panogs_core.pipeline.report import stage_rows, torch_devices, write_report
 from panogs_core.pipeline.result import (
@@ -165,7 +168,7 @@ class _Run:
                 made.add(spec.output)
         if chosen:
             inputs = {name: self.values[name] for spec in chosen for name in spec.reads if name in self.values}
-            self._beside = Beside(leader.name, chosen, inputs, self._compute)
+            self._beside = Beside(leader.name, chosen, inputs, partial(self._compute, turn=background_turn))
 
     def _take_beside(self, spec: st.StageSpec) -> Any:
         """The value of a stage made beside, at its place: its progress sent (done) and its row kept in order."""
@@ -206,22 +209,36 @@ class _Run:
                 args.append(st.Handover(self.values.pop(name)))
         return args
 
-    def _compute(self, spec: st.StageSpec, args: list[Any], sink: StageProgressFn | None) -> Made:
+    def _compute(
+        self,
+        spec: st.StageSpec,
+        args: list[Any],
+        sink: StageProgressFn | None,
+        turn: Callable[[], AbstractContextManager[Any]] = nullcontext,
+    ) -> Made:
         """The stage's value (from its checkpoint, or computed and its checkpoint written) and, for a timed stage,
-        what it cost; its progress goes to ``sink``."""
+        what it cost; its progress goes to ``sink``. The computation itself runs inside ``turn()`` (a stage made
+        beside takes a turn on the background lane for it, not for its checkpoint's look-up: :mod:`.lane`)."""
         if not spec.timed:
-            return spec.call(*args, self.cfg, _quiet), None
+            with turn():
+                return spec.call(*args, self.cfg, _quiet), None
         extra: dict[str, Any] = {}
         if spec.resumable:
             extra["snapshot"] = self.store.snapshot(spec.name, self._keys()[spec.name])
         if spec.load is None:
             if spec.own_checkpoint:
                 return self._timed(spec.name, sink, lambda rep, stats: spec.call(*args, self.cfg, rep, stats=stats))
-            return self._timed(spec.name, sink, lambda report, _: spec.call(*args, self.cfg, report, **extra))
+
+            def computed(report: ProgressFn, _: StageStats) -> Any:
+                with turn():
+                    return spec.call(*args, self.cfg, report, **extra)
+
+            return self._timed(spec.name, sink, computed)
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> Any:
             def compute() -> Any:
-                return spec.call(*args, self.cfg, report, **extra)
+                with turn():
+                    return spec.call(*args, self.cfg, report, **extra)
 
             return self.store.load_or_compute(spec, self._keys(), compute, stats)
 

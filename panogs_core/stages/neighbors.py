@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from panogs_core.errors import InputError, ShapeError
 from panogs_core.io.npz import save_npz
+from panogs_core.threads import query_workers
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,7 @@ def build_knn(points: np.ndarray, k: int) -> KnnGraph:  # points (N, 3) float
         raise InputError(f"points: a {k}-neighbour graph needs at least {k + 1} points, found {n}")
     if not np.isfinite(points).all():
         raise InputError("points: contains NaN or infinite coordinates")
-    distances, indices = cKDTree(points).query(points, k=k + 1, workers=-1)  # (N, k + 1) each
+    distances, indices = cKDTree(points).query(points, k=k + 1, workers=query_workers())  # (N, k + 1) each
     is_self = indices == np.arange(n)[:, None]
     drop = is_self.copy()
     drop[~is_self.any(axis=1), -1] = True  # self lost among > k + 1 duplicates: drop the farthest instead

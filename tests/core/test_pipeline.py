@@ -716,6 +716,81 @@ def test_the_stages_that_need_no_field_run_beside_its_fit(
 
 
 @pytest.mark.slow  # a pipeline run
+def test_the_background_work_takes_turns_on_one_lane(
+    tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stages beside the field, the checkpoint writes and the bundle's hash each hold the run's background lane
+    while they work (so at most one of them wants a core beside the fit), and a stage beside runs on one thread."""
+    import hashlib
+    import threading
+    from types import SimpleNamespace
+
+    from panogs_core.pipeline import input_hash, lane
+    from panogs_core.pipeline import run as run_module
+    from panogs_core.pipeline import stage_table as st
+    from panogs_core.stages.fusion import FusedFeatures
+    from panogs_core.threads import decode_threads, query_workers
+
+    class RecordingLock:
+        """The lane's lock, knowing which thread holds it."""
+
+        def __init__(self) -> None:
+            self._lock, self.holder = threading.Lock(), None
+
+        def __enter__(self) -> None:
+            self._lock.acquire()
+            self.holder = threading.get_ident()
+
+        def __exit__(self, *exc: object) -> None:
+            self.holder = None
+            self._lock.release()
+
+    lock = RecordingLock()
+    monkeypatch.setattr(lane, "_LANE", lock)
+    monkeypatch.setattr(run_module, "decode_threads", lambda: 2)  # two cores' worth, whatever the test's share
+    seen: dict[str, list[tuple[bool, ...]]] = {"beside": [], "write": [], "hash": []}
+
+    def mine() -> bool:
+        return lock.holder == threading.get_ident()
+
+    real_masks, real_knn, real_save = st.observe_masks, st.build_knn, FusedFeatures.save
+
+    def masks(*args: object, **kwargs: object) -> object:
+        seen["beside"].append((mine(), decode_threads() == 1))
+        return real_masks(*args, **kwargs)  # type: ignore[arg-type]
+
+    def knn(*args: object, **kwargs: object) -> object:
+        seen["beside"].append((mine(), query_workers() == 1))
+        return real_knn(*args, **kwargs)  # type: ignore[arg-type]
+
+    def save(self: FusedFeatures, path: object) -> None:
+        seen["write"].append((mine(),))
+        real_save(self, path)  # type: ignore[arg-type]
+
+    class Digest:
+        def __init__(self) -> None:
+            self._digest = hashlib.new("sha256")
+
+        def update(self, chunk: bytes) -> None:
+            seen["hash"].append((mine(),))
+            self._digest.update(chunk)
+
+        def hexdigest(self) -> str:
+            return self._digest.hexdigest()
+
+    monkeypatch.setattr(st, "observe_masks", masks)
+    monkeypatch.setattr(st, "build_knn", knn)
+    monkeypatch.setattr(FusedFeatures, "save", save)
+    monkeypatch.setattr(input_hash, "hashlib", SimpleNamespace(sha256=Digest))  # the bundle's hash only
+    run_pipeline(tiny_bundle, tmp_path, TINY_RUN_CONFIG, resume=False)
+    assert seen["beside"] == [(True, True), (True, True)]
+    assert seen["write"] == [(True,)]
+    assert seen["hash"]
+    assert all(held for (held,) in seen["hash"])
+    assert lock.holder is None
+
+
+@pytest.mark.slow  # a pipeline run
 def test_a_process_given_one_thread_runs_nothing_beside_the_field(
     tiny_bundle: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
