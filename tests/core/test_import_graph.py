@@ -56,7 +56,8 @@ LAYER_RULES: dict[str, tuple[str, ...]] = {
 FLOORS: tuple[Layer, ...] = (
     Layer(
         "base",
-        "value types, errors, progress, threads, the heap, colours, point graphs, bounded JSON, stage snapshots",
+        "value types, errors, progress, threads, the heap, colours, point graphs and normals, bounded JSON, stage "
+        "snapshots",
         (
             "panogs_core",
             "errors",
@@ -66,6 +67,7 @@ FLOORS: tuple[Layer, ...] = (
             "heap",
             "palette",
             "point_graphs",
+            "point_normals",
             "bounded_json",
             "snapshots",
         ),
