@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 _DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0])  # what open3d gives a point with fewer than 3 neighbours
 _MIN_NEIGHBOURS = 3
-_CHUNK = 16384  # points per block of the moments: (chunk, max_nn) float64 gathers stay a few MB
+_CHUNK = 16384  # points per block: its (chunk, max_nn) neighbour lists and gathers stay a few MB
 _TWO_THIRDS_PI = 2.09439510239319549
 
 
@@ -48,36 +48,41 @@ def pca_normals(
         np.float64(1.0)
     """
     points = np.asarray(points, dtype=np.float64)
-    if len(points) == 0:
-        return np.zeros((0, 3))
-    covariances = neighbourhood_covariances(points, radius, max_nn, tree)
-    return smallest_eigenvectors(covariances)
+    n = len(points)
+    normals = np.empty((n, 3))
+    if n == 0:
+        return normals
+    tree = cKDTree(points) if tree is None else tree
+    by_axis = np.ascontiguousarray(points.T)  # (3, N): each gather reads one contiguous coordinate
+    # Block by block of points: the neighbour lists (N x 30 x 16 bytes, 1.2 GB for a 2.5M-vertex building mesh) and
+    # the eigen-solver's temporaries are never held for all points at once.
+    for lo in range(0, n, _CHUNK):
+        queries = points[lo : lo + _CHUNK]
+        normals[lo : lo + len(queries)] = smallest_eigenvectors(
+            _neighbourhood_covariances(queries, by_axis, tree, radius, max_nn)
+        )
+    return normals
 
 
-def neighbourhood_covariances(
-    points: np.ndarray,  # (N, 3) float64
+def _neighbourhood_covariances(
+    queries: np.ndarray,  # (B, 3) float64, points of the tree
+    by_axis: np.ndarray,  # (3, N) float64, the tree's points, a coordinate a row
+    tree: cKDTree,
     radius: float,
     max_nn: int,
-    tree: cKDTree | None = None,
-) -> np.ndarray:  # (N, 3, 3) float64; the identity where fewer than 3 neighbours
-    """Covariance of each point's neighbourhood (its ``max_nn`` nearest points closer than ``radius``)."""
-    n = len(points)
+) -> np.ndarray:  # (B, 3, 3) float64; the identity where fewer than 3 neighbours
+    """Covariance of each query's neighbourhood (its ``max_nn`` nearest points closer than ``radius``)."""
+    n, b = by_axis.shape[1], len(queries)
     k = min(max_nn, n)
-    tree = cKDTree(points) if tree is None else tree
-    # (N, k), nearest first, the point itself included; a little beyond the radius (inf, index N past it), then
+    # (B, k), nearest first, the point itself included; a little beyond the radius (inf, index N past it), then
     # open3d's own cut d^2 < r^2. The bound halves the query's time.
-    dist, index = tree.query(points, k=k, distance_upper_bound=radius * (1.0 + 1e-6), workers=-1)
-    dist, index = dist.reshape(n, k), np.minimum(index.reshape(n, k), n - 1)
-    inside = dist * dist < radius * radius  # (N, k)
-    count = inside.sum(axis=1)  # (N,)
-    covariances = np.empty((n, 3, 3))
-    by_axis = np.ascontiguousarray(points.T)  # (3, N): each gather reads one contiguous coordinate
-    for lo in range(0, n, _CHUNK):
-        hi = min(lo + _CHUNK, n)
-        # (k, B): neighbour by neighbour, so that numpy's sums over axis 0 add them one after the other, nearest
-        # first, as open3d adds them (its sums are sequential; numpy's along a row are pairwise)
-        rows = np.ascontiguousarray(index[lo:hi].T), np.ascontiguousarray(inside[lo:hi].T)
-        covariances[lo:hi] = _moments_covariance(by_axis, *rows, count[lo:hi])
+    dist, index = tree.query(queries, k=k, distance_upper_bound=radius * (1.0 + 1e-6), workers=-1)
+    dist, index = dist.reshape(b, k), np.minimum(index.reshape(b, k), n - 1)
+    inside = dist * dist < radius * radius  # (B, k)
+    count = inside.sum(axis=1)  # (B,)
+    # (k, B): neighbour by neighbour, so that numpy's sums over axis 0 add them one after the other, nearest first, as
+    # open3d adds them (its sums are sequential; numpy's along a row are pairwise)
+    covariances = _moments_covariance(by_axis, np.ascontiguousarray(index.T), np.ascontiguousarray(inside.T), count)
     covariances[count < _MIN_NEIGHBOURS] = np.eye(3)
     return covariances
 
