@@ -737,11 +737,11 @@ def test_the_background_work_takes_turns_on_one_lane(
         def __init__(self) -> None:
             self._lock, self.holder = threading.Lock(), None
 
-        def __enter__(self) -> None:
+        def acquire(self) -> None:
             self._lock.acquire()
             self.holder = threading.get_ident()
 
-        def __exit__(self, *exc: object) -> None:
+        def release(self) -> None:
             self.holder = None
             self._lock.release()
 
