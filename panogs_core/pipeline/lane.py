@@ -23,26 +23,37 @@ import threading
 from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 
 class _TurnQueue:
     """A lock handed to its waiters in the order they came: a thread that releases it and asks again queues behind
     them (a plain ``threading.Lock`` lets it take the lock back before a woken waiter runs)."""
 
+    _handover = threading.Lock  # makes a waiter's lock (a test stands in one whose wait is interrupted)
+
     def __init__(self) -> None:
         self._book = threading.Lock()  # guards the two fields below, held for a few instructions
         self._held = False
-        self._waiting: deque[threading.Lock] = deque()  # one locked lock per waiter, released to hand it the turn
+        self._waiting: deque[Any] = deque()  # one locked lock per waiter, released to hand it the turn
 
     def acquire(self) -> None:
         with self._book:
             if not self._held:
                 self._held = True
                 return
-            handover = threading.Lock()
+            handover = self._handover()
             handover.acquire()
             self._waiting.append(handover)
-        handover.acquire()  # until the holder hands the turn over (``_held`` stays True meanwhile)
+        try:
+            handover.acquire()  # until the holder hands the turn over (``_held`` stays True meanwhile)
+        except BaseException:  # a signal's exception in the wait (a job's time limit): never strand the lane
+            with self._book:
+                if handover in self._waiting:  # not handed the turn: leave the queue
+                    self._waiting.remove(handover)
+                    raise
+            self.release()  # handed the turn as the exception came: pass it on
+            raise
 
     def release(self) -> None:
         with self._book:

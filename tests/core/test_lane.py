@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
+
 from panogs_core.pipeline.lane import _TurnQueue
 
 
@@ -57,3 +59,50 @@ def test_one_holder_at_a_time() -> None:
         thread.join(timeout=30)
     assert most[0] == 1
     assert not lane._held
+
+
+class _InterruptedWait:
+    """A waiter's lock whose wait ends in an exception (as a signal's does in the thread that waits)."""
+
+    def __init__(self) -> None:
+        self._calls = 0
+
+    def acquire(self) -> None:
+        self._calls += 1
+        if self._calls == 2:  # the first locks it, the second is the wait
+            raise KeyboardInterrupt
+
+    def release(self) -> None:
+        pass
+
+
+def test_a_waiter_whose_wait_is_interrupted_leaves_the_queue() -> None:
+    """Otherwise the turn would one day be handed to a thread that left, and the lane stay held for good."""
+    lane = _TurnQueue()
+    lane.acquire()
+    lane._handover = _InterruptedWait  # type: ignore[assignment]
+    with pytest.raises(KeyboardInterrupt):
+        lane.acquire()
+    assert not lane._waiting
+    lane.release()
+    assert not lane._held
+    lane.acquire()  # free again
+    lane.release()
+
+
+def test_a_waiter_handed_the_turn_as_its_wait_is_interrupted_passes_it_on() -> None:
+    lane = _TurnQueue()
+    lane.acquire()
+
+    class HandedThenInterrupted(_InterruptedWait):
+        def acquire(self) -> None:
+            self._calls += 1
+            if self._calls == 2:
+                lane.release()  # the holder hands this waiter the turn ...
+                raise KeyboardInterrupt  # ... as the exception comes
+
+    lane._handover = HandedThenInterrupted  # type: ignore[assignment]
+    with pytest.raises(KeyboardInterrupt):
+        lane.acquire()
+    assert not lane._waiting
+    assert not lane._held  # passed on: nobody waits, so the lane is free
