@@ -219,26 +219,24 @@ class _Run:
         """The stage's value (from its checkpoint, or computed and its checkpoint written) and, for a timed stage,
         what it cost; its progress goes to ``sink``. The computation itself runs inside ``turn()`` (a stage made
         beside takes a turn on the background lane for it, not for its checkpoint's look-up: :mod:`.lane`)."""
-        if not spec.timed:
+
+        def call(*more: Any, **named: Any) -> Any:  # the stage's own computation, in its turn
             with turn():
-                return spec.call(*args, self.cfg, _quiet), None
+                return spec.call(*args, self.cfg, *more, **named)
+
+        if not spec.timed:
+            return call(_quiet), None
         extra: dict[str, Any] = {}
         if spec.resumable:
             extra["snapshot"] = self.store.snapshot(spec.name, self._keys()[spec.name])
         if spec.load is None:
             if spec.own_checkpoint:
-                return self._timed(spec.name, sink, lambda rep, stats: spec.call(*args, self.cfg, rep, stats=stats))
-
-            def computed(report: ProgressFn, _: StageStats) -> Any:
-                with turn():
-                    return spec.call(*args, self.cfg, report, **extra)
-
-            return self._timed(spec.name, sink, computed)
+                return self._timed(spec.name, sink, lambda rep, stats: call(rep, stats=stats))
+            return self._timed(spec.name, sink, lambda report, _: call(report, **extra))
 
         def load_or_compute(report: ProgressFn, stats: StageStats) -> Any:
             def compute() -> Any:
-                with turn():
-                    return spec.call(*args, self.cfg, report, **extra)
+                return call(report, **extra)
 
             return self.store.load_or_compute(spec, self._keys(), compute, stats)
 
