@@ -154,26 +154,18 @@ def _trigonometric_smallest(a: np.ndarray, off: np.ndarray) -> np.ndarray:  # (M
 
 
 def _from_extreme(a: np.ndarray, values: np.ndarray, from_largest: bool) -> np.ndarray:  # (M, 3)
-    """The smallest eigenvalue's vector, the construction starting from the largest (or the smallest) eigenvalue."""
-    first_index = 2 if from_largest else 0
-    first = _vector_by_row_crosses(a, values[:, first_index])
-    if from_largest:
-        return _finish(a, values, first, first_is_smallest=_strictly_smallest(values, 2), last=(1, 0))
-    return _finish(a, values, first, first_is_smallest=_strictly_smallest(values, 0), last=(0, 1))
-
-
-def _finish(
-    a: np.ndarray, values: np.ndarray, first: np.ndarray, first_is_smallest: np.ndarray, last: tuple[int, int]
-) -> np.ndarray:  # (M, 3)
-    """``first`` where its eigenvalue is strictly the smallest, else the middle vector where that one is, else the
-    third as a cross product (``last`` orders its factors: (1, 0) = middle x first, (0, 1) = first x middle)."""
+    """The smallest eigenvalue's vector, built as open3d builds it from the largest eigenvalue's vector (or the
+    smallest's, by the sign of ``det / 2``): that vector where its eigenvalue is strictly the smallest, else the middle
+    one where that is, else the third as their cross product (middle x first from the largest, first x middle from
+    the smallest)."""
+    start = 2 if from_largest else 0
+    first = _vector_by_row_crosses(a, values[:, start])
     out = first.copy()
-    rest = np.flatnonzero(~first_is_smallest)
+    rest = np.flatnonzero(~_strictly_smallest(values, start))
     if rest.size == 0:
         return out
     middle = _vector_in_orthogonal_plane(a[rest], first[rest], values[rest, 1])
-    pair = (first[rest], middle)
-    third = np.cross(pair[last[0]], pair[last[1]])
+    third = np.cross(middle, first[rest]) if from_largest else np.cross(first[rest], middle)
     out[rest] = np.where(_strictly_smallest(values[rest], 1)[:, None], middle, third)
     return out
 
